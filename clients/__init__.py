@@ -1,0 +1,1 @@
+"""Clients of the fingertrack service: Python client, glove simulator, load tests."""

@@ -1,0 +1,1 @@
+"""Gesture classification (point, grasp, pinch, open) from hand frames."""

@@ -1,0 +1,1 @@
+"""fingertrack service: hand model, simulator, estimators, pipeline and API."""

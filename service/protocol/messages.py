@@ -1,0 +1,200 @@
+"""Protocol-v1 message models (pydantic) and the single place where raw input is validated.
+
+Rules (DESIGN.md "Wire protocol v1"): every message is a JSON object with a ``type``; unknown fields
+are ignored; unknown types, missing fields, non-finite numbers, wrong shapes and non-unit
+quaternions raise ``ProtocolError`` with a ``code`` and a ``detail`` naming the field, the value and
+what was expected. Callers turn it into an ``error`` reply and drop the message.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated, Iterator, Literal, Union
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
+
+PROTOCOL_VERSION = 1
+QUATERNION_NORM_TOLERANCE = 1e-3
+"""A quaternion is accepted as unit when ``|‖q‖ - 1| <= 1e-3``."""
+MAX_BATCH_SAMPLES = 4096
+"""Largest ``imu_batch`` accepted, samples."""
+
+SENSOR_ID_PATTERN = r"^(thumb|index|middle|ring|little)\.[0-2]$"
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Quat = Annotated[list[float], Field(min_length=4, max_length=4, description="[x, y, z, w], unit norm")]
+
+
+class ProtocolError(ValueError):
+    """Invalid input at the protocol edge. ``code`` is machine-readable, ``detail`` human-readable."""
+
+    def __init__(self, code: str, detail: str):
+        super().__init__(f"{code}: {detail}")
+        self.code = code
+        self.detail = detail
+
+
+def _check_unit(q: list[float] | None, name: str) -> list[float] | None:
+    if q is None:
+        return q
+    norm = math.sqrt(sum(v * v for v in q))
+    if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
+        raise ValueError(f"{name} must be a unit quaternion [x, y, z, w]; its norm is {norm:.6g}")
+    return q
+
+
+class _Message(BaseModel):
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False, frozen=True)
+
+
+class Hello(_Message):
+    type: Literal["hello"]
+    protocol: int
+    hand: Literal["right", "left"]
+    source: str = ""
+
+
+class BaseFrame(_Message):
+    position: Vec3 | None = None
+    orientation: Quat | None = None
+
+    @field_validator("orientation")
+    @classmethod
+    def _unit(cls, q):
+        return _check_unit(q, "orientation")
+
+
+class SensorCalibration(_Message):
+    id: Annotated[str, Field(pattern=SENSOR_ID_PATTERN)]
+    phalanx: Annotated[int, Field(ge=0, le=2)]
+    offset: Annotated[float, Field(ge=0.0, le=0.2)] | None = None
+    mounting: Quat = [0.0, 0.0, 0.0, 1.0]
+
+    @field_validator("mounting")
+    @classmethod
+    def _unit(cls, q):
+        return _check_unit(q, "mounting")
+
+
+class FingerCalibration(_Message):
+    lengths: Annotated[list[Annotated[float, Field(gt=0.0, lt=0.2)]], Field(min_length=2, max_length=3)] | None = None
+    base: BaseFrame | None = None
+    coupling: Annotated[float, Field(ge=0.0, le=2.0)] | None = None
+    sensors: list[SensorCalibration] | None = None
+
+
+class Calibration(_Message):
+    type: Literal["calibration"]
+    fingers: dict[Literal["thumb", "index", "middle", "ring", "little"], FingerCalibration] = {}
+
+    def overrides(self) -> dict:
+        """The ``fingers`` object with unset fields removed, for ``HandCalibration.with_overrides``."""
+        return self.model_dump(exclude_none=True)["fingers"]
+
+
+class Pose(_Message):
+    type: Literal["pose"]
+    t: float
+    position: Vec3 | None = None
+    orientation: Quat | None = None
+    valid: bool = True
+
+    @field_validator("orientation")
+    @classmethod
+    def _unit(cls, q):
+        return _check_unit(q, "orientation")
+
+    @model_validator(mode="after")
+    def _complete_when_valid(self):
+        if self.valid and (self.position is None or self.orientation is None):
+            raise ValueError("a valid pose needs both 'position' and 'orientation' (send \"valid\": false when occluded)")
+        return self
+
+
+class ImuSample(_Message):
+    t: float
+    id: Annotated[str, Field(pattern=SENSOR_ID_PATTERN)]
+    gyr: Vec3
+    acc: Vec3
+
+
+class Imu(ImuSample):
+    type: Literal["imu"]
+
+
+class ImuBatch(_Message):
+    type: Literal["imu_batch"]
+    samples: Annotated[list[ImuSample], Field(min_length=1, max_length=MAX_BATCH_SAMPLES)]
+
+
+class Truth(_Message):
+    """Simulator ground truth; the pipeline ignores it."""
+
+    type: Literal["truth"]
+    t: float
+    fingers: dict[str, dict[str, float]]
+    position: Vec3
+    orientation: Quat
+
+
+class ErrorMessage(_Message):
+    type: Literal["error"] = "error"
+    code: str
+    detail: str
+
+
+SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, Truth], Field(discriminator="type")]
+_ADAPTER: TypeAdapter = TypeAdapter(SourceMessage)
+SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "truth")
+
+
+def _describe(err: ValidationError) -> str:
+    parts = []
+    for e in err.errors(include_url=False)[:3]:
+        loc = ".".join(str(p) for p in e["loc"][1:]) or "message"
+        value = e.get("input")
+        shown = json.dumps(value, default=str)[:60] if not isinstance(value, dict) else "{...}"
+        parts.append(f"{loc}: {e['msg']} (got {shown})")
+    more = len(err.errors()) - 3
+    return "; ".join(parts) + (f"; and {more} more" if more > 0 else "")
+
+
+def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | Truth:
+    """Validate a decoded JSON value as a source message; raises ``ProtocolError``."""
+    if not isinstance(obj, dict):
+        raise ProtocolError("invalid_message", f"a message must be a JSON object, got {type(obj).__name__}")
+    kind = obj.get("type")
+    if kind not in SOURCE_TYPES:
+        raise ProtocolError("unknown_type", f"unknown message type {kind!r}; expected one of {list(SOURCE_TYPES)}")
+    try:
+        return _ADAPTER.validate_python(obj)
+    except ValidationError as err:
+        code = "non_unit_quaternion" if "unit quaternion" in str(err) else "invalid_message"
+        raise ProtocolError(code, f"{kind}: {_describe(err)}") from None
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"non-finite number {name} is not allowed")
+
+
+def parse_line(line: str | bytes):
+    """Decode one JSON text and validate it; raises ``ProtocolError`` (``invalid_json`` for bad JSON,
+    including the non-standard ``NaN``/``Infinity`` literals)."""
+    try:
+        obj = json.loads(line, parse_constant=_reject_constant)
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ProtocolError("invalid_json", f"not valid JSON: {err}") from None
+    return parse_message(obj)
+
+
+def read_recording(path: str | Path) -> Iterator[tuple[int, object]]:
+    """Yield ``(line_number, message)`` for every line of a recording; ``ProtocolError`` names the line."""
+    with open(path, encoding="utf-8") as fh:
+        for number, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                yield number, parse_line(line)
+            except ProtocolError as err:
+                raise ProtocolError(err.code, f"{path}:{number}: {err.detail}") from None

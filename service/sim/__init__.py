@@ -1,0 +1,1 @@
+"""Simulation: finger motions, hand trajectories, sensor error models and recordings with truth."""
