@@ -52,6 +52,19 @@ _MCP_X_RIGHT_M = {"index": 0.030, "middle": 0.010, "ring": -0.010, "little": -0.
 _THUMB_BASE_ROTATION = Rotation.from_euler("zy", [-45.0, -60.0], degrees=True)
 _THUMB_BASE_POSITION_RIGHT_M = (0.035, 0.045, 0.015)
 
+_DEG = np.pi / 180.0
+JOINT_LIMITS_RAD: dict[str, tuple[tuple[float, float], ...]] = {
+    # (min, max) per joint; after Hume et al. (1990) and common clinical active ranges of motion.
+    "long": ((-30 * _DEG, 90 * _DEG), (-5 * _DEG, 110 * _DEG), (-10 * _DEG, 90 * _DEG)),
+    "thumb": ((-10 * _DEG, 60 * _DEG), (-20 * _DEG, 85 * _DEG)),
+}
+"""Anatomical joint limits, rad: long fingers (MCP, PIP, DIP), thumb (MCP, IP)."""
+
+
+def joint_limits(finger: str) -> tuple[tuple[float, float], ...]:
+    return JOINT_LIMITS_RAD["thumb" if finger == "thumb" else "long"]
+
+
 JOINT_NAMES_LONG = ("mcp", "pip", "dip")
 JOINT_NAMES_THUMB = ("mcp", "ip")
 

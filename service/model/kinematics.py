@@ -70,20 +70,20 @@ def chain_point(
     """A point ``offset_m`` along phalanx ``phalanx``, in the finger base frame (eqs. 1-2 without ``a_0``).
 
     ``theta``, ``dtheta``, ``ddtheta``: phalanx angles relative to the metacarpus and their first
-    two time derivatives, shape (N, n_phalanges), rad, rad/s, rad/s².
+    two time derivatives, shape (..., n_phalanges), rad, rad/s, rad/s². Returns (..., 3) arrays.
     """
-    n = theta.shape[0]
-    pos = np.zeros((n, 3))
-    vel = np.zeros((n, 3))
-    acc = np.zeros((n, 3))
+    theta = np.asarray(theta, dtype=float)
+    pos = np.zeros(theta.shape[:-1] + (3,))
+    vel = np.zeros_like(pos)
+    acc = np.zeros_like(pos)
     for i in range(phalanx + 1):
         length = geom.lengths_m[i] if i < phalanx else offset_m
-        y = phalanx_axis(theta[:, i])
-        z = palmar_axis(theta[:, i])
-        w = dtheta[:, i : i + 1]
+        y = phalanx_axis(theta[..., i])
+        z = palmar_axis(theta[..., i])
+        w = dtheta[..., i : i + 1]
         pos += length * y                                               # eq. 1
         vel += length * w * z                                           # ω_i × r_i = l θ̇ z_i
-        acc += length * (ddtheta[:, i : i + 1] * z - w**2 * y)          # eq. 2: [ω̇_i × r_i] - ω_i² r_i
+        acc += length * (ddtheta[..., i : i + 1] * z - w**2 * y)        # eq. 2: [ω̇_i × r_i] - ω_i² r_i
     return PointMotion(pos, vel, acc)
 
 
@@ -112,7 +112,7 @@ def point_in_world(base: BaseMotion, rel: PointMotion) -> PointMotion:
 
 def sensor_rotation(geom: FingerGeometry, sensor: SensorPlacement, base: BaseMotion, theta: np.ndarray) -> np.ndarray:
     """Sensor-to-world rotation ``R_S = R_M R_B R_x(θ_i) R_mount``, shape (N,3,3)."""
-    return base.rotation @ geom.base_matrix() @ rot_x(theta[:, sensor.phalanx]) @ sensor.mounting_matrix()
+    return base.rotation @ geom.base_matrix() @ rot_x(theta[..., sensor.phalanx]) @ sensor.mounting_matrix()
 
 
 @dataclass(frozen=True)
@@ -133,7 +133,7 @@ def ideal_imu(
     world = point_in_world(base, point_in_metacarpus(geom, local))
     r_s = sensor_rotation(geom, sensor, base, theta)
     acc = apply_transpose(r_s, world.acceleration - gravity_world)       # eq. 3, DESIGN.md sign
-    joint_rate = dtheta[:, sensor.phalanx : sensor.phalanx + 1] * np.array([1.0, 0.0, 0.0])
+    joint_rate = dtheta[..., sensor.phalanx : sensor.phalanx + 1] * np.array([1.0, 0.0, 0.0])
     gyr = apply_transpose(r_s, base.angular_velocity) + joint_rate @ sensor.mounting_matrix()
     return ImuReadings(gyr, acc)
 

@@ -31,23 +31,11 @@ from typing import Callable, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..model.hand import FINGERS, LONG_FINGERS
+from ..model.hand import FINGERS, JOINT_LIMITS_RAD, LONG_FINGERS, joint_limits  # noqa: F401 (re-exported)
 from ..model.kinematics import BaseMotion
 from .signals import Modulated, QuinticStep, Signal, Sinusoid, SmoothSignal, keyframes
 
 DEG = np.pi / 180.0
-
-JOINT_LIMITS_RAD: dict[str, tuple[tuple[float, float], ...]] = {
-    # (min, max) per joint; after Hume et al. (1990) and common clinical active ranges of motion.
-    "long": ((-30 * DEG, 90 * DEG), (-5 * DEG, 110 * DEG), (-10 * DEG, 90 * DEG)),
-    "thumb": ((-10 * DEG, 60 * DEG), (-20 * DEG, 85 * DEG)),
-}
-"""Anatomical joint limits, rad: long fingers (MCP, PIP, DIP), thumb (MCP, IP)."""
-
-
-def joint_limits(finger: str) -> tuple[tuple[float, float], ...]:
-    return JOINT_LIMITS_RAD["thumb" if finger == "thumb" else "long"]
-
 
 @dataclass(frozen=True)
 class FingerMotion:

@@ -1,0 +1,259 @@
+"""The shared estimator interface, input containers, validation and the chain closure.
+
+Every finger estimator estimates the phalanx angles ``θ`` of one finger (relative to the
+metacarpus, paper section 2.1) from that finger's IMU samples and the metacarpus kinematics, and
+reports all joint angles ``φ``. It runs in two modes with the same numbers:
+
+* streaming: ``update(t, gyr, acc, hand)`` with one sample, for the live service;
+* batch: ``run(samples)`` over whole arrays, for benchmarks and replays.
+
+Arrays may carry leading batch dimensions ``B`` (independent runs processed together, as
+``dlaidig/qmt`` does): a sample is ``gyr (*B, S, 3)``, a batch ``gyr (N, *B, S, 3)``, where ``S`` is
+the number of sensors of the finger in the order of ``FingerGeometry.sensors``.
+
+The metacarpus kinematics (``BaseMotion``) come from the optical tracker: rotation (metacarpus to
+world), angular velocity, angular acceleration and the acceleration of its origin, world frame.
+"""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict
+
+from ..model.frames import DEFAULT_GRAVITY_WORLD
+from ..model.hand import FingerGeometry
+from ..model.kinematics import BaseMotion
+
+MODE_SLOW, MODE_FAST, MODE_FUSED, MODE_NO_INFO = 0, 1, 2, 3
+MODE_NAMES = ("slow", "fast", "fused", "none")
+"""Per-sensor modes: ``slow`` (vector observation), ``fast`` (gyro integration), ``fused`` (a filter
+that uses both), ``none`` (no information: the estimate is held)."""
+
+
+class EstimatorSettings(BaseModel):
+    """Base of every estimator's settings: frozen, unknown names are errors."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclass(frozen=True)
+class FingerSamples:
+    """A batch of samples of one finger: ``t`` (N,) s; ``gyr``, ``acc`` (N, *B, S, 3) rad/s and
+    m/s² (specific force); ``hand`` metacarpus kinematics with arrays (N, *B, ...)."""
+
+    t: np.ndarray
+    gyr: np.ndarray
+    acc: np.ndarray
+    hand: BaseMotion
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def sample(self, n: int) -> tuple[float, np.ndarray, np.ndarray, BaseMotion]:
+        h = self.hand
+        return (float(self.t[n]), self.gyr[n], self.acc[n],
+                BaseMotion(h.rotation[n], h.position[n], h.velocity[n], h.acceleration[n],
+                           h.angular_velocity[n], h.angular_acceleration[n]))
+
+
+@dataclass(frozen=True)
+class FingerEstimate:
+    """One output sample: phalanx angles ``theta`` and joint angles ``phi`` (*B, n) rad; per-sensor
+    ``mode`` (*B, S) codes (``MODE_NAMES``)."""
+
+    t: float
+    theta: np.ndarray
+    phi: np.ndarray
+    mode: np.ndarray
+
+
+@dataclass(frozen=True)
+class FingerTrack:
+    """Batch output: ``t`` (N,), ``theta``/``phi`` (N, *B, n) rad, ``mode`` (N, *B, S)."""
+
+    t: np.ndarray
+    theta: np.ndarray
+    phi: np.ndarray
+    mode: np.ndarray
+
+
+class ChainClosure:
+    """Joint angles from the measured phalanx angles plus couplings (DESIGN.md, paper section 2.2).
+
+    Sensor ``k`` on phalanx ``i_k`` measures ``θ_{i_k} = Σ_{j<=i_k} φ_j``. Where the sensors leave
+    joints unmeasured, couplings ``φ_{j+1} = c φ_j`` (distal first: DIP from PIP, then PIP from MCP)
+    are added until the system is determined; the least-squares solution is used when sensors are
+    redundant. ``phi = theta_sensors @ J.T``.
+    """
+
+    def __init__(self, geom: FingerGeometry, phalanx_of_sensor: list[int] | None = None):
+        n = geom.n_phalanges
+        phalanges = [s.phalanx for s in geom.sensors] if phalanx_of_sensor is None else phalanx_of_sensor
+        rows = [np.array([1.0 if j <= i else 0.0 for j in range(n)]) for i in phalanges]
+        a = np.array(rows).reshape(len(rows), n)
+        for j in range(n - 2, -1, -1):                       # φ_{j+1} - c φ_j = 0
+            if np.linalg.matrix_rank(a) >= n:
+                break
+            row = np.zeros(n)
+            row[j + 1], row[j] = 1.0, -geom.coupling
+            a = np.vstack([a, row])
+        if np.linalg.matrix_rank(a) < n:
+            raise ValueError(
+                f"finger {geom.name!r}: sensors on phalanges {sorted(phalanges)} with coupling cannot "
+                f"determine its {n} joint angles; add a sensor")
+        self.matrix = np.linalg.pinv(a)[:, : len(phalanges)]
+        self.phalanges = phalanges
+
+    def joint_angles(self, theta_sensors: np.ndarray) -> np.ndarray:
+        """``θ`` per sensor (..., S) to joint angles ``φ`` (..., n)."""
+        return theta_sensors @ self.matrix.T
+
+    @staticmethod
+    def phalanx_angles(phi: np.ndarray) -> np.ndarray:
+        return np.cumsum(phi, axis=-1)
+
+
+def _check_array(name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    arr = np.asarray(value, dtype=float)
+    if arr.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name}: contains non-finite values (NaN or infinity)")
+    return arr
+
+
+class FingerEstimator:
+    """Base class. Subclasses implement ``_init_state``, ``_step`` and optionally ``run``.
+
+    ``state`` is a dict of arrays (and floats) that can be read and restored; ``_step`` must not
+    modify the state it is given in place before every check has passed (validation happens first).
+    """
+
+    name: ClassVar[str] = ""
+    Settings: ClassVar[type[EstimatorSettings]] = EstimatorSettings
+
+    def __init__(self, geom: FingerGeometry, settings: EstimatorSettings | None = None,
+                 initial_theta: np.ndarray | None = None, batch_shape: tuple[int, ...] = (),
+                 gravity_world: np.ndarray = DEFAULT_GRAVITY_WORLD):
+        self.geom = geom
+        self.settings = settings if settings is not None else self.Settings()
+        if not isinstance(self.settings, self.Settings):
+            raise TypeError(f"{self.name}: settings must be {self.Settings.__name__}, got {type(self.settings).__name__}")
+        self.batch_shape = tuple(batch_shape)
+        self.n_sensors = len(geom.sensors)
+        if self.n_sensors == 0:
+            raise ValueError(f"finger {geom.name!r} has no sensors")
+        self.closure = ChainClosure(geom)
+        self.gravity_world = np.asarray(gravity_world, dtype=float)
+        self._initial_theta = None if initial_theta is None else np.broadcast_to(
+            np.asarray(initial_theta, dtype=float), self.batch_shape + (geom.n_phalanges,)).copy()
+        self.reset()
+
+    # -- state ------------------------------------------------------------------------------
+    def reset(self, initial_theta: np.ndarray | None = None) -> None:
+        """Forget everything; start from ``initial_theta`` (*B, n) rad if given, else from the
+        constructor's, else from the first sample."""
+        if initial_theta is not None:
+            self._initial_theta = np.broadcast_to(np.asarray(initial_theta, dtype=float),
+                                                  self.batch_shape + (self.geom.n_phalanges,)).copy()
+        self._state: dict | None = None
+        self._t_last: float | None = None
+
+    @property
+    def state(self) -> dict:
+        """A deep copy of the internal state (restorable with the setter)."""
+        return copy.deepcopy({"t_last": self._t_last, "filter": self._state})
+
+    @state.setter
+    def state(self, value: dict) -> None:
+        value = copy.deepcopy(value)
+        self._t_last = value["t_last"]
+        self._state = value["filter"]
+
+    # -- streaming ----------------------------------------------------------------------------
+    def update(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:
+        """One sample. Raises ``ValueError`` naming the bad input and leaves the state untouched."""
+        t, gyr, acc, hand = self._validate(t, gyr, acc, hand)
+        return self._advance(t, gyr, acc, hand)
+
+    def _advance(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:
+        if self._state is None:
+            theta0 = self._initial_theta
+            self._state = self._init_state(gyr, acc, hand, theta0)
+            dt = 0.0
+        else:
+            dt = t - self._t_last  # type: ignore[operator]
+        self._state, theta_sensors, mode = self._step(self._state, dt, gyr, acc, hand)
+        self._t_last = t
+        phi = self.closure.joint_angles(theta_sensors)
+        return FingerEstimate(t, ChainClosure.phalanx_angles(phi), phi, mode)
+
+    def _validate(self, t, gyr, acc, hand):
+        shape = self.batch_shape + (self.n_sensors, 3)
+        try:
+            t = float(t)
+        except (TypeError, ValueError):
+            raise ValueError(f"t: expected a number of seconds, got {t!r}") from None
+        if not np.isfinite(t):
+            raise ValueError(f"t: must be finite, got {t}")
+        if self._t_last is not None and t <= self._t_last:
+            raise ValueError(f"t: time must increase; got {t} after {self._t_last}")
+        gyr = _check_array("gyr", gyr, shape)
+        acc = _check_array("acc", acc, shape)
+        b = self.batch_shape
+        hand = BaseMotion(
+            _check_array("hand.rotation", hand.rotation, b + (3, 3)),
+            np.zeros(b + (3,)) if hand.position is None else _check_array("hand.position", hand.position, b + (3,)),
+            np.zeros(b + (3,)) if hand.velocity is None else _check_array("hand.velocity", hand.velocity, b + (3,)),
+            _check_array("hand.acceleration", hand.acceleration, b + (3,)),
+            _check_array("hand.angular_velocity", hand.angular_velocity, b + (3,)),
+            _check_array("hand.angular_acceleration", hand.angular_acceleration, b + (3,)),
+        )
+        return t, gyr, acc, hand
+
+    # -- batch --------------------------------------------------------------------------------
+    def run(self, samples: FingerSamples) -> FingerTrack:
+        """All samples in order; the same numbers as calling ``update`` on each. Validates the whole
+        batch first (shapes, finiteness, increasing time)."""
+        self._validate_batch(samples)
+        n = len(samples)
+        phi = np.empty((n,) + self.batch_shape + (self.geom.n_phalanges,))
+        mode = np.empty((n,) + self.batch_shape + (self.n_sensors,), dtype=np.int8)
+        for k in range(n):
+            est = self._advance(*samples.sample(k))
+            phi[k], mode[k] = est.phi, est.mode
+        return FingerTrack(np.asarray(samples.t, dtype=float), ChainClosure.phalanx_angles(phi), phi, mode)
+
+    def _validate_batch(self, samples: FingerSamples) -> None:
+        t = np.asarray(samples.t, dtype=float)
+        n = t.shape[0] if t.ndim == 1 else -1
+        if t.ndim != 1 or not np.all(np.isfinite(t)):
+            raise ValueError("t: expected a finite 1-D array of seconds")
+        if np.any(np.diff(t) <= 0) or (self._t_last is not None and n and t[0] <= self._t_last):
+            raise ValueError("t: time must increase from sample to sample")
+        shape = (n,) + self.batch_shape + (self.n_sensors, 3)
+        _check_array("gyr", samples.gyr, shape)
+        _check_array("acc", samples.acc, shape)
+        b = (n,) + self.batch_shape
+        _check_array("hand.rotation", samples.hand.rotation, b + (3, 3))
+        for name in ("acceleration", "angular_velocity", "angular_acceleration"):
+            _check_array(f"hand.{name}", getattr(samples.hand, name), b + (3,))
+
+    # -- to implement -------------------------------------------------------------------------
+    def _init_state(self, gyr, acc, hand, theta0) -> dict:
+        raise NotImplementedError
+
+    def _step(self, state: dict, dt: float, gyr, acc, hand) -> tuple[dict, np.ndarray, np.ndarray]:
+        """Advance by ``dt`` (0 on the first sample) and return ``(new_state, theta (*B,S), mode (*B,S))``.
+        ``theta`` here is per sensor (the phalanx angle each sensor sees)."""
+        raise NotImplementedError
+
+
+def samples_from_session(session, finger: str, hand: BaseMotion | None = None) -> FingerSamples:
+    """The samples of ``finger`` from a ``sim.session.SimulatedSession``; the metacarpus kinematics are
+    the simulator's truth unless ``hand`` is given (the paper's assumption: the metacarpus is known)."""
+    idx = [session.sensor_index(s.id) for s in session.calibration.finger(finger).sensors]
+    return FingerSamples(session.t, session.gyr[:, idx], session.acc[:, idx], session.base if hand is None else hand)

@@ -1,0 +1,148 @@
+"""What one finger's IMUs say about its phalanx angles, shared by every estimator.
+
+* ``relative_rate`` (paper 2.2.3 with a moving hand): the phalanx's angular rate relative to the
+  metacarpus about the hinge axis, ``θ̇_k = x·(R_mount ω_S) - x·(R_Bᵀ R_Mᵀ ω_M)``: the gyro minus
+  the hand's angular velocity from the optical pose. It does not depend on ``θ`` (rotation about
+  ``x`` leaves ``x`` fixed), so integrating it is exact in the planar model.
+* ``reference_force`` (eqs. 2 and 5 with a moving hand): the specific force the sensor would read if
+  its phalanx were at ``θ = 0``, expressed in the finger base frame:
+  ``u_k = R_Bᵀ R_Mᵀ (a_k - g)`` with ``a_k`` the sensor's world acceleration. With ``finger_rates``
+  it includes the finger's own acceleration (the paper's ``g_k`` of eq. 11); without, only the
+  hand's (the paper's ``a_0`` of 2.2.2, plus the hand's rotation terms at the sensor's position).
+* ``vector_angle`` (2.2.2): ``f_k ≈ R_x(θ)ᵀ u_k`` gives ``θ = atan2(u_z, u_y) - atan2(f_z, f_y)``.
+  The in-plane magnitude ``|u_yz|`` measures how much information it carries (eq. 7): zero when the
+  flexion plane is horizontal.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..model.frames import apply_transpose
+from ..model.hand import FingerGeometry, joint_limits
+from ..model.kinematics import BaseMotion
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Wrap to ``(-π, π]``."""
+    return np.pi - np.mod(np.pi - a, 2.0 * np.pi)
+
+
+class FingerObservations:
+    """Constants of one finger's sensors and the observation functions (module docstring).
+
+    Shapes: ``gyr``/``acc`` (..., S, 3); hand arrays (..., 3) / (..., 3, 3); phalanx angles (..., n).
+    """
+
+    def __init__(self, geom: FingerGeometry):
+        self.geom = geom
+        self.mount = np.stack([s.mounting_matrix() for s in geom.sensors])          # (S,3,3) sensor->phalanx
+        self.hinge_in_sensor = self.mount[:, 0, :]                                   # x of the phalanx, sensor coords
+        self.base = geom.base_matrix()                                               # finger base -> metacarpus
+        self.phalanx = np.array([s.phalanx for s in geom.sensors])
+        self.offset = np.array([s.offset_m for s in geom.sensors])
+        self.base_position = np.asarray(geom.base_position_m)
+        self.max_length = max(geom.lengths_m)
+        n = geom.n_phalanges
+        # _lever[k, j]: length of phalanx j on the way from the MCP joint to sensor k (eq. 1)
+        self._lever = np.array([[geom.lengths_m[j] if j < s.phalanx else (s.offset_m if j == s.phalanx else 0.0)
+                                 for j in range(n)] for s in geom.sensors])
+        # _prefix[k, j] = 1 if phalanx j lies between the metacarpus and sensor k's phalanx (eq. 6)
+        self._prefix = (self._lever > 0) | (np.arange(n)[None, :] <= self.phalanx[:, None])
+        self._chain_factor = (self.phalanx + 1) * self.max_length                    # (i_k + 1) l_max
+        # each sensor's phalanx angle lies in the sum of the joint ranges up to it; angles are
+        # reported on the 2π branch centred on that range
+        limits = np.array(joint_limits(geom.name))
+        lo = np.array([limits[: i + 1, 0].sum() for i in self.phalanx])
+        hi = np.array([limits[: i + 1, 1].sum() for i in self.phalanx])
+        self.branch_low = 0.5 * (lo + hi) - np.pi
+
+    def to_branch(self, theta: np.ndarray) -> np.ndarray:
+        """Per-sensor angles (..., S) onto the anatomical 2π branch."""
+        return self.branch_low + np.mod(theta - self.branch_low, 2.0 * np.pi)
+
+    def relative_rate(self, gyr: np.ndarray, hand: BaseMotion) -> np.ndarray:
+        """Hinge-axis angular rate of each phalanx relative to the metacarpus (..., S), rad/s."""
+        own = np.einsum("sj,...sj->...s", self.hinge_in_sensor, gyr)
+        hand_in_base = apply_transpose(hand.rotation, hand.angular_velocity) @ self.base   # (..., 3): R_Bᵀ R_Mᵀ ω_M
+        return own - hand_in_base[..., None, 0]
+
+    def phalanx_force(self, acc: np.ndarray) -> np.ndarray:
+        """Specific force in each phalanx frame (..., S, 3): ``R_mount f``."""
+        return np.einsum("sij,...sj->...si", self.mount, acc)
+
+    def hinge_axis_world(self, hand: BaseMotion) -> np.ndarray:
+        """The flexion-plane normal (hinge axis ``x``) in the world frame (..., 3)."""
+        return hand.rotation @ self.base[:, 0]
+
+    def reference_force_metacarpus(self, hand: BaseMotion, theta: np.ndarray, gravity_world: np.ndarray,
+                                   dtheta: np.ndarray | None = None, ddtheta: np.ndarray | None = None) -> np.ndarray:
+        """``R_Mᵀ (a_k - g)`` (..., S, 3): the specific force of sensor ``k`` at phalanx angles ``theta``
+        (..., n) in the metacarpus frame (``model.kinematics`` formula, all sensors at once):
+        ``R_Mᵀ(a_M - g) + α×ρ + ω×(ω×ρ) + 2 ω×ρ' + ρ''`` with hand rates in metacarpus coordinates."""
+        c, s = np.cos(theta), np.sin(theta)
+        y = np.stack([np.zeros_like(c), c, s], axis=-1)                              # y_j (..., n, 3)
+        rho = self.base_position + (np.einsum("sj,...jk->...sk", self._lever, y) @ self.base.T)
+        rot_t = np.swapaxes(hand.rotation, -1, -2)
+        w = np.einsum("...ij,...j->...i", rot_t, hand.angular_velocity)[..., None, :]
+        dw = np.einsum("...ij,...j->...i", rot_t, hand.angular_acceleration)[..., None, :]
+        lin = np.einsum("...ij,...j->...i", rot_t, hand.acceleration - gravity_world)[..., None, :]
+        out = lin + np.cross(dw, rho) + np.cross(w, np.cross(w, rho))
+        if dtheta is not None:
+            z = np.stack([np.zeros_like(c), -s, c], axis=-1)                         # z_j = dy_j/dθ_j
+            vel = np.einsum("sj,...jk->...sk", self._lever, dtheta[..., None] * z) @ self.base.T
+            out = out + 2.0 * np.cross(w, vel)
+            if ddtheta is not None:
+                acc = ddtheta[..., None] * z - dtheta[..., None] ** 2 * y              # eq. 2 terms
+                out = out + np.einsum("sj,...jk->...sk", self._lever, acc) @ self.base.T
+        return out
+
+    def reference_force_world(self, hand: BaseMotion, theta: np.ndarray, gravity_world: np.ndarray,
+                              dtheta: np.ndarray | None = None, ddtheta: np.ndarray | None = None) -> np.ndarray:
+        """``a_k - g`` (..., S, 3) in the world frame (the accelerometer reference of eq. 11)."""
+        m = self.reference_force_metacarpus(hand, theta, gravity_world, dtheta, ddtheta)
+        return np.einsum("...ij,...sj->...si", hand.rotation, m)
+
+    def reference_force(self, hand: BaseMotion, theta: np.ndarray, gravity_world: np.ndarray,
+                        dtheta: np.ndarray | None = None, ddtheta: np.ndarray | None = None) -> np.ndarray:
+        """``u_k = R_Bᵀ R_Mᵀ (a_k - g)`` (..., S, 3) in the finger base frame."""
+        return self.reference_force_metacarpus(hand, theta, gravity_world, dtheta, ddtheta) @ self.base
+
+    def acceleration_bound(self, closure, rates: np.ndarray, rate_changes: np.ndarray) -> np.ndarray:
+        """``|μ̂|`` of eq. 6 per sensor (..., S), m/s²: ``(i_k + 1) l_max √(ω̇_max² + ω_max⁴)`` with the
+        largest relative rate and rate change of phalanges ``0..i_k`` (unmeasured ones from ``closure``)."""
+        w_all = np.abs(np.cumsum(closure.joint_angles(rates), axis=-1))
+        dw_all = np.abs(np.cumsum(closure.joint_angles(rate_changes), axis=-1))
+        w_max = np.max(w_all[..., None, :] * self._prefix, axis=-1)
+        dw_max = np.max(dw_all[..., None, :] * self._prefix, axis=-1)
+        return self._chain_factor * np.sqrt(dw_max**2 + w_max**4)
+
+    def vector_angle(self, force_phalanx: np.ndarray, reference: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(θ (..., S), |u_yz| (..., S))``: phalanx angle from the in-plane direction of the specific
+        force (2.2.2, the paper's ``atan2``), on the anatomical branch, and the in-plane magnitude of
+        the reference (eq. 7)."""
+        theta = self.to_branch(np.arctan2(reference[..., 2], reference[..., 1])
+                               - np.arctan2(force_phalanx[..., 2], force_phalanx[..., 1]))
+        return theta, np.hypot(reference[..., 1], reference[..., 2])
+
+    def sensor_theta_to_rotation(self, hand: BaseMotion, theta_sensor: np.ndarray) -> np.ndarray:
+        """Sensor-to-world rotations (..., S, 3, 3) for per-sensor phalanx angles (..., S)."""
+        c, s = np.cos(theta_sensor), np.sin(theta_sensor)
+        rx = np.zeros(theta_sensor.shape + (3, 3))
+        rx[..., 0, 0] = 1.0
+        rx[..., 1, 1], rx[..., 1, 2], rx[..., 2, 1], rx[..., 2, 2] = c, -s, s, c
+        rb = hand.rotation @ self.base                                               # (..., 3, 3)
+        return rb[..., None, :, :] @ rx @ self.mount
+
+    def rotation_to_sensor_theta(self, hand: BaseMotion, r_sensor: np.ndarray, previous: np.ndarray) -> np.ndarray:
+        """Phalanx angle (..., S) from sensor-to-world rotations (..., S, 3, 3): the flexion of
+        ``R_Bᵀ R_Mᵀ R_S R_mountᵀ`` (robust to out-of-plane error), unwrapped next to ``previous``."""
+        rb = hand.rotation @ self.base
+        rel = np.swapaxes(rb, -1, -2)[..., None, :, :] @ r_sensor @ np.swapaxes(self.mount, -1, -2)
+        raw = np.arctan2(rel[..., 2, 1] - rel[..., 1, 2], rel[..., 1, 1] + rel[..., 2, 2])
+        return previous + wrap_angle(raw - previous)
+
+    @staticmethod
+    def chain(closure, *per_sensor: np.ndarray) -> tuple[np.ndarray, ...]:
+        """Per-sensor quantities (..., S) (angles, rates, rate changes) to every phalanx (..., n)
+        through the chain closure (linear, so rates and accelerations close like angles)."""
+        return tuple(np.cumsum(closure.joint_angles(x), axis=-1) for x in per_sensor)

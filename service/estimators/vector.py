@@ -1,0 +1,77 @@
+"""Vector observation (paper 2.2.2): each phalanx angle from the direction of the specific force in
+the flexion plane, with the hand's acceleration removed.
+
+``θ_k = atan2(u_z, u_y) - atan2(f_z, f_y)`` (the paper's ``atan2(f'_3, f'_2)`` generalised to a
+hand in any orientation; ``observations.vector_angle``). The finger's own acceleration ``μ`` is
+neglected (eq. 5: valid for slow motion). The hand's rotation terms at the sensor need the sensor's
+position, which needs ``θ``: two passes, the first with the finger straight, the second at the
+first pass's angles; the same two passes in streaming and batch mode, so no state is involved.
+
+When the flexion plane is nearly horizontal (``|u_yz| < min_inplane_m_s2``, eq. 7) the observation
+carries no information: the last informative estimate is held and the mode is ``none``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from ..model.kinematics import BaseMotion
+from .base import MODE_NO_INFO, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack, ChainClosure
+from .observations import FingerObservations
+
+
+class VectorSettings(EstimatorSettings):
+    min_inplane_m_s2: float = Field(1.0, gt=0.0, description="below this in-plane reference magnitude, m/s², "
+                                    "the observation is declared uninformative (eq. 7)")
+
+
+class VectorObservation(FingerEstimator):
+    name = "vector"
+    Settings = VectorSettings
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.obs = FingerObservations(self.geom)
+
+    def observe(self, acc: np.ndarray, hand: BaseMotion) -> tuple[np.ndarray, np.ndarray]:
+        """``(θ per sensor, in-plane magnitude)`` for samples (..., S, 3); vectorised over ``...``."""
+        f = self.obs.phalanx_force(acc)
+        n = self.geom.n_phalanges
+        theta_all = np.zeros(acc.shape[:-2] + (n,))
+        for _ in range(2):
+            u = self.obs.reference_force(hand, theta_all, self.gravity_world)
+            theta_s, inplane = self.obs.vector_angle(f, u)
+            theta_all = ChainClosure.phalanx_angles(self.closure.joint_angles(theta_s))
+        return theta_s, inplane
+
+    def _init_state(self, gyr, acc, hand, theta0):
+        held = np.zeros(self.batch_shape + (self.n_sensors,)) if theta0 is None else theta0[..., self.obs.phalanx]
+        return {"held": held}
+
+    def _step(self, state, dt, gyr, acc, hand):
+        theta, inplane = self.observe(acc, hand)
+        informative = inplane >= self.settings.min_inplane_m_s2
+        held = np.where(informative, theta, state["held"])
+        return {"held": held}, held, np.where(informative, MODE_SLOW, MODE_NO_INFO).astype(np.int8)
+
+    def run(self, samples: FingerSamples) -> FingerTrack:
+        """Vectorised over all samples at once; holds uninformative samples like ``update`` does."""
+        self._validate_batch(samples)
+        n = len(samples)
+        if n == 0:
+            return super().run(samples)
+        if self._state is None:
+            first = samples.sample(0)
+            self._state = self._init_state(first[1], first[2], first[3], self._initial_theta)
+        theta, inplane = self.observe(samples.acc, samples.hand)
+        informative = inplane >= self.settings.min_inplane_m_s2
+        # forward-fill the last informative value (index of the last informative sample so far)
+        idx = np.where(informative, np.arange(n).reshape((n,) + (1,) * (theta.ndim - 1)), -1)
+        idx = np.maximum.accumulate(idx, axis=0)
+        filled = np.take_along_axis(theta, np.maximum(idx, 0), axis=0)
+        held = np.where(idx >= 0, filled, self._state["held"])
+        self._state = {"held": held[-1].copy()}
+        self._t_last = float(samples.t[-1])
+        mode = np.where(informative, MODE_SLOW, MODE_NO_INFO).astype(np.int8)
+        phi = self.closure.joint_angles(held)
+        return FingerTrack(np.asarray(samples.t, dtype=float), ChainClosure.phalanx_angles(phi), phi, mode)
