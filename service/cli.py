@@ -45,6 +45,87 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _parse_params(pairs: list[str], beta: float | None) -> dict:
+    params: dict = {}
+    for pair in pairs:
+        if "=" not in pair:
+            raise ValueError(f"--param expects NAME=VALUE, got {pair!r}")
+        name, value = pair.split("=", 1)
+        params[name.strip()] = value.strip()
+    if beta is not None:
+        params["beta"] = beta
+    return params
+
+
+def finger_mode(modes: np.ndarray) -> str:
+    """One word for a finger from its sensors' modes: fast if any sensor integrates, none if any has
+    no information, slow if all observe, else fused."""
+    from .estimators.base import MODE_FAST, MODE_NAMES, MODE_NO_INFO, MODE_SLOW
+    if np.any(modes == MODE_FAST):
+        return MODE_NAMES[MODE_FAST]
+    if np.any(modes == MODE_NO_INFO):
+        return MODE_NAMES[MODE_NO_INFO]
+    if np.all(modes == MODE_SLOW):
+        return MODE_NAMES[MODE_SLOW]
+    return "fused"
+
+
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    from .estimators.registry import REGISTRY, estimator_class
+
+    if args.list:
+        for name, cls in REGISTRY.items():
+            doc = (cls.__module__ and __import__(cls.__module__, fromlist=["_"]).__doc__ or "").strip().splitlines()
+            print(f"{name}\t{doc[0] if doc else ''}")
+        return 0
+    if not args.recording or not args.out:
+        raise ValueError("estimate needs a recording and --out (or --list)")
+    from pydantic import ValidationError
+
+    from .model.hand import joint_to_phalanx_angles
+    from .pipeline.offline import load_recording
+
+    cls = estimator_class(args.estimator)
+    try:
+        settings = cls.Settings(**_parse_params(args.param, args.beta))
+    except ValidationError as err:
+        raise ValueError(f"estimator {args.estimator!r} settings: {err}") from None
+    rec = load_recording(args.recording)
+    rows = []
+    report = []
+    for finger, geom in rec.calibration.fingers.items():
+        samples, dropped = rec.finger_samples(finger)
+        truth = rec.truth_angles(finger, samples.t)
+        initial = None
+        if args.init_from_truth:
+            if truth is None:
+                raise ValueError("--init-from-truth: the recording has no truth for every sample")
+            initial = joint_to_phalanx_angles(truth[0])
+        track = cls(geom, settings=settings, initial_theta=initial).run(samples)
+        for k in range(len(track.t)):
+            phi = track.phi[k]
+            cells = [f"{v:.9g}" for v in phi] + [""] * (3 - len(phi))
+            rows.append(f"{track.t[k]:.9g},{finger},{','.join(cells)},{finger_mode(track.mode[k])}")
+        if args.truth:
+            if truth is None:
+                report.append(f"  {finger:<7} no truth in the recording")
+            else:
+                rms = np.degrees(np.sqrt(np.mean((track.phi - truth) ** 2, axis=0)))
+                cells = "  ".join(f"{n} {v:7.3f}" for n, v in zip(geom.joint_names, rms))
+                report.append(f"  {finger:<7} {cells}")
+        if dropped:
+            report.append(f"  {finger:<7} {dropped} incomplete IMU ticks dropped")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("t,finger,mcp,pip,dip,mode\n" + "\n".join(rows) + "\n")
+    print(f"wrote {out}: {len(rows)} rows, estimator {args.estimator}")
+    if report:
+        if args.truth:
+            print("RMS error per joint, degrees:")
+        print("\n".join(report))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fingertrack", description="Finger tracking for VR hand interaction.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -60,6 +141,17 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-truth", action="store_true", help="leave out the truth messages")
     sim.add_argument("--out", required=True, help="output recording, JSON Lines")
     sim.set_defaults(func=_cmd_simulate)
+
+    est = sub.add_parser("estimate", help="run a recording through an estimator and write joint angles as CSV")
+    est.add_argument("recording", nargs="?", help="protocol-v1 recording, JSON Lines")
+    est.add_argument("--estimator", default="chain", help="estimator name (see --list; default chain)")
+    est.add_argument("--list", action="store_true", help="list the estimators, one per line, name first")
+    est.add_argument("--beta", type=float, default=None, help="Madgwick gain beta, rad/s")
+    est.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any estimator setting")
+    est.add_argument("--truth", action="store_true", help="print RMS error per joint in degrees (needs truth)")
+    est.add_argument("--init-from-truth", action="store_true", help="start from the recording's true initial configuration")
+    est.add_argument("--out", help="output CSV: t,finger,mcp,pip,dip,mode (radians)")
+    est.set_defaults(func=_cmd_estimate)
     return parser
 
 
@@ -68,7 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError) as err:  # ProtocolError is a ValueError
         print(f"fingertrack {args.command}: error: {err}", file=sys.stderr)
         return 2
 

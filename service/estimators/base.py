@@ -81,28 +81,31 @@ class FingerTrack:
 
 
 class ChainClosure:
-    """Joint angles from the measured phalanx angles plus couplings (DESIGN.md, paper section 2.2).
+    """Joint angles from the measured phalanx angles plus the coupling (DESIGN.md, paper section 2.2).
 
-    Sensor ``k`` on phalanx ``i_k`` measures ``θ_{i_k} = Σ_{j<=i_k} φ_j``. Where the sensors leave
-    joints unmeasured, couplings ``φ_{j+1} = c φ_j`` (distal first: DIP from PIP, then PIP from MCP)
-    are added until the system is determined; the least-squares solution is used when sensors are
-    redundant. ``phi = theta_sensors @ J.T``.
+    Sensor ``k`` on phalanx ``i_k`` measures ``θ_{i_k} = Σ_{j<=i_k} φ_j``. Where that leaves a long
+    finger's joints undetermined, the coupling ``φ_DIP = c φ_PIP`` is added; ``extra_couplings``
+    ``[(j, c_j), ...]`` (meaning ``φ_{j+1} = c_j φ_j``) may add more, e.g. as a fallback when a sensor
+    is silent. The least-squares solution is used when sensors are redundant.
+    ``phi = theta_sensors @ matrix.T``.
     """
 
-    def __init__(self, geom: FingerGeometry, phalanx_of_sensor: list[int] | None = None):
+    def __init__(self, geom: FingerGeometry, phalanx_of_sensor: list[int] | None = None,
+                 extra_couplings: list[tuple[int, float]] = ()):
         n = geom.n_phalanges
         phalanges = [s.phalanx for s in geom.sensors] if phalanx_of_sensor is None else phalanx_of_sensor
         rows = [np.array([1.0 if j <= i else 0.0 for j in range(n)]) for i in phalanges]
         a = np.array(rows).reshape(len(rows), n)
-        for j in range(n - 2, -1, -1):                       # φ_{j+1} - c φ_j = 0
+        couplings = ([(1, geom.coupling)] if n == 3 else []) + list(extra_couplings)
+        for j, c in couplings:                               # φ_{j+1} - c φ_j = 0
             if np.linalg.matrix_rank(a) >= n:
                 break
             row = np.zeros(n)
-            row[j + 1], row[j] = 1.0, -geom.coupling
+            row[j + 1], row[j] = 1.0, -c
             a = np.vstack([a, row])
         if np.linalg.matrix_rank(a) < n:
             raise ValueError(
-                f"finger {geom.name!r}: sensors on phalanges {sorted(phalanges)} with coupling cannot "
+                f"finger {geom.name!r}: sensors on phalanges {sorted(phalanges)} with the coupling cannot "
                 f"determine its {n} joint angles; add a sensor")
         self.matrix = np.linalg.pinv(a)[:, : len(phalanges)]
         self.phalanges = phalanges

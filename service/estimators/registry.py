@@ -2,13 +2,16 @@
 from __future__ import annotations
 
 from .base import FingerEstimator
+from .cf import Complementary
+from .chain import Chain
+from .ekf import Ekf
 from .integration import GyroIntegration
 from .madgwick import Madgwick
 from .switching import Switching
 from .vector import VectorObservation
 
 REGISTRY: dict[str, type[FingerEstimator]] = {
-    cls.name: cls for cls in (VectorObservation, GyroIntegration, Switching, Madgwick)
+    cls.name: cls for cls in (VectorObservation, GyroIntegration, Switching, Madgwick, Ekf, Complementary, Chain)
 }
 
 

@@ -1,0 +1,88 @@
+"""Whole recordings as arrays, for the ``estimate`` command and benchmarks.
+
+A recording (DESIGN.md) is read with the protocol models; every line must be valid. IMU samples
+are grouped by timestamp: a finger's sample at time ``t`` needs all of that finger's sensors (a tick
+where one is missing is dropped for that finger and counted).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..estimators.base import FingerSamples
+from ..model.hand import HandCalibration, default_calibration
+from ..model.kinematics import BaseMotion
+from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, Truth, read_recording
+from .optical import hand_kinematics_offline
+
+
+@dataclass
+class Recording:
+    calibration: HandCalibration
+    imu: dict[float, dict[str, tuple[list[float], list[float]]]] = field(default_factory=dict)
+    pose_t: list[float] = field(default_factory=list)
+    pose_position: list[list[float]] = field(default_factory=list)
+    pose_orientation: list[list[float]] = field(default_factory=list)
+    pose_valid: list[bool] = field(default_factory=list)
+    truth: dict[float, dict[str, dict[str, float]]] = field(default_factory=dict)
+
+    def finger_samples(self, finger: str) -> tuple[FingerSamples, int]:
+        """``(samples, dropped_ticks)`` of ``finger``; hand kinematics from the optical poses."""
+        ids = [s.id for s in self.calibration.finger(finger).sensors]
+        times = sorted(t for t, group in self.imu.items() if all(i in group for i in ids))
+        dropped = sum(1 for group in self.imu.values() if any(i in group for i in ids)) - len(times)
+        if not times:
+            raise ValueError(f"the recording has no complete IMU sample of finger {finger!r} (sensors {ids})")
+        t = np.array(times)
+        gyr = np.array([[self.imu[x][i][0] for i in ids] for x in times])
+        acc = np.array([[self.imu[x][i][1] for i in ids] for x in times])
+        hand = self.hand_motion(t)
+        return FingerSamples(t, gyr, acc, hand), dropped
+
+    def hand_motion(self, t: np.ndarray) -> BaseMotion:
+        if not self.pose_t:
+            raise ValueError("the recording has no optical pose messages; the metacarpus pose is required")
+        valid = np.array(self.pose_valid)
+        pos = np.array([p if v else [0.0, 0.0, 0.0] for p, v in zip(self.pose_position, valid)])
+        ori = np.array([o if v else [0.0, 0.0, 0.0, 1.0] for o, v in zip(self.pose_orientation, valid)])
+        return hand_kinematics_offline(np.array(self.pose_t), pos, ori, valid, t)
+
+    def truth_angles(self, finger: str, t: np.ndarray) -> np.ndarray | None:
+        names = self.calibration.finger(finger).joint_names
+        rows = [self.truth.get(float(x), {}).get(finger) for x in t]
+        if any(r is None for r in rows):
+            return None
+        return np.array([[r[n] for n in names] for r in rows])  # type: ignore[index]
+
+
+def load_recording(path: str | Path) -> Recording:
+    """Read a protocol-v1 recording; raises ``ProtocolError``/``ValueError`` naming the problem."""
+    hand = None
+    rec: Recording | None = None
+    for number, msg in read_recording(path):
+        if isinstance(msg, Hello):
+            hand = msg.hand
+            continue
+        if rec is None:
+            if hand is None:
+                raise ValueError(f"{path}:{number}: the recording must start with a hello message")
+            rec = Recording(default_calibration(hand))
+        if isinstance(msg, Calibration):
+            rec.calibration = rec.calibration.with_overrides(msg.overrides())
+        elif isinstance(msg, Imu):
+            rec.imu.setdefault(msg.t, {})[msg.id] = (msg.gyr, msg.acc)
+        elif isinstance(msg, ImuBatch):
+            for s in msg.samples:
+                rec.imu.setdefault(s.t, {})[s.id] = (s.gyr, s.acc)
+        elif isinstance(msg, Pose):
+            rec.pose_t.append(msg.t)
+            rec.pose_valid.append(msg.valid)
+            rec.pose_position.append(msg.position or [0.0, 0.0, 0.0])
+            rec.pose_orientation.append(msg.orientation or [0.0, 0.0, 0.0, 1.0])
+        elif isinstance(msg, Truth):
+            rec.truth[msg.t] = msg.fingers
+    if rec is None:
+        raise ValueError(f"{path}: no messages after hello")
+    return rec
