@@ -126,6 +126,15 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.which == "paper":
+        from .bench import paper
+        print(paper.run(args.out, quick=args.quick, seeds=args.seeds, workers=args.workers))
+        print(f"\nwrote {args.out}/results.csv, summary.md, fig10.png, fig9.png")
+        return 0
+    raise ValueError(f"unknown benchmark {args.which!r}")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="fingertrack", description="Finger tracking for VR hand interaction.")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -152,6 +161,14 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("--init-from-truth", action="store_true", help="start from the recording's true initial configuration")
     est.add_argument("--out", help="output CSV: t,finger,mcp,pip,dip,mode (radians)")
     est.set_defaults(func=_cmd_estimate)
+
+    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment")
+    bench.add_argument("which", choices=("paper",), help="which benchmark")
+    bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
+    bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")
+    bench.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
+    bench.add_argument("--out", required=True, help="output folder")
+    bench.set_defaults(func=_cmd_bench)
     return parser
 
 

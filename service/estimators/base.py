@@ -26,6 +26,7 @@ from pydantic import BaseModel, ConfigDict
 from ..model.frames import DEFAULT_GRAVITY_WORLD
 from ..model.hand import FingerGeometry
 from ..model.kinematics import BaseMotion
+from .observations import FingerObservations
 
 MODE_SLOW, MODE_FAST, MODE_FUSED, MODE_NO_INFO = 0, 1, 2, 3
 MODE_NAMES = ("slow", "fast", "fused", "none")
@@ -150,6 +151,7 @@ class FingerEstimator:
         if self.n_sensors == 0:
             raise ValueError(f"finger {geom.name!r} has no sensors")
         self.closure = ChainClosure(geom)
+        self._branch_low = FingerObservations(geom).branch_low
         self.gravity_world = np.asarray(gravity_world, dtype=float)
         self._initial_theta = None if initial_theta is None else np.broadcast_to(
             np.asarray(initial_theta, dtype=float), self.batch_shape + (geom.n_phalanges,)).copy()
@@ -191,7 +193,7 @@ class FingerEstimator:
             dt = t - self._t_last  # type: ignore[operator]
         self._state, theta_sensors, mode = self._step(self._state, dt, gyr, acc, hand)
         self._t_last = t
-        phi = self.closure.joint_angles(theta_sensors)
+        phi = self.closure.joint_angles(self._branch(theta_sensors))
         return FingerEstimate(t, ChainClosure.phalanx_angles(phi), phi, mode)
 
     def _validate(self, t, gyr, acc, hand):
@@ -244,6 +246,16 @@ class FingerEstimator:
         _check_array("hand.rotation", samples.hand.rotation, b + (3, 3))
         for name in ("acceleration", "angular_velocity", "angular_acceleration"):
             _check_array(f"hand.{name}", getattr(samples.hand, name), b + (3,))
+
+    def _branch(self, theta_sensors: np.ndarray) -> np.ndarray:
+        """Reported angles lie on each phalanx's anatomical 2π branch (``FingerObservations.to_branch``):
+        a filter that has lost track never reports a joint turned by whole revolutions. Internal states
+        (an integrator's running angle) are not wrapped."""
+        return self._branch_low + np.mod(theta_sensors - self._branch_low, 2.0 * np.pi)
+
+    def _track(self, t: np.ndarray, theta_sensors: np.ndarray, mode: np.ndarray) -> FingerTrack:
+        phi = self.closure.joint_angles(self._branch(theta_sensors))
+        return FingerTrack(np.asarray(t, dtype=float), ChainClosure.phalanx_angles(phi), phi, mode)
 
     # -- to implement -------------------------------------------------------------------------
     def _init_state(self, gyr, acc, hand, theta0) -> dict:

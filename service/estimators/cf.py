@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from .base import MODE_FUSED, ChainClosure, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import initial_sensor_theta, rk4_step_linear_rate
 from .observations import FingerObservations
 from .vector import VectorObservation
@@ -75,5 +75,4 @@ class Complementary(FingerEstimator):
         for k in range(n):
             state, theta[k], mode[k] = self._blend(state, dt[k], rate[k], theta_obs[k], informative[k])
         self._state, self._t_last = state, float(t[-1])
-        phi = self.closure.joint_angles(theta)
-        return FingerTrack(t, ChainClosure.phalanx_angles(phi), phi, mode)
+        return self._track(t, theta, mode)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import MODE_FAST, ChainClosure, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from .base import MODE_FAST, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .observations import FingerObservations
 from .vector import VectorObservation
 
@@ -71,6 +71,4 @@ class GyroIntegration(FingerEstimator):
         theta = np.cumsum(np.concatenate([self._state["theta"][None], increments], axis=0), axis=0)[1:]
         self._state = {"theta": theta[-1].copy(), "rate": rate[-1].copy()}
         self._t_last = float(t[-1])
-        phi = self.closure.joint_angles(theta)
-        mode = np.full(theta.shape, MODE_FAST, dtype=np.int8)
-        return FingerTrack(t, ChainClosure.phalanx_angles(phi), phi, mode)
+        return self._track(t, theta, np.full(theta.shape, MODE_FAST, dtype=np.int8))

@@ -24,7 +24,7 @@ import numpy as np
 from pydantic import Field
 
 from ..sim.errors import DEG, MG
-from .base import MODE_FAST, MODE_SLOW, ChainClosure, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from .base import MODE_FAST, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import rk4_step_linear_rate
 from .observations import FingerObservations
 from .vector import VectorObservation
@@ -114,5 +114,4 @@ class Switching(FingerEstimator):
         for k in range(n):
             state, theta[k], mode[k] = self._select(state, dt[k], rate[k], theta_g[k], err_g[k])
         self._state, self._t_last = state, float(t[-1])
-        phi = self.closure.joint_angles(theta)
-        return FingerTrack(t, ChainClosure.phalanx_angles(phi), phi, mode)
+        return self._track(t, theta, mode)

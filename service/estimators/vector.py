@@ -73,5 +73,4 @@ class VectorObservation(FingerEstimator):
         self._state = {"held": held[-1].copy()}
         self._t_last = float(samples.t[-1])
         mode = np.where(informative, MODE_SLOW, MODE_NO_INFO).astype(np.int8)
-        phi = self.closure.joint_angles(held)
-        return FingerTrack(np.asarray(samples.t, dtype=float), ChainClosure.phalanx_angles(phi), phi, mode)
+        return self._track(samples.t, held, mode)

@@ -41,6 +41,8 @@ class SimConfig:
         calibration: hand geometry; None: ``default_calibration(hand)``.
         gravity_world: gravity vector in the world frame, m/s².
         t0_s: source clock at the first sample, s.
+        fingers: simulate only these fingers' sensors (None: all).
+        duration_s: length of the run, s (None: the motion's duration; longer runs hold the last pose).
     """
 
     motion: str = "grasp"
@@ -54,6 +56,8 @@ class SimConfig:
     calibration: HandCalibration | None = None
     gravity_world: tuple[float, float, float] = tuple(DEFAULT_GRAVITY_WORLD)  # type: ignore[assignment]
     t0_s: float = 0.0
+    fingers: tuple[str, ...] | None = None
+    duration_s: float | None = None
     finger_motion: FingerMotion | None = field(default=None, compare=False)
     hand_trajectory: HandTrajectory | None = field(default=None, compare=False)
 
@@ -142,13 +146,16 @@ def simulate(config: SimConfig) -> SimulatedSession:
     gravity = np.asarray(config.gravity_world, dtype=float)
     rng = np.random.default_rng(config.seed)
 
-    n = int(np.floor(motion.duration_s * config.rate_hz + 1e-9)) + 1
+    duration = motion.duration_s if config.duration_s is None else config.duration_s
+    n = int(np.floor(duration * config.rate_hz + 1e-9)) + 1
     t_rel = np.arange(n) / config.rate_hz
     base = hand_traj.base_motion(t_rel)
 
     sensor_ids, gyr_i, acc_i = [], [], []
     angles, rates = {}, {}
     for fname, geom in calib.fingers.items():
+        if config.fingers is not None and fname not in config.fingers:
+            continue
         phi, dphi, ddphi = motion.joint_angles(fname, t_rel)
         angles[fname], rates[fname] = phi, dphi
         theta, dtheta, ddtheta = (joint_to_phalanx_angles(x) for x in (phi, dphi, ddphi))
@@ -162,7 +169,7 @@ def simulate(config: SimConfig) -> SimulatedSession:
     offsets = errors.draw_offsets(rng, len(sensor_ids))
     gyr, acc = errors.corrupt(rng, gyr_ideal, acc_ideal, config.rate_hz, offsets)
 
-    m = int(np.floor(motion.duration_s * optical.rate_hz + 1e-9)) + 1
+    m = int(np.floor(duration * optical.rate_hz + 1e-9)) + 1
     pose_t_rel = np.arange(m) / optical.rate_hz
     pose_base = hand_traj.base_motion(pose_t_rel)
     pos = pose_base.position + rng.normal(0.0, 1.0, (m, 3)) * optical.position_jitter_m
