@@ -1,0 +1,110 @@
+"""The rigid-IMU cores as filters of their own: one sensor (or a stack), gyro + accelerometer and
+optionally a second reference vector known in the world frame with its sensor-frame counterpart.
+The finger estimators use the same step functions (``madgwick.madgwick_step`` and ``ekf``'s
+process/measurement models); these classes only hold the state, so the cores can run on rigid-body
+recordings.
+
+Quaternions in and out are ``[x, y, z, w]`` (sensor to world). The accelerometer reference is the
+world "up" direction (specific force at rest): ``[0, 1, 0]`` in the OpenXR stage frame, ``[0, 0, 1]``
+in an east-north-up frame.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import quaternion as quat
+from .ekf import BatchedKalman, FilterpyKalman, inject, measurement_model, process_model
+from .madgwick import madgwick_step
+
+
+@dataclass
+class MadgwickImu:
+    """Madgwick filter (paper eqs. 9-19) on one rigid IMU. ``beta`` rad/s."""
+
+    beta: float = 0.041
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+
+    def __post_init__(self) -> None:
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return quat.to_xyzw(self.q)
+
+    @quaternion.setter
+    def quaternion(self, q_xyzw: np.ndarray) -> None:
+        self.q = quat.normalize(quat.from_xyzw(q_xyzw))
+
+    def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
+               ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
+        refs_w, refs_s = [np.asarray(self.up, dtype=float)], [np.asarray(acc, dtype=float)]
+        if ref_world is not None:
+            refs_w.append(np.asarray(ref_world, dtype=float))
+            refs_s.append(np.asarray(ref_sensor, dtype=float))
+        self.q = madgwick_step(self.q, np.asarray(gyr, dtype=float), dt, self.beta, refs_w, refs_s)
+        return self.quaternion
+
+    def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
+            ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
+        """(N, 3) samples at a fixed ``dt``; returns (N, 4) quaternions."""
+        out = np.empty((len(gyr), 4))
+        for k in range(len(gyr)):
+            out[k] = self.update(gyr[k], acc[k], dt, None if ref_world is None else ref_world[k],
+                                 None if ref_sensor is None else ref_sensor[k])
+        return out
+
+
+@dataclass
+class EkfImu:
+    """Error-state EKF (quaternion + gyro bias, ``ekf`` module) on one rigid IMU. Noise figures: gyro
+    density rad/s/√Hz, bias walk rad/s/√s, accelerometer std m/s², second reference std."""
+
+    gyro_noise_density: float = 0.01 * np.pi / 180.0
+    bias_walk: float = 1e-5
+    acc_noise: float = 0.5
+    ref_noise: float = 0.05
+    initial_angle_std: float = 0.5
+    initial_bias_std: float = 0.05
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    gravity: float = 9.81
+    use_filterpy: bool = True
+
+    def __post_init__(self) -> None:
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.bias = np.zeros(3)
+        self.P = np.diag([self.initial_angle_std**2] * 3 + [self.initial_bias_std**2] * 3)
+        self._kalman = FilterpyKalman() if self.use_filterpy else BatchedKalman()
+
+    @property
+    def quaternion(self) -> np.ndarray:
+        return quat.to_xyzw(self.q)
+
+    @quaternion.setter
+    def quaternion(self, q_xyzw: np.ndarray) -> None:
+        self.q = quat.normalize(quat.from_xyzw(q_xyzw))
+
+    def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
+               ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
+        q, F, Q = process_model(self.q, self.bias, np.asarray(gyr, dtype=float), dt, self.gyro_noise_density, self.bias_walk)
+        P = self._kalman.predict(self.P, F, Q)
+        refs_w = [self.gravity * np.asarray(self.up, dtype=float)]
+        refs_s = [np.asarray(acc, dtype=float)]
+        sig = [np.asarray(self.acc_noise)]
+        if ref_world is not None:
+            refs_w.append(np.asarray(ref_world, dtype=float))
+            refs_s.append(np.asarray(ref_sensor, dtype=float))
+            sig.append(np.asarray(self.ref_noise))
+        y, H, R = measurement_model(q, refs_w, refs_s, sig)
+        dx, self.P = self._kalman.update(P, H, R, y)
+        self.q, self.bias = inject(q, self.bias, dx)
+        return self.quaternion
+
+    def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
+            ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
+        out = np.empty((len(gyr), 4))
+        for k in range(len(gyr)):
+            out[k] = self.update(gyr[k], acc[k], dt, None if ref_world is None else ref_world[k],
+                                 None if ref_sensor is None else ref_sensor[k])
+        return out
