@@ -247,6 +247,35 @@ class FingerEstimator:
         for name in ("acceleration", "angular_velocity", "angular_acceleration"):
             _check_array(f"hand.{name}", getattr(samples.hand, name), b + (3,))
 
+    def _run_split(self, samples: FingerSamples, observe, recurse) -> FingerTrack:
+        """Batch path for estimators whose work splits into an observation that depends on the
+        sample, the previous sample's relative rate and ``dt`` only (vectorised over all samples:
+        ``observe(gyr, acc, hand, prev_rate, dt)`` returns a tuple of arrays) and a lean recursion
+        ``recurse(state, dt, *observation) -> (state, theta, mode)``; the streaming ``_step`` calls
+        the same two functions on one sample. Needs ``self.obs`` and a ``"rate"`` entry in the state."""
+        self._validate_batch(samples)
+        n = len(samples)
+        if n == 0:
+            return FingerEstimator.run(self, samples)
+        t = np.asarray(samples.t, dtype=float)
+        if self._state is None:
+            first = samples.sample(0)
+            self._state = self._init_state(first[1], first[2], first[3], self._initial_theta)
+            dt0 = 0.0
+        else:
+            dt0 = t[0] - self._t_last  # type: ignore[operator]
+        dt = np.diff(t, prepend=t[0] - dt0)
+        rate_all = self.obs.relative_rate(samples.gyr, samples.hand)
+        prev = np.concatenate([self._state["rate"][None], rate_all[:-1]], axis=0)
+        observed = observe(samples.gyr, samples.acc, samples.hand, prev, dt.reshape((n,) + (1,) * (rate_all.ndim - 1)))
+        theta = np.empty(rate_all.shape)
+        mode = np.empty(rate_all.shape, dtype=np.int8)
+        state = self._state
+        for k in range(n):
+            state, theta[k], mode[k] = recurse(state, dt[k], *(o[k] for o in observed))
+        self._state, self._t_last = state, float(t[-1])
+        return self._track(t, theta, mode)
+
     def _branch(self, theta_sensors: np.ndarray) -> np.ndarray:
         """Reported angles lie on each phalanx's anatomical 2π branch (``FingerObservations.to_branch``):
         a filter that has lost track never reports a joint turned by whole revolutions. Internal states

@@ -38,7 +38,7 @@ class Complementary(FingerEstimator):
     def _init_state(self, gyr, acc, hand, theta0):
         return {"theta": initial_sensor_theta(self, acc, hand, theta0), "rate": self.obs.relative_rate(gyr, hand)}
 
-    def _observe(self, gyr, acc, hand):
+    def _observe(self, gyr, acc, hand, prev_rate=None, dt=None):
         rate = self.obs.relative_rate(gyr, hand)
         theta_obs, inplane = self.vector.observe(acc, hand)
         return rate, theta_obs, inplane >= self.settings.min_inplane_m_s2
@@ -56,23 +56,4 @@ class Complementary(FingerEstimator):
 
     def run(self, samples: FingerSamples) -> FingerTrack:
         """Observations vectorised over all samples, then a lean loop over the blend."""
-        self._validate_batch(samples)
-        n = len(samples)
-        if n == 0:
-            return super().run(samples)
-        t = np.asarray(samples.t, dtype=float)
-        if self._state is None:
-            first = samples.sample(0)
-            self._state = self._init_state(first[1], first[2], first[3], self._initial_theta)
-            dt0 = 0.0
-        else:
-            dt0 = t[0] - self._t_last  # type: ignore[operator]
-        dt = np.diff(t, prepend=t[0] - dt0)
-        rate, theta_obs, informative = self._observe(samples.gyr, samples.acc, samples.hand)
-        theta = np.empty_like(theta_obs)
-        mode = np.empty(theta.shape, dtype=np.int8)
-        state = self._state
-        for k in range(n):
-            state, theta[k], mode[k] = self._blend(state, dt[k], rate[k], theta_obs[k], informative[k])
-        self._state, self._t_last = state, float(t[-1])
-        return self._track(t, theta, mode)
+        return self._run_split(samples, self._observe, self._blend)

@@ -98,7 +98,7 @@ class Chain(FingerEstimator):
         P = kalman.predict(P, F, np.diag(q_diag))
 
         # accelerometer through the chain model (both sensors' angles and corrected rates)
-        rate_change = (rate - prev_rate) / dt if dt > 0 else np.zeros_like(rate)
+        rate_change = self.obs.rate_change(rate, prev_rate, dt)
         theta_all, rate_all, rc_all = self.obs.chain(self.closure, theta_pred, rate, rate_change)
         u = self.obs.reference_force(hand, theta_all, self.gravity_world, rate_all, rc_all)
         c, sn = np.cos(theta_pred), np.sin(theta_pred)

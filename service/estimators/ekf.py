@@ -63,12 +63,9 @@ class Ekf(FingerEstimator):
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings
         rate = self.obs.relative_rate(gyr, hand)
-        rate_change = (rate - state["rate"]) / dt if dt > 0 else np.zeros_like(rate)
-        theta_all, rate_all, rc_all = self.obs.chain(self.closure, state["theta"], rate, rate_change)
-        if s.kinematic_acceleration:
-            d_acc = self.obs.reference_force_world(hand, theta_all, self.gravity_world, rate_all, rc_all)
-        else:
-            d_acc = self.obs.reference_force_world(hand, theta_all, self.gravity_world)
+        rate_change = self.obs.rate_change(rate, state["rate"], dt)
+        d_acc = self.obs.accelerometer_reference(self.closure, hand, state["theta"], rate, rate_change,
+                                                 self.gravity_world, s.kinematic_acceleration)
         q, F, Q = process_model(state["q"], state["bias"], gyr, dt, s.gyro_noise_density_rad_s_rthz,
                                 s.gyro_bias_walk_rad_s_rts)
         P = self._kalman.predict(state["P"], F, Q)

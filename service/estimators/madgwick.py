@@ -47,12 +47,9 @@ class Madgwick(FingerEstimator):
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings
         rate = self.obs.relative_rate(gyr, hand)
-        rate_change = (rate - state["rate"]) / dt if dt > 0 else np.zeros_like(rate)
-        theta_all, rate_all, rate_change_all = self.obs.chain(self.closure, state["theta"], rate, rate_change)
-        if s.kinematic_acceleration:
-            d_acc = self.obs.reference_force_world(hand, theta_all, self.gravity_world, rate_all, rate_change_all)
-        else:
-            d_acc = self.obs.reference_force_world(hand, theta_all, self.gravity_world)
+        rate_change = self.obs.rate_change(rate, state["rate"], dt)
+        d_acc = self.obs.accelerometer_reference(self.closure, hand, state["theta"], rate, rate_change,
+                                                 self.gravity_world, s.kinematic_acceleration)
         refs_world, refs_sensor = [d_acc], [acc]
         if s.second_reference:
             hinge = np.broadcast_to(self.obs.hinge_axis_world(hand)[..., None, :], acc.shape)

@@ -141,6 +141,21 @@ class FingerObservations:
         raw = np.arctan2(rel[..., 2, 1] - rel[..., 1, 2], rel[..., 1, 1] + rel[..., 2, 2])
         return previous + wrap_angle(raw - previous)
 
+    def accelerometer_reference(self, closure, hand: BaseMotion, theta_sensors: np.ndarray, rate: np.ndarray,
+                                rate_change: np.ndarray, gravity_world: np.ndarray, kinematic: bool) -> np.ndarray:
+        """World-frame accelerometer reference ``a_k - g`` (..., S, 3) at the per-sensor angles of the
+        previous estimate, with the finger's own acceleration ``g_k`` of eq. 2 from the measured rates
+        and their change when ``kinematic`` (the paper's eq. 11 reference), else the hand's only."""
+        theta_all, rate_all, rc_all = self.chain(closure, theta_sensors, rate, rate_change)
+        if kinematic:
+            return self.reference_force_world(hand, theta_all, gravity_world, rate_all, rc_all)
+        return self.reference_force_world(hand, theta_all, gravity_world)
+
+    @staticmethod
+    def rate_change(rate: np.ndarray, previous: np.ndarray, dt: float) -> np.ndarray:
+        """Backward difference of the relative rates, rad/s² (zero on the first sample)."""
+        return (rate - previous) / dt if dt > 0 else np.zeros_like(rate)
+
     @staticmethod
     def chain(closure, *per_sensor: np.ndarray) -> tuple[np.ndarray, ...]:
         """Per-sensor quantities (..., S) (angles, rates, rate changes) to every phalanx (..., n)

@@ -92,26 +92,4 @@ class Switching(FingerEstimator):
 
     def run(self, samples: FingerSamples) -> FingerTrack:
         """Steps 1-2 vectorised over all samples, then a lean loop over steps 3-4."""
-        self._validate_batch(samples)
-        n = len(samples)
-        if n == 0:
-            return super().run(samples)
-        t = np.asarray(samples.t, dtype=float)
-        if self._state is None:
-            first = samples.sample(0)
-            self._state = self._init_state(first[1], first[2], first[3], self._initial_theta)
-            dt0 = 0.0
-        else:
-            dt0 = t[0] - self._t_last  # type: ignore[operator]
-        dt = np.diff(t, prepend=t[0] - dt0)
-        rate_all = self.obs.relative_rate(samples.gyr, samples.hand)
-        prev = np.concatenate([self._state["rate"][None], rate_all[:-1]], axis=0)
-        dt_b = dt.reshape((n,) + (1,) * (rate_all.ndim - 1))
-        rate, theta_g, err_g = self._observe(samples.gyr, samples.acc, samples.hand, prev, dt_b)
-        theta = np.empty_like(theta_g)
-        mode = np.empty(theta_g.shape, dtype=np.int8)
-        state = self._state
-        for k in range(n):
-            state, theta[k], mode[k] = self._select(state, dt[k], rate[k], theta_g[k], err_g[k])
-        self._state, self._t_last = state, float(t[-1])
-        return self._track(t, theta, mode)
+        return self._run_split(samples, self._observe, self._select)

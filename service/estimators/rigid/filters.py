@@ -19,15 +19,10 @@ from .ekf import BatchedKalman, FilterpyKalman, inject, measurement_model, proce
 from .madgwick import madgwick_step
 
 
-@dataclass
-class MadgwickImu:
-    """Madgwick filter (paper eqs. 9-19) on one rigid IMU. ``beta`` rad/s."""
+class _RigidFilter:
+    """State holder shared by the rigid filters: the quaternion in ``[x, y, z, w]`` and a batch loop."""
 
-    beta: float = 0.041
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-
-    def __post_init__(self) -> None:
-        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+    q: np.ndarray
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -36,6 +31,29 @@ class MadgwickImu:
     @quaternion.setter
     def quaternion(self, q_xyzw: np.ndarray) -> None:
         self.q = quat.normalize(quat.from_xyzw(q_xyzw))
+
+    def update(self, gyr, acc, dt, ref_world=None, ref_sensor=None) -> np.ndarray:
+        raise NotImplementedError
+
+    def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
+            ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
+        """(N, 3) samples at a fixed ``dt`` (optionally (N, 3) second references); returns (N, 4)."""
+        out = np.empty((len(gyr), 4))
+        for k in range(len(gyr)):
+            out[k] = self.update(gyr[k], acc[k], dt, None if ref_world is None else ref_world[k],
+                                 None if ref_sensor is None else ref_sensor[k])
+        return out
+
+
+@dataclass
+class MadgwickImu(_RigidFilter):
+    """Madgwick filter (paper eqs. 9-19) on one rigid IMU. ``beta`` rad/s."""
+
+    beta: float = 0.041
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+
+    def __post_init__(self) -> None:
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
 
     def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
                ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
@@ -46,18 +64,10 @@ class MadgwickImu:
         self.q = madgwick_step(self.q, np.asarray(gyr, dtype=float), dt, self.beta, refs_w, refs_s)
         return self.quaternion
 
-    def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
-            ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
-        """(N, 3) samples at a fixed ``dt``; returns (N, 4) quaternions."""
-        out = np.empty((len(gyr), 4))
-        for k in range(len(gyr)):
-            out[k] = self.update(gyr[k], acc[k], dt, None if ref_world is None else ref_world[k],
-                                 None if ref_sensor is None else ref_sensor[k])
-        return out
 
 
 @dataclass
-class EkfImu:
+class EkfImu(_RigidFilter):
     """Error-state EKF (quaternion + gyro bias, ``ekf`` module) on one rigid IMU. Noise figures: gyro
     density rad/s/√Hz, bias walk rad/s/√s, accelerometer std m/s², second reference std."""
 
@@ -77,14 +87,6 @@ class EkfImu:
         self.P = np.diag([self.initial_angle_std**2] * 3 + [self.initial_bias_std**2] * 3)
         self._kalman = FilterpyKalman() if self.use_filterpy else BatchedKalman()
 
-    @property
-    def quaternion(self) -> np.ndarray:
-        return quat.to_xyzw(self.q)
-
-    @quaternion.setter
-    def quaternion(self, q_xyzw: np.ndarray) -> None:
-        self.q = quat.normalize(quat.from_xyzw(q_xyzw))
-
     def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
                ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
         q, F, Q = process_model(self.q, self.bias, np.asarray(gyr, dtype=float), dt, self.gyro_noise_density, self.bias_walk)
@@ -100,11 +102,3 @@ class EkfImu:
         dx, self.P = self._kalman.update(P, H, R, y)
         self.q, self.bias = inject(q, self.bias, dx)
         return self.quaternion
-
-    def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
-            ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
-        out = np.empty((len(gyr), 4))
-        for k in range(len(gyr)):
-            out[k] = self.update(gyr[k], acc[k], dt, None if ref_world is None else ref_world[k],
-                                 None if ref_sensor is None else ref_sensor[k])
-        return out
