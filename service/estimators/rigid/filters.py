@@ -65,7 +65,6 @@ class MadgwickImu(_RigidFilter):
         return self.quaternion
 
 
-
 @dataclass
 class EkfImu(_RigidFilter):
     """Error-state EKF (quaternion + gyro bias, ``ekf`` module) on one rigid IMU. Noise figures: gyro
