@@ -111,3 +111,14 @@ def test_second_reference_removes_heading_drift():
         q = f.run(gyr, acc, 1 / 200.0, np.tile(north, (len(t), 1)), north_s)
         err = (Rotation.from_quat(q[-1]).inv() * Rotation.from_matrix(rot[-1])).magnitude()
         assert np.degrees(err) < 2.0
+
+
+def test_fast_objective_equals_the_explicit_formula():
+    from service.estimators.rigid.madgwick import objective_and_jacobian, objective_and_jacobian_fast
+    rng = np.random.default_rng(9)
+    q = quat.normalize(rng.normal(size=(7, 2, 4)))
+    d, s = rng.normal(size=(7, 2, 3)), rng.normal(size=(7, 2, 3))
+    f1, j1 = objective_and_jacobian(q, d, s)
+    f2, j2 = objective_and_jacobian_fast(q, d, s)
+    np.testing.assert_allclose(f2, f1, atol=1e-13)
+    np.testing.assert_allclose(j2, j1, atol=1e-13)

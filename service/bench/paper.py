@@ -81,7 +81,7 @@ class GroupData:
     n_valid: np.ndarray               # (R,) samples inside each run's own motion
 
 
-CHUNK_SAMPLES = 4_000_000
+CHUNK_SAMPLES = 30_000_000
 """A duration group whose runs hold more samples than this is split by series (memory bound)."""
 
 

@@ -29,6 +29,9 @@ from ..model.kinematics import BaseMotion
 from .observations import FingerObservations
 
 MODE_SLOW, MODE_FAST, MODE_FUSED, MODE_NO_INFO = 0, 1, 2, 3
+OBSERVE_BLOCK_SENSOR_SAMPLES = 200_000
+"""Batch mode evaluates vectorised observations in blocks of at most this many sensor-samples, so a
+long batch (a 1000 s replay of many runs) needs bounded memory."""
 MODE_NAMES = ("slow", "fast", "fused", "none")
 """Per-sensor modes: ``slow`` (vector observation), ``fast`` (gyro integration), ``fused`` (a filter
 that uses both), ``none`` (no information: the estimate is held)."""
@@ -265,14 +268,22 @@ class FingerEstimator:
         else:
             dt0 = t[0] - self._t_last  # type: ignore[operator]
         dt = np.diff(t, prepend=t[0] - dt0)
-        rate_all = self.obs.relative_rate(samples.gyr, samples.hand)
-        prev = np.concatenate([self._state["rate"][None], rate_all[:-1]], axis=0)
-        observed = observe(samples.gyr, samples.acc, samples.hand, prev, dt.reshape((n,) + (1,) * (rate_all.ndim - 1)))
-        theta = np.empty(rate_all.shape)
-        mode = np.empty(rate_all.shape, dtype=np.int8)
         state = self._state
-        for k in range(n):
-            state, theta[k], mode[k] = recurse(state, dt[k], *(o[k] for o in observed))
+        per_sample = int(np.prod(self.batch_shape, dtype=int)) * self.n_sensors
+        block = max(1, OBSERVE_BLOCK_SENSOR_SAMPLES // per_sample)
+        theta = np.empty((n,) + self.batch_shape + (self.n_sensors,))
+        mode = np.empty(theta.shape, dtype=np.int8)
+        for start in range(0, n, block):
+            stop = min(n, start + block)
+            h = samples.hand
+            hand = BaseMotion(h.rotation[start:stop], h.position[start:stop], h.velocity[start:stop],
+                              h.acceleration[start:stop], h.angular_velocity[start:stop], h.angular_acceleration[start:stop])
+            rate = self.obs.relative_rate(samples.gyr[start:stop], hand)
+            prev = np.concatenate([state["rate"][None], rate[:-1]], axis=0)
+            dt_b = dt[start:stop].reshape((stop - start,) + (1,) * (rate.ndim - 1))
+            observed = observe(samples.gyr[start:stop], samples.acc[start:stop], hand, prev, dt_b)
+            for k in range(stop - start):
+                state, theta[start + k], mode[start + k] = recurse(state, dt[start + k], *(o[k] for o in observed))
         self._state, self._t_last = state, float(t[-1])
         return self._track(t, theta, mode)
 

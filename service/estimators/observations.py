@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.frames import apply_transpose
+from ..model.frames import apply_transpose, cross
 from ..model.hand import FingerGeometry, joint_limits
 from ..model.kinematics import BaseMotion
 
@@ -80,20 +80,23 @@ class FingerObservations:
         (..., n) in the metacarpus frame (``model.kinematics`` formula, all sensors at once):
         ``R_Mᵀ(a_M - g) + α×ρ + ω×(ω×ρ) + 2 ω×ρ' + ρ''`` with hand rates in metacarpus coordinates."""
         c, s = np.cos(theta), np.sin(theta)
-        y = np.stack([np.zeros_like(c), c, s], axis=-1)                              # y_j (..., n, 3)
-        rho = self.base_position + (np.einsum("sj,...jk->...sk", self._lever, y) @ self.base.T)
+        y = np.zeros(theta.shape + (3,))                                            # y_j (..., n, 3)
+        y[..., 1], y[..., 2] = c, s
+        base_t = self.base.T
+        rho = self.base_position + (self._lever @ y) @ base_t                        # eq. 1, (..., S, 3)
         rot_t = np.swapaxes(hand.rotation, -1, -2)
         w = np.einsum("...ij,...j->...i", rot_t, hand.angular_velocity)[..., None, :]
         dw = np.einsum("...ij,...j->...i", rot_t, hand.angular_acceleration)[..., None, :]
         lin = np.einsum("...ij,...j->...i", rot_t, hand.acceleration - gravity_world)[..., None, :]
-        out = lin + np.cross(dw, rho) + np.cross(w, np.cross(w, rho))
+        out = lin + cross(dw, rho) + cross(w, cross(w, rho))
         if dtheta is not None:
-            z = np.stack([np.zeros_like(c), -s, c], axis=-1)                         # z_j = dy_j/dθ_j
-            vel = np.einsum("sj,...jk->...sk", self._lever, dtheta[..., None] * z) @ self.base.T
-            out = out + 2.0 * np.cross(w, vel)
+            z = np.zeros(theta.shape + (3,))                                        # z_j = dy_j/dθ_j
+            z[..., 1], z[..., 2] = -s, c
+            vel = (self._lever @ (dtheta[..., None] * z)) @ base_t
+            out = out + 2.0 * cross(w, vel)
             if ddtheta is not None:
                 acc = ddtheta[..., None] * z - dtheta[..., None] ** 2 * y              # eq. 2 terms
-                out = out + np.einsum("sj,...jk->...sk", self._lever, acc) @ self.base.T
+                out = out + (self._lever @ acc) @ base_t
         return out
 
     def reference_force_world(self, hand: BaseMotion, theta: np.ndarray, gravity_world: np.ndarray,

@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import Field
 
 from ..model.kinematics import BaseMotion
-from .base import MODE_NO_INFO, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack, ChainClosure
+from .base import MODE_NO_INFO, MODE_SLOW, ChainClosure, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .observations import FingerObservations
 
 
@@ -46,31 +46,19 @@ class VectorObservation(FingerEstimator):
 
     def _init_state(self, gyr, acc, hand, theta0):
         held = np.zeros(self.batch_shape + (self.n_sensors,)) if theta0 is None else theta0[..., self.obs.phalanx]
-        return {"held": held}
+        return {"held": held, "rate": np.zeros(held.shape)}
+
+    def _observe(self, gyr, acc, hand, prev_rate=None, dt=None):
+        theta, inplane = self.observe(acc, hand)
+        return theta, inplane >= self.settings.min_inplane_m_s2
+
+    def _hold(self, state, dt, theta, informative):
+        held = np.where(informative, theta, state["held"])
+        return {"held": held, "rate": state["rate"]}, held, np.where(informative, MODE_SLOW, MODE_NO_INFO).astype(np.int8)
 
     def _step(self, state, dt, gyr, acc, hand):
-        theta, inplane = self.observe(acc, hand)
-        informative = inplane >= self.settings.min_inplane_m_s2
-        held = np.where(informative, theta, state["held"])
-        return {"held": held}, held, np.where(informative, MODE_SLOW, MODE_NO_INFO).astype(np.int8)
+        return self._hold(state, dt, *self._observe(gyr, acc, hand))
 
     def run(self, samples: FingerSamples) -> FingerTrack:
-        """Vectorised over all samples at once; holds uninformative samples like ``update`` does."""
-        self._validate_batch(samples)
-        n = len(samples)
-        if n == 0:
-            return super().run(samples)
-        if self._state is None:
-            first = samples.sample(0)
-            self._state = self._init_state(first[1], first[2], first[3], self._initial_theta)
-        theta, inplane = self.observe(samples.acc, samples.hand)
-        informative = inplane >= self.settings.min_inplane_m_s2
-        # forward-fill the last informative value (index of the last informative sample so far)
-        idx = np.where(informative, np.arange(n).reshape((n,) + (1,) * (theta.ndim - 1)), -1)
-        idx = np.maximum.accumulate(idx, axis=0)
-        filled = np.take_along_axis(theta, np.maximum(idx, 0), axis=0)
-        held = np.where(idx >= 0, filled, self._state["held"])
-        self._state = {"held": held[-1].copy()}
-        self._t_last = float(samples.t[-1])
-        mode = np.where(informative, MODE_SLOW, MODE_NO_INFO).astype(np.int8)
-        return self._track(samples.t, held, mode)
+        """Observations vectorised over all samples (in blocks), then the lean hold loop."""
+        return self._run_split(samples, self._observe, self._hold)
