@@ -252,6 +252,13 @@ def write_summary(rows: list[dict], times: list[dict], out_dir: Path, quick: boo
     return text
 
 
+def read_results(path: Path) -> list[dict]:
+    """Rows of a ``results.csv`` with numbers as numbers (to replot without rerunning)."""
+    with open(path) as fh:
+        return [{k: (v if k in ("series", "estimator") else (int(v) if k == "seed" else float(v))) for k, v in r.items()}
+                for r in csv.DictReader(fh)]
+
+
 def plot_fig10(rows: list[dict], out_dir: Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
@@ -273,9 +280,10 @@ def plot_fig10(rows: list[dict], out_dir: Path) -> None:
         ax.set_xlabel("motion duration t_m, s")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("RMS error over the motion, deg")
-    axes[-1].legend(fontsize=8, loc="upper left")
-    fig.suptitle("RMS error against motion duration (cf. the paper's Figure 10)")
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(METHODS), fontsize=9)
+    fig.suptitle("RMS error against motion duration (cf. the paper's Figure 10); bands: min-max over seeds")
+    fig.tight_layout(rect=(0, 0.06, 1, 1))
     fig.savefig(out_dir / "fig10.png", dpi=110)
     plt.close(fig)
 
