@@ -21,11 +21,40 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _interval(text: str) -> tuple[float, float]:
+    try:
+        a, b = (float(x) for x in text.split(":"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:END in seconds, got {text!r}") from None
+    if not (np.isfinite(a) and np.isfinite(b)) or b <= a:
+        raise argparse.ArgumentTypeError(f"expected START:END with END > START, got {text!r}")
+    return a, b
+
+
+def _non_negative_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not np.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative finite number, got {text!r}")
+    return value
+
+
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from .sim.session import SimConfig, simulate, write_recording
 
+    from .sim.errors import OpticalModel
+
+    optical = None
+    if args.occlusion or args.optical_rate is not None or args.latency is not None:
+        base = OpticalModel.perfect() if args.noise == "none" else OpticalModel()
+        optical = OpticalModel(rate_hz=args.optical_rate or base.rate_hz,
+                               latency_s=base.latency_s if args.latency is None else args.latency,
+                               position_jitter_m=base.position_jitter_m, orientation_jitter_rad=base.orientation_jitter_rad,
+                               occlusions_s=tuple(args.occlusion))
     config = SimConfig(motion=args.motion, t_m_s=args.tm, hand=args.hand, hand_motion=args.hand_motion,
-                       noise=args.noise, seed=args.seed, rate_hz=args.rate)
+                       noise=args.noise, seed=args.seed, rate_hz=args.rate, optical=optical)
     session = simulate(config)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
@@ -147,6 +176,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--rate", type=_positive_float, default=200.0, help="IMU rate in Hz (default 200)")
     sim.add_argument("--hand", choices=("right", "left"), default="right")
     sim.add_argument("--hand-motion", choices=sorted(HAND_MOTIONS), default="still", help="metacarpus trajectory (default still)")
+    sim.add_argument("--optical-rate", type=_positive_float, default=None, help="optical pose rate in Hz (default 90)")
+    sim.add_argument("--latency", type=_non_negative_float, default=None, help="optical latency in s (default 0.02)")
+    sim.add_argument("--occlusion", type=_interval, action="append", default=[], metavar="START:END",
+                     help="optics occluded (valid: false) from START to END seconds; repeatable")
     sim.add_argument("--no-truth", action="store_true", help="leave out the truth messages")
     sim.add_argument("--out", required=True, help="output recording, JSON Lines")
     sim.set_defaults(func=_cmd_simulate)

@@ -47,3 +47,15 @@ def test_bad_arguments_give_clear_errors(tmp_path, capsys):
     assert "bad.jsonl:6" in err and "gyr" in err
     with pytest.raises(SystemExit):
         main(["simulate", "--motion", "grasp", "--tm", "-1", "--out", str(tmp_path / "z.jsonl")])
+
+
+def test_simulate_with_an_occlusion(tmp_path):
+    import json
+    rec = tmp_path / "occ.jsonl"
+    assert main(["simulate", "--motion", "point", "--occlusion", "0.5:1.0", "--optical-rate", "60", "--out", str(rec)]) == 0
+    poses = [json.loads(l) for l in rec.read_text().splitlines() if '"pose"' in l]
+    invalid = [p["t"] for p in poses if not p["valid"]]
+    assert invalid and min(invalid) >= 0.5 and max(invalid) < 1.0
+    assert abs(poses[1]["t"] - poses[0]["t"] - 1 / 60) < 1e-12
+    with pytest.raises(SystemExit):
+        main(["simulate", "--occlusion", "2:1", "--out", str(rec)])
