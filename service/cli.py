@@ -86,19 +86,6 @@ def _parse_params(pairs: list[str], beta: float | None) -> dict:
     return params
 
 
-def finger_mode(modes: np.ndarray) -> str:
-    """One word for a finger from its sensors' modes: fast if any sensor integrates, none if any has
-    no information, slow if all observe, else fused."""
-    from .estimators.base import MODE_FAST, MODE_NAMES, MODE_NO_INFO, MODE_SLOW
-    if np.any(modes == MODE_FAST):
-        return MODE_NAMES[MODE_FAST]
-    if np.any(modes == MODE_NO_INFO):
-        return MODE_NAMES[MODE_NO_INFO]
-    if np.all(modes == MODE_SLOW):
-        return MODE_NAMES[MODE_SLOW]
-    return "fused"
-
-
 def _cmd_estimate(args: argparse.Namespace) -> int:
     from .estimators.registry import REGISTRY, estimator_class
 
@@ -112,6 +99,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from .model.hand import joint_to_phalanx_angles
+    from .estimators.base import finger_mode
     from .pipeline.offline import load_recording
 
     cls = estimator_class(args.estimator)

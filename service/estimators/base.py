@@ -144,7 +144,7 @@ class FingerEstimator:
 
     def __init__(self, geom: FingerGeometry, settings: EstimatorSettings | None = None,
                  initial_theta: np.ndarray | None = None, batch_shape: tuple[int, ...] = (),
-                 gravity_world: np.ndarray = DEFAULT_GRAVITY_WORLD):
+                 gravity_world: np.ndarray = DEFAULT_GRAVITY_WORLD, extra_couplings: tuple = ()):
         self.geom = geom
         self.settings = settings if settings is not None else self.Settings()
         if not isinstance(self.settings, self.Settings):
@@ -153,7 +153,7 @@ class FingerEstimator:
         self.n_sensors = len(geom.sensors)
         if self.n_sensors == 0:
             raise ValueError(f"finger {geom.name!r} has no sensors")
-        self.closure = ChainClosure(geom)
+        self.closure = ChainClosure(geom, extra_couplings=list(extra_couplings))
         self._branch_low = FingerObservations(geom).branch_low
         self.gravity_world = np.asarray(gravity_world, dtype=float)
         self._initial_theta = None if initial_theta is None else np.broadcast_to(
@@ -169,6 +169,11 @@ class FingerEstimator:
                                                   self.batch_shape + (self.geom.n_phalanges,)).copy()
         self._state: dict | None = None
         self._t_last: float | None = None
+
+    @property
+    def started(self) -> bool:
+        """True once a sample has been processed."""
+        return self._t_last is not None
 
     @property
     def state(self) -> dict:
@@ -312,3 +317,15 @@ def samples_from_session(session, finger: str, hand: BaseMotion | None = None) -
     the simulator's truth unless ``hand`` is given (the paper's assumption: the metacarpus is known)."""
     idx = [session.sensor_index(s.id) for s in session.calibration.finger(finger).sensors]
     return FingerSamples(session.t, session.gyr[:, idx], session.acc[:, idx], session.base if hand is None else hand)
+
+
+def finger_mode(modes: np.ndarray) -> str:
+    """One word for a finger from its sensors' modes: ``fast`` if any sensor integrates, ``none`` if
+    any has no information, ``slow`` if all observe, else ``fused``."""
+    if np.any(modes == MODE_FAST):
+        return MODE_NAMES[MODE_FAST]
+    if np.any(modes == MODE_NO_INFO):
+        return MODE_NAMES[MODE_NO_INFO]
+    if np.all(modes == MODE_SLOW):
+        return MODE_NAMES[MODE_SLOW]
+    return MODE_NAMES[MODE_FUSED]

@@ -47,10 +47,12 @@ _MCP_X_RIGHT_M = {"index": 0.030, "middle": 0.010, "ring": -0.010, "little": -0.
 """MCP joint positions across the right hand (metacarpus x, toward the thumb), metres."""
 
 # Thumb base frame in the metacarpus frame (right hand): its long axis turned 45 deg toward the
-# thumb side, then rolled 60 deg about that axis so that flexion sweeps the tip across the palm
-# toward the index fingertip. An approximation of the opposed resting thumb.
-_THUMB_BASE_ROTATION = Rotation.from_euler("zy", [-45.0, -60.0], degrees=True)
-_THUMB_BASE_POSITION_RIGHT_M = (0.035, 0.045, 0.015)
+# thumb side (about the metacarpus z), then rolled 40 deg about that axis so that flexion sweeps the
+# tip across the palm toward the index fingertip. An approximation of the opposed resting thumb,
+# chosen so that a pinch (index MCP/PIP/DIP 40 deg, thumb MCP 40, IP 30 deg) brings the tips within
+# 12 mm and an open hand holds them 88 mm apart.
+_THUMB_BASE_ROTATION = Rotation.from_euler("ZY", [-45.0, -40.0], degrees=True)
+_THUMB_BASE_POSITION_RIGHT_M = (0.030, 0.050, 0.025)
 
 _DEG = np.pi / 180.0
 JOINT_LIMITS_RAD: dict[str, tuple[tuple[float, float], ...]] = {

@@ -54,3 +54,95 @@ def hand_kinematics_offline(pose_t: np.ndarray, position: np.ndarray, orientatio
     omega = 2.0 * quat.multiply(dq, conj)[:, 1:]
     alpha = 2.0 * quat.multiply(ddq, conj)[:, 1:]
     return BaseMotion(quat.to_matrix(qs), p, v, a, omega, alpha)
+
+
+class OpticalTrack:
+    """Causal metacarpus kinematics from a live pose stream (the hand pipeline's view of the optics).
+
+    Poses are kept for ``window_s`` (bounded). At a query time ``t``:
+
+    * orientation: slerp between the valid poses around ``t`` (or the newest pose rotated on by the
+      fitted angular velocity when ``t`` is past it, at most ``timeout_s``);
+    * angular velocity and acceleration: a quadratic least-squares fit of the rotation vectors of the
+      poses within ``window_s`` before ``t`` relative to the newest of them (body frame, valid for the
+      small rotations of one window), turned into the world frame; position, velocity and
+      acceleration: the same fit of the positions. A fit over ``window_s`` instead of a double
+      difference keeps the optical jitter out of the derivatives.
+    * occlusion: when the newest pose says ``valid: false`` or is older than ``timeout_s``, the last
+      valid orientation and position are held with zero rates, and ``at`` reports it.
+    """
+
+    def __init__(self, window_s: float = 0.15, timeout_s: float = 0.1, max_poses: int = 256):
+        from collections import deque
+        self.window_s = window_s
+        self.timeout_s = timeout_s
+        self._t: deque = deque(maxlen=max_poses)
+        self._p: deque = deque(maxlen=max_poses)
+        self._q: deque = deque(maxlen=max_poses)
+        self.latest_t: float | None = None         # newest pose of any validity
+        self.latest_valid_t: float | None = None
+        self.occluded_marker = False                # the newest pose says valid: false
+
+    def add(self, t: float, position, orientation_xyzw, valid: bool) -> None:
+        if self.latest_t is not None and t <= self.latest_t:
+            raise ValueError(f"pose time must increase: {t} after {self.latest_t}")
+        self.latest_t = t
+        self.occluded_marker = not valid
+        if not valid:
+            return
+        self._t.append(t)
+        self._p.append(np.asarray(position, dtype=float))
+        self._q.append(np.asarray(orientation_xyzw, dtype=float))
+        self.latest_valid_t = t
+        while self._t and self._t[0] < t - 4 * self.window_s:
+            self._t.popleft(), self._p.popleft(), self._q.popleft()
+
+    def covers(self, t: float) -> bool:
+        """True when ``t`` can be evaluated now: a pose at or after ``t`` has arrived."""
+        return self.latest_t is not None and self.latest_t >= t
+
+    def occluded_at(self, t: float) -> bool:
+        if self.latest_valid_t is None:
+            return True
+        if self.occluded_marker and self.latest_t is not None and self.latest_t <= t + 1e-9:
+            return True
+        return t - self.latest_valid_t > self.timeout_s
+
+    def at(self, t: float) -> tuple[BaseMotion | None, bool]:
+        """``(kinematics, tracking)``; ``None`` before the first valid pose."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        if self.latest_valid_t is None:
+            return None, False
+        ts = np.array(self._t)
+        if self.occluded_at(t):
+            r = Rotation.from_quat(self._q[-1]).as_matrix()
+            z = np.zeros(3)
+            return BaseMotion(r, self._p[-1].copy(), z, z.copy(), z.copy(), z.copy()), False
+        sel = (ts >= t - self.window_s) & (ts <= t + 1.0 / 30.0)
+        idx = np.flatnonzero(sel)
+        if len(idx) == 0:
+            idx = np.array([len(ts) - 1])
+        ref = int(idx[-1])
+        r_ref = Rotation.from_quat(self._q[ref])
+        tau = ts[idx] - t
+        pos = np.array([self._p[i] for i in idx])
+        rv = (r_ref.inv() * Rotation.from_quat(np.array([self._q[i] for i in idx]))).as_rotvec()
+        if len(idx) >= 3:
+            design = np.stack([np.ones_like(tau), tau, 0.5 * tau**2], axis=1)
+            coef_p = np.linalg.lstsq(design, pos, rcond=None)[0]
+            coef_r = np.linalg.lstsq(design, rv, rcond=None)[0]
+        else:
+            coef_p = np.stack([pos[-1], np.zeros(3), np.zeros(3)])
+            coef_r = np.stack([rv[-1], np.zeros(3), np.zeros(3)])
+        # orientation: slerp between the bracketing poses, else extrapolate with the fitted rate
+        k = int(np.searchsorted(ts, t))
+        if 0 < k < len(ts) and ts[k - 1] <= t <= ts[k]:
+            rot = Slerp(ts[k - 1:k + 1], Rotation.from_quat(np.array([self._q[k - 1], self._q[k]])))([t])[0]
+        elif k < len(ts) and ts[k] == t:
+            rot = Rotation.from_quat(self._q[k])
+        else:
+            rot = r_ref * Rotation.from_rotvec(coef_r[0])
+        r_ref_m = r_ref.as_matrix()
+        return BaseMotion(rot.as_matrix(), coef_p[0], coef_p[1], coef_p[2],
+                          r_ref_m @ coef_r[1], r_ref_m @ coef_r[2]), True

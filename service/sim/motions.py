@@ -92,7 +92,7 @@ def point_motion(t_m: float = 0.6, t_d: float = 0.2, coupling: float = 1.0, hold
 
 
 def pinch_motion(t_m: float = 0.6, t_d: float = 0.2, coupling: float = 1.0, hold_s: float = 1.0) -> FingerMotion:
-    targets = {"index": (40.0, 40.0), "thumb": (45.0, 30.0), "middle": (20.0, 25.0),
+    targets = {"index": (40.0, 40.0), "thumb": (40.0, 30.0), "middle": (20.0, 25.0),
                "ring": (20.0, 25.0), "little": (20.0, 25.0)}
     return _pose_motion("pinch", targets, t_m, t_d, hold_s, coupling)
 

@@ -1,0 +1,63 @@
+"""Forward kinematics to the 26 joints of OpenXR ``XR_EXT_hand_tracking``, in the world frame.
+
+Joint order and names follow ``XrHandJointEXT`` (palm, wrist, then thumb metacarpal/proximal/distal/
+tip, then metacarpal/proximal/intermediate/distal/tip of index, middle, ring and little). Joint
+frames are OpenXR's: -Z along the bone toward the fingertip, +Y out of the back of the hand; the
+mapping from the finger frame is ``frames.FINGER_TO_OPENXR``. A joint's orientation is that of the
+bone that starts at it (the tip takes its distal bone's).
+
+Model simplifications: the metacarpus is rigid, so every metacarpal joint and the palm share its
+orientation; the long fingers' metacarpal joints lie on the wrist line (``y = 0``) below their MCP
+joints, the thumb's carpometacarpal joint one thumb-metacarpal length (Buchholz ratio 0.251 of hand
+length) behind its MCP joint along the thumb's base direction.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .frames import FINGER_TO_OPENXR, matrix_to_quat, rot_x
+from .hand import LONG_FINGERS, HandCalibration, joint_to_phalanx_angles, HAND_LENGTH_M
+
+JOINT_NAMES: tuple[str, ...] = (
+    "palm", "wrist",
+    "thumb_metacarpal", "thumb_proximal", "thumb_distal", "thumb_tip",
+    *(f"{f}_{j}" for f in LONG_FINGERS for j in ("metacarpal", "proximal", "intermediate", "distal", "tip")),
+)
+assert len(JOINT_NAMES) == 26
+
+THUMB_METACARPAL_M = 0.251 * HAND_LENGTH_M
+
+
+def joint_poses(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
+                hand_rotation: np.ndarray, hand_position: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``name -> (position (3,), orientation [x,y,z,w])`` in the world frame for joint angles
+    ``φ`` per finger (rad) and the metacarpus pose (rotation matrix, position)."""
+    to_xr = FINGER_TO_OPENXR
+    hand_q = matrix_to_quat(hand_rotation @ to_xr)
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def world(p_m):
+        return hand_position + hand_rotation @ p_m
+
+    middle = calib.finger("middle")
+    out["wrist"] = (np.asarray(hand_position, dtype=float).copy(), hand_q)
+    out["palm"] = (world(0.5 * np.array([0.0, middle.base_position_m[1], 0.0])), hand_q)
+    for name, geom in calib.fingers.items():
+        theta = joint_to_phalanx_angles(np.asarray(joint_angles[name], dtype=float))
+        rb = geom.base_matrix()
+        base = np.asarray(geom.base_position_m)
+        if name == "thumb":
+            meta = base - THUMB_METACARPAL_M * rb[:, 1]
+            bones = ("proximal", "distal", "tip")
+        else:
+            meta = np.array([base[0], 0.0, base[2]])
+            bones = ("proximal", "intermediate", "distal", "tip")
+        out[f"{name}_metacarpal"] = (world(meta), hand_q)
+        point = base.copy()
+        frames = [rb @ rot_x(th) for th in theta]
+        for i, bone in enumerate(bones):
+            r = frames[min(i, len(frames) - 1)]
+            out[f"{name}_{bone}"] = (world(point), matrix_to_quat(hand_rotation @ r @ to_xr))
+            if i < len(frames):
+                point = point + geom.lengths_m[i] * r[:, 1]
+    return {n: out[n] for n in JOINT_NAMES}

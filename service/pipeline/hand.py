@@ -1,0 +1,317 @@
+"""A hand session: protocol-v1 source messages in, ``frame`` messages out.
+
+Data flow (one call of ``handle`` per message, in arrival order):
+
+1. ``calibration`` overrides the hand geometry (estimators are rebuilt from the current estimate);
+   ``pose`` goes to the ``OpticalTrack``; ``imu``/``imu_batch`` samples go to a bounded table of
+   pending ticks keyed by timestamp.
+2. A tick is processed when it has aged past the reorder window (``reorder_window_s`` behind the
+   newest IMU time) and the optics cover it (a pose at or after it has arrived) or have timed out.
+   Samples arriving for an already processed time are late; a second sample of the same sensor and
+   time is a duplicate; both are dropped and counted. A jump of the IMU clock by more than
+   ``clock_step_s`` is a clock step: it is counted and reported, pending ticks are discarded and the
+   estimators restart from the current estimate instead of integrating across the gap.
+3. Each finger's estimator gets the tick's samples of its sensors and the metacarpus kinematics at
+   that time. A sensor missing from a tick is held from its last sample while younger than
+   ``sensor_timeout_s``; after that it is silent: it is reported, and its finger falls back to an
+   estimator over the remaining sensors, closed by the coupling plus ``PIP = fallback_coupling·MCP``
+   (restarting from the current estimate; the full estimator returns with the sensor).
+4. Frames are emitted on the source clock at ``output_rate_hz`` with the latest estimate of every
+   finger, the 26 OpenXR joint poses and a status.
+
+While the optics are occluded the metacarpus pose is held and the fingers keep being estimated from
+the IMUs; the status says so. Everything here is deterministic: the same messages give the same
+frames, which is what ``fingertrack replay`` relies on.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..estimators.base import FingerEstimator, finger_mode
+from ..estimators.registry import estimator_class
+from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
+from ..model.kinematics import BaseMotion
+from ..model.openxr import joint_poses
+from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, Truth
+from .optical import OpticalTrack
+
+
+class PipelineSettings(BaseModel):
+    """Hand pipeline settings (every field has a unit and a default)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    estimator: str = Field("chain", description="estimator name (``fingertrack estimate --list``)")
+    estimator_params: dict[str, Any] = Field(default_factory=dict, description="the estimator's settings")
+    output_rate_hz: float = Field(90.0, gt=0.0, le=1000.0, description="frame rate on the source clock, Hz")
+    reorder_window_s: float = Field(0.02, ge=0.0, le=1.0, description="how long a tick waits for late samples, s")
+    pose_timeout_s: float = Field(0.1, gt=0.0, le=5.0, description="optics count as lost after this long without a valid pose, s")
+    pose_window_s: float = Field(0.15, gt=0.0, le=2.0, description="optical derivative fit window, s")
+    sensor_timeout_s: float = Field(0.08, gt=0.0, le=5.0, description="a sensor is silent after this long without samples, s")
+    clock_step_s: float = Field(0.5, gt=0.0, description="an IMU time jump larger than this is a clock step, s")
+    max_pending_ticks: int = Field(512, ge=8, le=100_000, description="bound of the pending-tick table (oldest dropped)")
+    fallback_coupling: float = Field(1.0, ge=0.0, le=2.0, description="PIP = this x MCP when a sensor of the finger is silent")
+
+
+@dataclass
+class Counters:
+    duplicate: int = 0
+    late: int = 0
+    overflow: int = 0
+    clock_steps: int = 0
+    estimator_errors: int = 0
+    unknown_sensor: int = 0
+
+
+@dataclass
+class FingerState:
+    geom: FingerGeometry
+    estimator: FingerEstimator
+    active_sensors: tuple[str, ...]
+    phi: np.ndarray
+    mode: str = "none"
+
+
+@dataclass
+class HandFrame:
+    """What the pipeline knows at one output time (source clock, s)."""
+
+    t: float
+    seq: int
+    hand: str
+    joint_angles: dict[str, np.ndarray]        # φ per finger, rad
+    modes: dict[str, str]
+    hand_rotation: np.ndarray                   # metacarpus to world
+    hand_position: np.ndarray
+    joints: dict[str, tuple[np.ndarray, np.ndarray]]
+    status: dict
+
+    def to_message(self, calib: HandCalibration) -> dict:
+        fingers = {}
+        for f, phi in self.joint_angles.items():
+            names = calib.finger(f).joint_names
+            fingers[f] = {**{n: float(v) for n, v in zip(names, phi)}, "mode": self.modes[f]}
+        return {
+            "type": "frame", "t": self.t, "seq": self.seq, "hand": self.hand, "fingers": fingers,
+            "joints": {n: {"position": p.tolist(), "orientation": q.tolist()} for n, (p, q) in self.joints.items()},
+            "status": self.status,
+        }
+
+
+class HandSession:
+    """One hand (module docstring). ``handle(message)`` returns the frames it completes."""
+
+    def __init__(self, hand: str = "right", settings: PipelineSettings | None = None,
+                 calibration: HandCalibration | None = None):
+        self.settings = settings or PipelineSettings()
+        self.hand = hand
+        self.calibration = calibration or default_calibration(hand)  # type: ignore[arg-type]
+        self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+        self.counters = Counters()
+        self._pending: dict[float, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+        self._last_sample: dict[str, tuple[float, np.ndarray, np.ndarray]] = {}
+        self._processed_t: float | None = None
+        self._newest_imu_t: float | None = None
+        self._next_frame_t: float | None = None
+        self._seq = 0
+        self._hand_motion: BaseMotion | None = None
+        self._tracking = False
+        self._fingers: dict[str, FingerState] = {}
+        self.estimator_name = self.settings.estimator
+        self._estimator_params = dict(self.settings.estimator_params)
+        self._check_estimator(self.estimator_name, self._estimator_params)
+        self._build_fingers()
+
+    # -- configuration ---------------------------------------------------------------------------
+    def _check_estimator(self, name: str, params: dict) -> None:
+        cls = estimator_class(name)
+        cls.Settings(**params)
+
+    def _make_estimator(self, geom: FingerGeometry, theta0: np.ndarray | None, extra=()) -> FingerEstimator:
+        cls = estimator_class(self.estimator_name)
+        return cls(geom, settings=cls.Settings(**self._estimator_params), initial_theta=theta0, extra_couplings=extra)
+
+    def _build_fingers(self) -> None:
+        new = {}
+        for name, geom in self.calibration.fingers.items():
+            old = self._fingers.get(name)
+            phi = old.phi if old is not None else np.zeros(geom.n_phalanges)
+            # continue from the current estimate, if there is one yet
+            theta0 = joint_to_phalanx_angles(phi) if (old is not None and old.estimator.started) else None
+            sensors = tuple(s.id for s in geom.sensors)
+            new[name] = FingerState(geom, self._make_estimator(geom, theta0), sensors, phi,
+                                    old.mode if old is not None else "none")
+        self._fingers = new
+
+    def set_estimator(self, name: str, params: dict | None = None) -> None:
+        """Switch the estimator of every finger live; each starts from the current estimate.
+        Raises ``ValueError``/``ValidationError`` for an unknown name or bad settings (nothing changes)."""
+        params = dict(params or {})
+        self._check_estimator(name, params)
+        self.estimator_name, self._estimator_params = name, params
+        self._build_fingers()
+
+    def apply_calibration(self, overrides: dict) -> None:
+        self.calibration = self.calibration.with_overrides(overrides)
+        self._build_fingers()
+
+    # -- input ---------------------------------------------------------------------------------------
+    def handle(self, msg) -> list[HandFrame]:
+        if isinstance(msg, Imu):
+            self._add_imu(msg.t, msg.id, msg.gyr, msg.acc)
+        elif isinstance(msg, ImuBatch):
+            for s in msg.samples:
+                self._add_imu(s.t, s.id, s.gyr, s.acc)
+        elif isinstance(msg, Pose):
+            if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
+                self.counters.late += 1
+            else:
+                self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
+        elif isinstance(msg, Calibration):
+            self.apply_calibration(msg.overrides())
+        elif isinstance(msg, Hello):
+            if msg.hand != self.hand:
+                self.hand = msg.hand
+                self.calibration = default_calibration(msg.hand)
+                self._build_fingers()
+        elif isinstance(msg, Truth):
+            return []
+        return self._process_ready()
+
+    def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
+        if sid not in self.calibration.sensor_ids:
+            self.counters.unknown_sensor += 1
+            return
+        newest = self._newest_imu_t
+        if newest is not None and abs(t - newest) > self.settings.clock_step_s:
+            self._clock_step()
+            newest = None
+        if self._processed_t is not None and t <= self._processed_t:
+            self.counters.late += 1
+            return
+        tick = self._pending.setdefault(t, {})
+        if sid in tick:
+            self.counters.duplicate += 1
+            return
+        tick[sid] = (np.asarray(gyr, dtype=float), np.asarray(acc, dtype=float))
+        self._newest_imu_t = t if newest is None else max(newest, t)
+        if len(self._pending) > self.settings.max_pending_ticks:
+            oldest = min(self._pending)
+            self.counters.overflow += len(self._pending.pop(oldest))
+
+    def _clock_step(self) -> None:
+        self.counters.clock_steps += 1
+        self._pending.clear()
+        self._last_sample.clear()
+        self._processed_t = None
+        self._newest_imu_t = None
+        self._next_frame_t = None
+        self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+        self._build_fingers()
+
+    # -- processing ---------------------------------------------------------------------------------
+    def _ready(self, t: float) -> bool:
+        if self._newest_imu_t is None or self._newest_imu_t - t < self.settings.reorder_window_s - 1e-12:
+            return False
+        if self.optics.covers(t):
+            return True
+        # optics lost (or never seen): do not wait for them beyond the timeout
+        return self._newest_imu_t - t >= self.settings.pose_timeout_s and \
+            (self.optics.latest_valid_t is not None or self._newest_imu_t - t >= 2 * self.settings.pose_timeout_s)
+
+    def _process_ready(self) -> list[HandFrame]:
+        frames: list[HandFrame] = []
+        for t in sorted(self._pending):
+            if not self._ready(t):
+                break
+            tick = self._pending.pop(t)
+            frames += self._process_tick(t, tick)
+        return frames
+
+    def _process_tick(self, t: float, tick: dict) -> list[HandFrame]:
+        hand, tracking = self.optics.at(t)
+        for sid, (g, a) in tick.items():
+            self._last_sample[sid] = (t, g, a)
+        self._processed_t = t
+        if hand is None:
+            return []                           # no pose seen yet: nothing to fuse with
+        self._hand_motion, self._tracking = hand, tracking
+        for name, fs in self._fingers.items():
+            self._update_finger(name, fs, t, hand)
+        return self._emit_frames(t)
+
+    def _live_sensors(self, geom: FingerGeometry, t: float) -> tuple[str, ...]:
+        return tuple(s.id for s in geom.sensors
+                     if s.id in self._last_sample and t - self._last_sample[s.id][0] <= self.settings.sensor_timeout_s)
+
+    def _update_finger(self, name: str, fs: FingerState, t: float, hand: BaseMotion) -> None:
+        live = self._live_sensors(fs.geom, t)
+        if live != fs.active_sensors:
+            self._reconfigure(name, fs, live)
+        if not fs.active_sensors:
+            fs.mode = "none"
+            return
+        gyr = np.array([self._last_sample[s][1] for s in fs.active_sensors])
+        acc = np.array([self._last_sample[s][2] for s in fs.active_sensors])
+        try:
+            est = fs.estimator.update(t, gyr, acc, hand)
+        except ValueError:
+            self.counters.estimator_errors += 1
+            return
+        fs.phi = est.phi
+        fs.mode = finger_mode(est.mode)
+
+    def _reconfigure(self, name: str, fs: FingerState, live: tuple[str, ...]) -> None:
+        fs.active_sensors = live
+        if not live:
+            return
+        geom = replace(fs.geom, sensors=tuple(s for s in fs.geom.sensors if s.id in live))
+        theta0 = joint_to_phalanx_angles(fs.phi) if fs.estimator.started else None
+        extra = [] if len(live) == len(fs.geom.sensors) else [(0, self.settings.fallback_coupling)]
+        try:
+            fs.estimator = self._make_estimator(geom, theta0, extra)
+        except ValueError:
+            fs.active_sensors = ()           # nothing observable: hold the angles
+
+    def _emit_frames(self, t: float) -> list[HandFrame]:
+        # one frame at the first tick at or after each scheduled time, stamped with the tick's time
+        # (the time of the estimate it carries); after a gap the schedule resumes from now
+        step = 1.0 / self.settings.output_rate_hz
+        if self._next_frame_t is None:
+            self._next_frame_t = t
+        if t + 1e-9 < self._next_frame_t:
+            return []
+        while self._next_frame_t <= t + 1e-9:
+            self._next_frame_t += step
+        return [self._frame(t)]
+
+    def _frame(self, t: float) -> HandFrame:
+        hand = self._hand_motion
+        assert hand is not None
+        angles = {n: fs.phi.copy() for n, fs in self._fingers.items()}
+        modes = {n: fs.mode for n, fs in self._fingers.items()}
+        joints = joint_poses(self.calibration, angles, hand.rotation, hand.position)
+        self._seq += 1
+        return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
+                         joints, self.status(t))
+
+    def status(self, t: float | None = None) -> dict:
+        now = t if t is not None else (self._processed_t or 0.0)
+        sensors = {}
+        for fs in self._fingers.values():
+            for s in fs.geom.sensors:
+                last = self._last_sample.get(s.id)
+                age = None if last is None else round(now - last[0], 6)
+                sensors[s.id] = {"age_s": age, "silent": s.id not in fs.active_sensors}
+        return {
+            "optics": "tracking" if self._tracking else ("occluded" if self.optics.latest_t is not None else "waiting"),
+            "estimator": self.estimator_name,
+            "sensors": sensors,
+            "dropped": {"duplicate": self.counters.duplicate, "late": self.counters.late,
+                        "overflow": self.counters.overflow, "unknown_sensor": self.counters.unknown_sensor},
+            "clock_steps": self.counters.clock_steps,
+        }
