@@ -143,6 +143,55 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    import json
+
+    from pydantic import ValidationError
+
+    from gestures.stream import replay
+    from .pipeline.hand import PipelineSettings
+    from .protocol import ProtocolError, parse_line
+
+    try:
+        settings = PipelineSettings(estimator=args.estimator, estimator_params=_parse_params(args.param, None))
+        from .estimators.registry import estimator_class
+        estimator_class(args.estimator).Settings(**settings.estimator_params)
+    except ValidationError as err:
+        raise ValueError(f"replay settings: {err}") from None
+    bad = 0
+
+    def messages():
+        nonlocal bad
+        with open(args.recording, encoding="utf-8") as fh:
+            for number, line in enumerate(fh, start=1):
+                if not line.strip():
+                    continue
+                try:
+                    yield parse_line(line)
+                except ProtocolError as err:
+                    bad += 1
+                    print(f"{args.recording}:{number}: skipped: {err.code}: {err.detail}", file=sys.stderr)
+
+    counts: dict[str, int] = {}
+    events = []
+    out = open(args.out, "w", encoding="utf-8") if args.out else None
+    try:
+        for msg in replay(messages(), settings):
+            counts[msg["type"]] = counts.get(msg["type"], 0) + 1
+            if msg["type"] == "gesture":
+                events.append(msg)
+            if out:
+                out.write(json.dumps(msg, separators=(",", ":")) + "\n")
+    finally:
+        if out:
+            out.close()
+    print(f"replayed {args.recording} with {args.estimator}: {counts.get('frame', 0)} frames, "
+          f"{len(events)} gesture events, {bad} bad lines skipped" + (f"; wrote {args.out}" if args.out else ""))
+    for ev in events:
+        print(f"  t={ev['t']:8.3f}  {ev['gesture']:<6} {ev['event']:<5} confidence {ev['confidence']:.2f}")
+    return 0
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.which == "paper":
         from .bench import paper
@@ -182,6 +231,13 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("--init-from-truth", action="store_true", help="start from the recording's true initial configuration")
     est.add_argument("--out", help="output CSV: t,finger,mcp,pip,dip,mode (radians)")
     est.set_defaults(func=_cmd_estimate)
+
+    rep = sub.add_parser("replay", help="run a recording through the hand pipeline and gesture recogniser")
+    rep.add_argument("recording", help="protocol-v1 recording, JSON Lines")
+    rep.add_argument("--estimator", default="chain", help="estimator name (default chain)")
+    rep.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any estimator setting")
+    rep.add_argument("--out", help="write the frames and gesture events as JSON Lines")
+    rep.set_defaults(func=_cmd_replay)
 
     bench = sub.add_parser("bench", help="benchmarks: the paper's experiment")
     bench.add_argument("which", choices=("paper",), help="which benchmark")

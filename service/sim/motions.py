@@ -18,6 +18,8 @@ Named motions (the ``--motion`` names of ``fingertrack simulate``):
 * ``pinch``: index and thumb flex toward each other, the other fingers stay relaxed; then held.
 * ``open``: from a relaxed hand to all joints extended (0 deg); then held.
 * ``random``: every joint a sum of three sinusoids (0.1-1.5 Hz) inside the anatomical limits.
+* ``sequence``: the scripted interaction: point, grasp, release, pinch, open (``DEFAULT_SEQUENCE``),
+  each reached in ``t_m`` and held.
 
 Hand trajectories (``--hand-motion``): ``still``; ``slow-rotation`` (rotation about three axes up
 to 0.5 rad at 0.1-0.2 Hz, slow sway); ``fast-reach`` (a 0.35 m reach in 0.5 s with a 40 deg turn, and
@@ -85,21 +87,64 @@ def grasp_motion(t_m: float = 1.0, t_d: float = 0.2, coupling: float = 1.0) -> F
     return FingerMotion("grasp", t_d + t_m, joints)
 
 
+POSES_DEG: dict[str, dict[str, tuple[float, float]]] = {
+    "relaxed": {},
+    "point": {"index": (0.0, 5.0), "middle": (80.0, 90.0), "ring": (80.0, 90.0), "little": (80.0, 90.0),
+              "thumb": (40.0, 40.0)},
+    "grasp": {"index": (85.0, 90.0), "middle": (85.0, 90.0), "ring": (85.0, 90.0), "little": (85.0, 90.0),
+              "thumb": (45.0, 50.0)},
+    "pinch": {"index": (40.0, 40.0), "thumb": (40.0, 30.0), "middle": (20.0, 25.0), "ring": (20.0, 25.0),
+              "little": (20.0, 25.0)},
+    "open": {f: (0.0, 0.0) for f in FINGERS},
+}
+"""Hand poses by name: MCP and PIP of the long fingers (DIP = coupling x PIP), MCP and IP of the
+thumb, degrees; fingers not named stay relaxed (``RELAXED_DEG``)."""
+
+
+def _pose(name: str, finger: str) -> tuple[float, float]:
+    kind = "thumb" if finger == "thumb" else "long"
+    return POSES_DEG[name].get(finger, RELAXED_DEG[kind])
+
+
 def point_motion(t_m: float = 0.6, t_d: float = 0.2, coupling: float = 1.0, hold_s: float = 1.0) -> FingerMotion:
-    flexed = (80.0, 90.0)
-    targets = {"index": (0.0, 5.0), "middle": flexed, "ring": flexed, "little": flexed, "thumb": (40.0, 40.0)}
-    return _pose_motion("point", targets, t_m, t_d, hold_s, coupling)
+    return _pose_motion("point", POSES_DEG["point"], t_m, t_d, hold_s, coupling)
 
 
 def pinch_motion(t_m: float = 0.6, t_d: float = 0.2, coupling: float = 1.0, hold_s: float = 1.0) -> FingerMotion:
-    targets = {"index": (40.0, 40.0), "thumb": (40.0, 30.0), "middle": (20.0, 25.0),
-               "ring": (20.0, 25.0), "little": (20.0, 25.0)}
-    return _pose_motion("pinch", targets, t_m, t_d, hold_s, coupling)
+    return _pose_motion("pinch", POSES_DEG["pinch"], t_m, t_d, hold_s, coupling)
 
 
 def open_motion(t_m: float = 0.6, t_d: float = 0.2, coupling: float = 1.0, hold_s: float = 1.0) -> FingerMotion:
-    targets = {f: (0.0, 0.0) for f in FINGERS}
-    return _pose_motion("open", targets, t_m, t_d, hold_s, coupling)
+    return _pose_motion("open", POSES_DEG["open"], t_m, t_d, hold_s, coupling)
+
+
+DEFAULT_SEQUENCE = (("point", 1.2), ("grasp", 1.2), ("relaxed", 1.0), ("pinch", 1.2), ("open", 1.2))
+"""The scripted demo sequence: point, grasp, release, pinch, open; ``(pose, hold seconds)``."""
+
+
+def sequence_motion(t_m: float = 0.4, t_d: float = 0.5, coupling: float = 1.0,
+                    steps: tuple[tuple[str, float], ...] = DEFAULT_SEQUENCE) -> FingerMotion:
+    """From the relaxed hand through ``steps`` (pose name, hold time after reaching it, s), each
+    transition a C2 step of ``t_m`` seconds; starts after ``t_d``."""
+    joints = {}
+    for f in FINGERS:
+        kind = "thumb" if f == "thumb" else "long"
+        start = RELAXED_DEG[kind]
+        segs: list[list[tuple[float, float, float]]] = [[], []]
+        t = t_d
+        for pose, hold in steps:
+            if pose not in POSES_DEG:
+                raise ValueError(f"unknown pose {pose!r}; expected one of {sorted(POSES_DEG)}")
+            goal = _pose(pose, f)
+            for j in range(2):
+                segs[j].append((t, t_m, goal[j] * DEG))
+            t += t_m + hold
+        sig = [keyframes(start[j] * DEG, segs[j]) for j in range(2)]
+        if kind == "long":
+            sig.append(keyframes(coupling * start[1] * DEG, [(a, b, coupling * c) for a, b, c in segs[1]]))
+        joints[f] = tuple(sig)
+    duration = t_d + sum(t_m + hold for _, hold in steps)
+    return FingerMotion("sequence", duration, joints)
 
 
 def circle_motion(t_m: float = 3.25, t_d: float = 0.2, coupling: float = 1.0, cycles: int = 5) -> FingerMotion:
@@ -149,6 +194,7 @@ FINGER_MOTIONS: dict[str, Callable[..., FingerMotion]] = {
     "pinch": pinch_motion,
     "open": open_motion,
     "random": random_motion,
+    "sequence": sequence_motion,
 }
 
 

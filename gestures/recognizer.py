@@ -1,0 +1,192 @@
+"""Point, grasp, pinch and open from hand frames: continuous values, hysteresis, dwell, events.
+
+Continuous values (every frame), in the vocabulary VR toolkits already speak:
+
+* ``curl`` per finger in [0, 1] (as Unity XR Hands' finger shapes): total flexion over a full curl,
+  ``Σφ / curl_full`` (long fingers 250 deg, thumb 120 deg);
+* ``grab_strength`` in [0, 1] (as Leap/Ultraleap): the mean curl of the four long fingers;
+* ``pinch_strength`` in [0, 1]: 1 with the thumb and index tips ``pinch_full_m`` apart or closer,
+  0 from ``pinch_zero_m``; forced to 0 while a grasp is active (grab overrides pinch, so a fist
+  never also reads as a pinch, a known complaint about other toolkits).
+
+Discrete gestures, at most one at a time, priority grasp > point > pinch > open:
+
+* ``grasp``: every long finger's curl at least ``grasp_curl_enter`` (stays until one drops below
+  ``grasp_curl_exit``);
+* ``point``: index curl at most ``point_index_enter`` and middle, ring and little at least
+  ``point_others_enter`` (thumb free);
+* ``pinch``: thumb and index tips within ``pinch_enter_m`` (stays until beyond ``pinch_exit_m``);
+* ``open``: every long finger's curl at most ``open_curl_enter`` and the thumb's at most
+  ``open_thumb_enter``.
+
+Separate enter and exit thresholds (hysteresis) and dwell times make the events steady: a gesture
+starts once its enter condition has held for ``start_dwell_s`` and ends once its stay condition has
+failed for ``end_dwell_s`` (or a higher-priority gesture starts). The confidence is how far inside
+its band the decisive quantity is, in [0, 1]. While pointing, every frame carries the pointing ray:
+origin at the index fingertip, direction from the index MCP joint to the fingertip (world frame).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+GESTURES = ("grasp", "point", "pinch", "open")   # priority order
+LONG = ("index", "middle", "ring", "little")
+
+
+class GestureSettings(BaseModel):
+    """Per-user gesture thresholds (every field has a unit and a default)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    curl_full_long_rad: float = Field(np.radians(250.0), gt=0.0, description="total flexion of a fully curled long finger, rad")
+    curl_full_thumb_rad: float = Field(np.radians(120.0), gt=0.0, description="total flexion of a fully curled thumb, rad")
+    grasp_curl_enter: float = Field(0.6, ge=0.0, le=1.0, description="grasp starts with every long finger's curl above this")
+    grasp_curl_exit: float = Field(0.45, ge=0.0, le=1.0, description="grasp ends when one long finger's curl falls below this")
+    point_index_enter: float = Field(0.2, ge=0.0, le=1.0, description="index curl at most this to start pointing")
+    point_index_exit: float = Field(0.35, ge=0.0, le=1.0, description="pointing ends above this index curl")
+    point_others_enter: float = Field(0.6, ge=0.0, le=1.0, description="middle/ring/little curl at least this to start pointing")
+    point_others_exit: float = Field(0.45, ge=0.0, le=1.0, description="pointing ends when one of them falls below this")
+    pinch_enter_m: float = Field(0.02, gt=0.0, description="pinch starts with the thumb and index tips this close, m")
+    pinch_exit_m: float = Field(0.03, gt=0.0, description="pinch ends beyond this tip distance, m")
+    open_curl_enter: float = Field(0.1, ge=0.0, le=1.0, description="open starts with every long finger's curl below this")
+    open_curl_exit: float = Field(0.2, ge=0.0, le=1.0, description="open ends when one long finger's curl exceeds this")
+    open_thumb_enter: float = Field(0.2, ge=0.0, le=1.0, description="thumb curl at most this to start open")
+    open_thumb_exit: float = Field(0.35, ge=0.0, le=1.0, description="open ends above this thumb curl")
+    pinch_full_m: float = Field(0.015, gt=0.0, description="pinch strength 1 at this tip distance or closer, m")
+    pinch_zero_m: float = Field(0.07, gt=0.0, description="pinch strength 0 from this tip distance on, m")
+    start_dwell_s: float = Field(0.02, ge=0.0, le=1.0, description="an enter condition must hold this long, s")
+    end_dwell_s: float = Field(0.03, ge=0.0, le=1.0, description="a stay condition must fail this long, s")
+
+
+def _band(value: float, inside: float, outside: float) -> float:
+    """0 at the outer threshold, 1 at the inner one and beyond (either direction)."""
+    if inside == outside:
+        return 1.0
+    return float(np.clip((value - outside) / (inside - outside), 0.0, 1.0))
+
+
+@dataclass
+class Features:
+    curl: dict[str, float]
+    pinch_distance_m: float
+    grab_strength: float
+
+
+@dataclass
+class GestureRecognizer:
+    """Stateful recogniser of one hand (module docstring). ``update(frame)`` returns the frame's
+    gesture annotation and the events it caused."""
+
+    settings: GestureSettings = field(default_factory=GestureSettings)
+    active: str | None = None
+    _candidate: str | None = None
+    _candidate_since: float | None = None
+    _failing_since: float | None = None
+
+    def features(self, frame) -> Features:
+        s = self.settings
+        curl = {}
+        for f, phi in frame.joint_angles.items():
+            full = s.curl_full_thumb_rad if f == "thumb" else s.curl_full_long_rad
+            curl[f] = float(np.clip(np.sum(phi) / full, 0.0, 1.0))
+        tip_t = frame.joints["thumb_tip"][0]
+        tip_i = frame.joints["index_tip"][0]
+        return Features(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])))
+
+    def _enter(self, g: str, x: Features) -> float | None:
+        """Confidence if ``g``'s enter condition holds, else None."""
+        s, c = self.settings, x.curl
+        if g == "grasp":
+            m = min(c[f] for f in LONG)
+            return _band(m, 1.0, s.grasp_curl_enter) if m >= s.grasp_curl_enter else None
+        if g == "point":
+            others = min(c[f] for f in ("middle", "ring", "little"))
+            if c["index"] <= s.point_index_enter and others >= s.point_others_enter:
+                return min(_band(c["index"], 0.0, s.point_index_enter), _band(others, 1.0, s.point_others_enter))
+            return None
+        if g == "pinch":
+            d = x.pinch_distance_m
+            return _band(d, 0.0, s.pinch_enter_m) if d <= s.pinch_enter_m else None
+        m = max(c[f] for f in LONG)
+        if m <= s.open_curl_enter and c["thumb"] <= s.open_thumb_enter:
+            return min(_band(m, 0.0, s.open_curl_enter), _band(c["thumb"], 0.0, s.open_thumb_enter))
+        return None
+
+    def _stays(self, g: str, x: Features) -> bool:
+        s, c = self.settings, x.curl
+        if g == "grasp":
+            return min(c[f] for f in LONG) >= s.grasp_curl_exit
+        if g == "point":
+            return c["index"] <= s.point_index_exit and min(c[f] for f in ("middle", "ring", "little")) >= s.point_others_exit
+        if g == "pinch":
+            return x.pinch_distance_m <= s.pinch_exit_m
+        return max(c[f] for f in LONG) <= s.open_curl_exit and c["thumb"] <= s.open_thumb_exit
+
+    def _confidence(self, g: str, x: Features) -> float:
+        s, c = self.settings, x.curl
+        if g == "grasp":
+            return _band(min(c[f] for f in LONG), s.grasp_curl_enter, s.grasp_curl_exit)
+        if g == "point":
+            return min(_band(c["index"], s.point_index_enter, s.point_index_exit),
+                       _band(min(c[f] for f in ("middle", "ring", "little")), s.point_others_enter, s.point_others_exit))
+        if g == "pinch":
+            return _band(x.pinch_distance_m, s.pinch_enter_m, s.pinch_exit_m)
+        return min(_band(max(c[f] for f in LONG), s.open_curl_enter, s.open_curl_exit),
+                   _band(c["thumb"], s.open_thumb_enter, s.open_thumb_exit))
+
+    @staticmethod
+    def ray(frame) -> dict:
+        tip = frame.joints["index_tip"][0]
+        base = frame.joints["index_proximal"][0]
+        d = tip - base
+        return {"origin": tip.tolist(), "direction": (d / np.linalg.norm(d)).tolist()}
+
+    def _event(self, frame, g: str, kind: str, confidence: float) -> dict:
+        ev = {"type": "gesture", "t": frame.t, "gesture": g, "event": kind, "confidence": round(confidence, 4)}
+        if g == "point":
+            ev["ray"] = self.ray(frame)
+        return ev
+
+    def update(self, frame) -> tuple[dict, list[dict]]:
+        s = self.settings
+        x = self.features(frame)
+        t = frame.t
+        events: list[dict] = []
+        # candidates for starting: the highest-priority enter condition that holds
+        candidates = [(g, conf) for g in GESTURES if (conf := self._enter(g, x)) is not None]
+        best = candidates[0] if candidates else None
+        higher = best is not None and self.active is not None and GESTURES.index(best[0]) < GESTURES.index(self.active)
+        if best is not None and (self.active is None or higher):
+            if self._candidate != best[0]:
+                self._candidate, self._candidate_since = best[0], t
+        else:
+            self._candidate, self._candidate_since = None, None
+        # end the active gesture: its stay condition failed long enough, or a higher one takes over
+        if self.active is not None:
+            if self._stays(self.active, x):
+                self._failing_since = None
+            elif self._failing_since is None:
+                self._failing_since = t
+            takeover = higher and self._candidate_since is not None and t - self._candidate_since >= s.start_dwell_s - 1e-9
+            if takeover or (self._failing_since is not None and t - self._failing_since >= s.end_dwell_s - 1e-9):
+                events.append(self._event(frame, self.active, "end", self._confidence(self.active, x)))
+                self.active, self._failing_since = None, None
+        # start the candidate once it has held long enough
+        if self.active is None and self._candidate is not None and self._candidate_since is not None \
+                and t - self._candidate_since >= s.start_dwell_s - 1e-9:
+            conf = dict(candidates).get(self._candidate, 0.0)
+            self.active = self._candidate
+            self._candidate, self._candidate_since, self._failing_since = None, None, None
+            events.append(self._event(frame, self.active, "start", conf))
+        annotation = {
+            "active": self.active,
+            "curl": {f: round(v, 4) for f, v in x.curl.items()},
+            "grab_strength": round(x.grab_strength, 4),
+            "pinch_strength": 0.0 if self.active == "grasp" else round(_band(x.pinch_distance_m, s.pinch_full_m, s.pinch_zero_m), 4),
+        }
+        if self.active == "point":
+            annotation["ray"] = self.ray(frame)
+        return annotation, events
