@@ -186,6 +186,11 @@ class FingerEstimator:
         self._t_last = value["t_last"]
         self._state = value["filter"]
 
+    def reference_lost(self, duration_s: float) -> None:
+        """The metacarpus pose was unavailable (held) for ``duration_s``: whatever the filter believes
+        about its angles is less certain than it thinks. Filters with an explicit uncertainty widen
+        it so that they re-converge quickly once the optics return; the default does nothing."""
+
     # -- streaming ----------------------------------------------------------------------------
     def update(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:
         """One sample. Raises ``ValueError`` naming the bad input and leaves the state untouched."""

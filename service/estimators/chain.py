@@ -47,6 +47,9 @@ from .integration import initial_sensor_theta
 from .observations import FingerObservations
 
 N_STATE = 5
+LOST_RATE_RAD_S = 1.0
+"""While the optics are lost the angle's std grows by this rate (a hand turning at 1 rad/s), rad/s."""
+LOST_MAX_STD_RAD = np.pi / 3
 
 
 class ChainSettings(EstimatorSettings):
@@ -78,6 +81,11 @@ class Chain(FingerEstimator):
         P[..., 2:, 2:] = s.initial_acc_bias_std_m_s2**2 * np.eye(3)
         return {"x": np.concatenate([theta[..., None], np.zeros(theta.shape + (4,))], axis=-1),
                 "P": P, "rate": self.obs.relative_rate(gyr, hand)}
+
+    def reference_lost(self, duration_s: float) -> None:
+        if self._state is not None:
+            extra = min(LOST_RATE_RAD_S * duration_s, LOST_MAX_STD_RAD) ** 2
+            self._state["P"][..., 0, 0] += extra
 
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings

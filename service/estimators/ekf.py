@@ -60,6 +60,12 @@ class Ekf(FingerEstimator):
         return {"q": q, "bias": np.zeros(theta.shape + (3,)), "P": P, "theta": theta,
                 "rate": self.obs.relative_rate(gyr, hand)}
 
+    def reference_lost(self, duration_s: float) -> None:
+        from .chain import LOST_MAX_STD_RAD, LOST_RATE_RAD_S
+        if self._state is not None:
+            extra = min(LOST_RATE_RAD_S * duration_s, LOST_MAX_STD_RAD) ** 2
+            self._state["P"][..., :3, :3] += extra * np.eye(3)
+
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings
         rate = self.obs.relative_rate(gyr, hand)

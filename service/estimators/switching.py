@@ -66,6 +66,11 @@ class Switching(FingerEstimator):
         mode = np.where(np.isfinite(err), MODE_SLOW, MODE_FAST).astype(np.int8)
         return {"theta": theta, "rate": rate, "error": err, "mode": mode}
 
+    def reference_lost(self, duration_s: float) -> None:
+        # the integration bound grows as if the hand had turned at 1 rad/s unseen (eq. 8)
+        if self._state is not None:
+            self._state["error"] = self._state["error"] + duration_s
+
     def _observe(self, gyr, acc, hand, prev_rate, dt):
         """Steps 1-2 for samples (..., S): rates, vector observation and its error bound. Depends on
         the previous sample only through ``prev_rate`` and ``dt``, so batch mode evaluates it for all

@@ -120,6 +120,7 @@ class HandSession:
         self._seq = 0
         self._hand_motion: BaseMotion | None = None
         self._tracking = False
+        self._lost_since: float | None = None
         self._fingers: dict[str, FingerState] = {}
         self.estimator_name = self.settings.estimator
         self._estimator_params = dict(self.settings.estimator_params)
@@ -239,6 +240,12 @@ class HandSession:
         self._processed_t = t
         if hand is None:
             return []                           # no pose seen yet: nothing to fuse with
+        if tracking and not self._tracking and self._lost_since is not None:
+            for fs in self._fingers.values():
+                fs.estimator.reference_lost(t - self._lost_since)
+            self._lost_since = None
+        elif not tracking and self._tracking:
+            self._lost_since = t
         self._hand_motion, self._tracking = hand, tracking
         for name, fs in self._fingers.items():
             self._update_finger(name, fs, t, hand)

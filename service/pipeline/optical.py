@@ -59,90 +59,91 @@ def hand_kinematics_offline(pose_t: np.ndarray, position: np.ndarray, orientatio
 class OpticalTrack:
     """Causal metacarpus kinematics from a live pose stream (the hand pipeline's view of the optics).
 
-    Poses are kept for ``window_s`` (bounded). At a query time ``t``:
+    Poses (valid or not) are kept in time order for a bounded time. A query at time ``t`` uses the
+    poses up to the first one at or after ``t`` (the one that *covers* ``t``), or all of them when
+    none has arrived yet, so the answer does not depend on when the query is made:
 
-    * orientation: slerp between the valid poses around ``t`` (or the newest pose rotated on by the
-      fitted angular velocity when ``t`` is past it, at most ``timeout_s``);
+    * orientation: slerp between the valid poses around ``t`` (or the newest valid pose rotated on
+      by the fitted angular velocity when ``t`` is past it);
     * angular velocity and acceleration: a quadratic least-squares fit of the rotation vectors of the
-      poses within ``window_s`` before ``t`` relative to the newest of them (body frame, valid for the
-      small rotations of one window), turned into the world frame; position, velocity and
+      valid poses within ``window_s`` before ``t`` relative to the newest of them (body frame, valid
+      for the small rotations of one window), turned into the world frame; position, velocity and
       acceleration: the same fit of the positions. A fit over ``window_s`` instead of a double
       difference keeps the optical jitter out of the derivatives.
-    * occlusion: when the newest pose says ``valid: false`` or is older than ``timeout_s``, the last
-      valid orientation and position are held with zero rates, and ``at`` reports it.
+    * occlusion: when the last pose up to the covering one says ``valid: false``, or the newest valid
+      pose is older than ``timeout_s``, the last valid orientation and position are held with zero
+      rates, and ``at`` reports it.
     """
 
-    def __init__(self, window_s: float = 0.15, timeout_s: float = 0.1, max_poses: int = 256):
+    def __init__(self, window_s: float = 0.15, timeout_s: float = 0.1, max_poses: int = 512):
         from collections import deque
         self.window_s = window_s
         self.timeout_s = timeout_s
-        self._t: deque = deque(maxlen=max_poses)
-        self._p: deque = deque(maxlen=max_poses)
-        self._q: deque = deque(maxlen=max_poses)
-        self.latest_t: float | None = None         # newest pose of any validity
+        self._poses: deque = deque(maxlen=max_poses)      # (t, valid, position, quaternion xyzw)
+        self.latest_t: float | None = None
         self.latest_valid_t: float | None = None
-        self.occluded_marker = False                # the newest pose says valid: false
+        self._pruned_valid: tuple | None = None
 
     def add(self, t: float, position, orientation_xyzw, valid: bool) -> None:
         if self.latest_t is not None and t <= self.latest_t:
             raise ValueError(f"pose time must increase: {t} after {self.latest_t}")
         self.latest_t = t
-        self.occluded_marker = not valid
-        if not valid:
-            return
-        self._t.append(t)
-        self._p.append(np.asarray(position, dtype=float))
-        self._q.append(np.asarray(orientation_xyzw, dtype=float))
-        self.latest_valid_t = t
-        while self._t and self._t[0] < t - 4 * self.window_s:
-            self._t.popleft(), self._p.popleft(), self._q.popleft()
+        if valid:
+            self._poses.append((t, True, np.asarray(position, dtype=float), np.asarray(orientation_xyzw, dtype=float)))
+            self.latest_valid_t = t
+        else:
+            self._poses.append((t, False, None, None))
+        horizon = t - max(4 * self.window_s, 2 * self.timeout_s)
+        while len(self._poses) > 2 and self._poses[1][0] < horizon:
+            old = self._poses.popleft()
+            if old[1]:
+                self._pruned_valid = old       # still the held pose during a long occlusion
 
     def covers(self, t: float) -> bool:
         """True when ``t`` can be evaluated now: a pose at or after ``t`` has arrived."""
         return self.latest_t is not None and self.latest_t >= t
 
-    def occluded_at(self, t: float) -> bool:
-        if self.latest_valid_t is None:
-            return True
-        if self.occluded_marker and self.latest_t is not None and self.latest_t <= t + 1e-9:
-            return True
-        return t - self.latest_valid_t > self.timeout_s
+    def _relevant(self, t: float) -> list:
+        out = []
+        for entry in self._poses:
+            out.append(entry)
+            if entry[0] >= t:
+                break
+        return out
 
     def at(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``(kinematics, tracking)``; ``None`` before the first valid pose."""
         from scipy.spatial.transform import Rotation, Slerp
 
-        if self.latest_valid_t is None:
+        poses = self._relevant(t)
+        valid = [p for p in poses if p[1]] or ([self._pruned_valid] if self._pruned_valid is not None else [])
+        if not valid:
             return None, False
-        ts = np.array(self._t)
-        if self.occluded_at(t):
-            r = Rotation.from_quat(self._q[-1]).as_matrix()
+        last_valid = valid[-1]
+        if not poses[-1][1] or t - last_valid[0] > self.timeout_s:
+            r = Rotation.from_quat(last_valid[3]).as_matrix()
             z = np.zeros(3)
-            return BaseMotion(r, self._p[-1].copy(), z, z.copy(), z.copy(), z.copy()), False
-        sel = (ts >= t - self.window_s) & (ts <= t + 1.0 / 30.0)
-        idx = np.flatnonzero(sel)
-        if len(idx) == 0:
-            idx = np.array([len(ts) - 1])
-        ref = int(idx[-1])
-        r_ref = Rotation.from_quat(self._q[ref])
-        tau = ts[idx] - t
-        pos = np.array([self._p[i] for i in idx])
-        rv = (r_ref.inv() * Rotation.from_quat(np.array([self._q[i] for i in idx]))).as_rotvec()
-        if len(idx) >= 3:
+            return BaseMotion(r, last_valid[2].copy(), z, z.copy(), z.copy(), z.copy()), False
+        window = [p for p in valid if p[0] >= t - self.window_s] or [last_valid]
+        ts = np.array([p[0] for p in window])
+        pos = np.array([p[2] for p in window])
+        quats = np.array([p[3] for p in window])
+        r_ref = Rotation.from_quat(quats[-1])
+        tau = ts - t
+        rv = (r_ref.inv() * Rotation.from_quat(quats)).as_rotvec()
+        if len(window) >= 3:
             design = np.stack([np.ones_like(tau), tau, 0.5 * tau**2], axis=1)
             coef_p = np.linalg.lstsq(design, pos, rcond=None)[0]
             coef_r = np.linalg.lstsq(design, rv, rcond=None)[0]
         else:
             coef_p = np.stack([pos[-1], np.zeros(3), np.zeros(3)])
             coef_r = np.stack([rv[-1], np.zeros(3), np.zeros(3)])
-        # orientation: slerp between the bracketing poses, else extrapolate with the fitted rate
-        k = int(np.searchsorted(ts, t))
-        if 0 < k < len(ts) and ts[k - 1] <= t <= ts[k]:
-            rot = Slerp(ts[k - 1:k + 1], Rotation.from_quat(np.array([self._q[k - 1], self._q[k]])))([t])[0]
-        elif k < len(ts) and ts[k] == t:
-            rot = Rotation.from_quat(self._q[k])
+        if len(window) >= 2 and ts[-2] <= t <= ts[-1]:
+            rot = Slerp(ts[-2:], Rotation.from_quat(quats[-2:]))([t])[0]
+        elif ts[-1] == t:
+            rot = r_ref
         else:
-            rot = r_ref * Rotation.from_rotvec(coef_r[0])
+            rot = r_ref * Rotation.from_rotvec(coef_r[1] * (t - ts[-1]))
         r_ref_m = r_ref.as_matrix()
         return BaseMotion(rot.as_matrix(), coef_p[0], coef_p[1], coef_p[2],
                           r_ref_m @ coef_r[1], r_ref_m @ coef_r[2]), True

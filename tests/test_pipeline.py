@@ -1,0 +1,179 @@
+"""The hand pipeline with gestures on simulated recordings: events, faults, ordering, determinism."""
+import json
+
+import numpy as np
+import pytest
+
+from gestures.stream import TrackedHand, replay
+from service.pipeline.hand import PipelineSettings
+from service.protocol import parse_message
+from service.sim.errors import OpticalModel
+from service.sim.session import SimConfig, simulate
+
+
+def _run(messages, settings=None):
+    return list(replay((parse_message(m) for m in messages), settings))
+
+
+def _frames(out):
+    return [m for m in out if m["type"] == "frame"]
+
+
+def _events(out):
+    return [(m["gesture"], m["event"], m["t"]) for m in out if m["type"] == "gesture"]
+
+
+@pytest.fixture(scope="module")
+def sequence_clean():
+    return simulate(SimConfig(motion="sequence", noise="none", seed=0))
+
+
+def test_scripted_sequence_gives_exactly_those_events_in_order(sequence_clean):
+    out = _run(sequence_clean.messages())
+    events = _events(out)
+    assert [(g, e) for g, e, _ in events] == [
+        ("point", "start"), ("point", "end"), ("grasp", "start"), ("grasp", "end"),
+        ("pinch", "start"), ("pinch", "end"), ("open", "start")]
+    # each start falls inside (or just after) the transition into its pose: t_d = 0.5, t_m = 0.4
+    transitions = {"point": 0.5, "grasp": 2.1, "pinch": 5.1, "open": 6.7}
+    for g, e, t in events:
+        if e == "start":
+            assert transitions[g] < t < transitions[g] + 0.4 + 0.1, (g, t)
+    frames = _frames(out)
+    assert all(f["gesture"]["active"] != "point" or "ray" in f["gesture"] for f in frames)
+
+
+def test_frames_carry_angles_joints_and_status(sequence_clean):
+    frames = _frames(_run(sequence_clean.messages()))
+    f = frames[len(frames) // 2]
+    assert set(f["fingers"]) == {"thumb", "index", "middle", "ring", "little"}
+    assert set(f["fingers"]["thumb"]) == {"mcp", "ip", "mode"}
+    assert len(f["joints"]) == 26
+    q = np.array(f["joints"]["index_tip"]["orientation"])
+    assert abs(np.linalg.norm(q) - 1) < 1e-9
+    assert f["status"]["optics"] == "tracking" and f["status"]["estimator"] == "chain"
+    assert set(f["status"]["sensors"]) == set(sequence_clean.sensor_ids)
+    # about 90 frames per second of source time
+    t = np.array([fr["t"] for fr in frames])
+    assert 85 < len(t) / (t[-1] - t[0]) < 95
+    # noise-free angles follow the truth
+    n = int(round(f["t"] * 200))
+    assert np.degrees(abs(f["fingers"]["index"]["mcp"] - sequence_clean.joint_angles["index"][n, 0])) < 1.0
+
+
+def _angle_error(frames, sess, finger="index"):
+    t = np.array([f["t"] for f in frames])
+    est = np.array([[f["fingers"][finger][j] for j in ("mcp", "pip", "dip")] for f in frames])
+    truth = np.stack([np.interp(t, sess.t, sess.joint_angles[finger][:, j]) for j in range(3)], axis=1)
+    return t, np.degrees(np.abs(est - truth)).max(axis=1)
+
+
+def test_occlusion_keeps_frames_coming_and_recovers_within_half_a_second():
+    optical = OpticalModel(occlusions_s=((2.0, 3.0),))
+    sess = simulate(SimConfig(motion="random", t_m_s=6.0, noise="white", hand_motion="slow-rotation", seed=2, optical=optical))
+    frames = _frames(_run(sess.messages()))
+    t = np.array([f["t"] for f in frames])
+    assert np.max(np.diff(t)) < 1 / 90 + 1 / 200 + 1e-9            # no gap in the output
+    inside = [f for f in frames if 2.15 < f["t"] < 2.95]
+    assert inside and all(f["status"]["optics"] == "occluded" for f in inside)
+    after = [f for f in frames if f["t"] > 3.1]
+    assert all(f["status"]["optics"] == "tracking" for f in after)
+    reference = _frames(_run(simulate(SimConfig(motion="random", t_m_s=6.0, noise="white", hand_motion="slow-rotation",
+                                                seed=2)).messages()))
+    _, err_ref = _angle_error(reference, sess)
+    t_occ, err_occ = _angle_error(frames, sess)
+    recovered = t_occ >= 3.5
+    assert err_occ[recovered].max() < max(1.0, 1.5 * err_ref[np.array([f["t"] for f in reference]) >= 3.5].max())
+
+
+def test_a_silent_sensor_is_reported_and_its_finger_keeps_angles():
+    sess = simulate(SimConfig(motion="sequence", noise="white", seed=3))
+    msgs = [m for m in sess.messages() if not (m["type"] == "imu" and m["id"] == "index.2" and m["t"] > 2.0)]
+    frames = _frames(_run(msgs))
+    silent_at = min(f["t"] for f in frames if f["status"]["sensors"]["index.2"]["silent"])
+    assert 2.0 < silent_at <= 2.1
+    later = [f for f in frames if f["t"] > 2.1]
+    assert all(f["status"]["sensors"]["index.2"]["silent"] for f in later)
+    assert all(np.isfinite(f["fingers"]["index"]["mcp"]) for f in later)
+    assert later[-1]["status"]["sensors"]["index.2"]["age_s"] > 5.0
+
+
+def test_out_of_order_and_duplicate_samples_do_not_change_the_frames():
+    sess = simulate(SimConfig(motion="pinch", noise="both", seed=4))
+    msgs = list(sess.messages())
+    reference = _run(msgs)
+    rng = np.random.default_rng(0)
+    shuffled = list(msgs)
+    # reorder IMU messages by up to 10 ms (inside the 20 ms reorder window) and duplicate some
+    keyed = [(m.get("t", -1.0) + (rng.uniform(0, 0.01) if m["type"] == "imu" else 0.0), i, m) for i, m in enumerate(shuffled)]
+    keyed.sort(key=lambda x: (x[0], x[1]))
+    disordered = []
+    duplicates = 0
+    for _, _, m in keyed:
+        disordered.append(m)
+        if m["type"] == "imu" and rng.uniform() < 0.05:
+            disordered.append(dict(m))
+            duplicates += 1
+    hand = TrackedHand()
+    out = [o for m in disordered for o in hand.handle(parse_message(m))]
+    assert [f["fingers"] for f in _frames(out)] == [f["fingers"] for f in _frames(reference)]
+    assert _events(out) == _events(reference)
+    counters = hand.session.counters
+    # a duplicate arriving after its tick was processed counts as late
+    assert counters.duplicate + counters.late == duplicates and counters.duplicate > 0.9 * duplicates
+    # a sample far behind the processed time is late: dropped and counted, frames unchanged
+    old_imu = next(m for m in msgs if m["type"] == "imu" and m["t"] > 0.5)
+    hand = TrackedHand()
+    out_late = []
+    for m in msgs:
+        out_late += hand.handle(parse_message(m))
+        if m["type"] == "imu" and m["t"] > 1.0 and hand.session.counters.late == 0:
+            out_late += hand.handle(parse_message(old_imu))
+    assert hand.session.counters.late == 1
+    assert [f["fingers"] for f in _frames(out_late)] == [f["fingers"] for f in _frames(reference)]
+
+
+def test_replaying_twice_gives_identical_frames(sequence_clean, tmp_path):
+    a = json.dumps(_run(sequence_clean.messages()))
+    b = json.dumps(_run(sequence_clean.messages()))
+    assert a == b
+
+
+def test_a_clock_step_is_reported_not_integrated():
+    sess = simulate(SimConfig(motion="open", noise="white", seed=5))
+    msgs = []
+    for m in sess.messages():
+        m = dict(m)
+        if "t" in m and m["t"] > 1.0:
+            m["t"] += 30.0
+        msgs.append(m)
+    frames = _frames(_run(msgs))
+    assert frames[-1]["status"]["clock_steps"] == 1
+    assert frames[-1]["t"] > 31.0
+    after = [f for f in frames if f["t"] > 31.3]
+    assert after and all(abs(f["fingers"]["index"]["mcp"]) < np.radians(20) for f in after)
+
+
+def test_estimator_switches_live_from_the_current_estimate(sequence_clean):
+    hand = TrackedHand()
+    frames = []
+    switched_at = None
+    for m in sequence_clean.messages():
+        if m["type"] == "imu" and m["t"] == 3.0 and m["id"] == "thumb.0":
+            hand.session.set_estimator("madgwick", {"beta": 0.05})
+            switched_at = len(frames)
+        frames += [o for o in hand.handle(parse_message(m)) if o["type"] == "frame"]
+    before, after = frames[switched_at - 1], frames[switched_at]
+    assert before["status"]["estimator"] == "chain" and after["status"]["estimator"] == "madgwick"
+    assert abs(after["fingers"]["index"]["pip"] - before["fingers"]["index"]["pip"]) < np.radians(2)
+    with pytest.raises(ValueError, match="unknown estimator"):
+        hand.session.set_estimator("kalman")
+    assert hand.session.estimator_name == "madgwick"
+
+
+def test_bad_pipeline_settings_are_rejected():
+    from pydantic import ValidationError
+    with pytest.raises(ValidationError):
+        PipelineSettings(output_rate_hz=-1)
+    with pytest.raises(ValidationError):
+        PipelineSettings(reorder_windw_s=0.1)
