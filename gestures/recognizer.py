@@ -15,7 +15,10 @@ Discrete gestures, at most one at a time, priority grasp > point > pinch > open:
   ``grasp_curl_exit``);
 * ``point``: index curl at most ``point_index_enter`` and middle, ring and little at least
   ``point_others_enter`` (thumb free);
-* ``pinch``: thumb and index tips within ``pinch_enter_m`` (stays until beyond ``pinch_exit_m``);
+* ``pinch``: thumb and index tips within ``pinch_enter_m`` (stays until beyond ``pinch_exit_m``)
+  while middle, ring and little are not curled into a fist (mean curl at most
+  ``pinch_others_curl_max``: when a pointing hand closes into a fist the index tip sweeps past the
+  thumb tip, which is not a pinch);
 * ``open``: every long finger's curl at most ``open_curl_enter`` and the thumb's at most
   ``open_thumb_enter``.
 
@@ -51,6 +54,8 @@ class GestureSettings(BaseModel):
     point_others_exit: float = Field(0.45, ge=0.0, le=1.0, description="pointing ends when one of them falls below this")
     pinch_enter_m: float = Field(0.02, gt=0.0, description="pinch starts with the thumb and index tips this close, m")
     pinch_exit_m: float = Field(0.03, gt=0.0, description="pinch ends beyond this tip distance, m")
+    pinch_others_curl_max: float = Field(0.75, ge=0.0, le=1.0, description="a pinch starts only while the mean curl of "
+                                         "middle, ring and little is at most this (a closing fist sweeps the tips past each other)")
     open_curl_enter: float = Field(0.1, ge=0.0, le=1.0, description="open starts with every long finger's curl below this")
     open_curl_exit: float = Field(0.2, ge=0.0, le=1.0, description="open ends when one long finger's curl exceeds this")
     open_thumb_enter: float = Field(0.2, ge=0.0, le=1.0, description="thumb curl at most this to start open")
@@ -109,7 +114,8 @@ class GestureRecognizer:
             return None
         if g == "pinch":
             d = x.pinch_distance_m
-            return _band(d, 0.0, s.pinch_enter_m) if d <= s.pinch_enter_m else None
+            others = float(np.mean([c[f] for f in ("middle", "ring", "little")]))
+            return _band(d, 0.0, s.pinch_enter_m) if d <= s.pinch_enter_m and others <= s.pinch_others_curl_max else None
         m = max(c[f] for f in LONG)
         if m <= s.open_curl_enter and c["thumb"] <= s.open_thumb_enter:
             return min(_band(m, 0.0, s.open_curl_enter), _band(c["thumb"], 0.0, s.open_thumb_enter))

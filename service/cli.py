@@ -198,6 +198,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(paper.run(args.out, quick=args.quick, seeds=args.seeds, workers=args.workers))
         print(f"\nwrote {args.out}/results.csv, summary.md, fig10.png, fig9.png")
         return 0
+    if args.which == "gestures":
+        from .bench import gestures
+        print(gestures.run(args.out, quick=args.quick, workers=args.workers))
+        print(f"wrote {args.out}/results.json, summary.md")
+        return 0
     raise ValueError(f"unknown benchmark {args.which!r}")
 
 
@@ -239,8 +244,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", help="write the frames and gesture events as JSON Lines")
     rep.set_defaults(func=_cmd_replay)
 
-    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment")
-    bench.add_argument("which", choices=("paper",), help="which benchmark")
+    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures")
+    bench.add_argument("which", choices=("paper", "gestures"), help="which benchmark")
     bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
     bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")
     bench.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")

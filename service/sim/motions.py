@@ -123,28 +123,45 @@ DEFAULT_SEQUENCE = (("point", 1.2), ("grasp", 1.2), ("relaxed", 1.0), ("pinch", 
 
 
 def sequence_motion(t_m: float = 0.4, t_d: float = 0.5, coupling: float = 1.0,
-                    steps: tuple[tuple[str, float], ...] = DEFAULT_SEQUENCE) -> FingerMotion:
-    """From the relaxed hand through ``steps`` (pose name, hold time after reaching it, s), each
-    transition a C2 step of ``t_m`` seconds; starts after ``t_d``."""
+                    steps: tuple[tuple, ...] = DEFAULT_SEQUENCE) -> FingerMotion:
+    """From the relaxed hand through ``steps``: ``(pose name, hold s)`` with a transition of ``t_m``
+    seconds, or ``(pose name, transition s, hold s)``; each transition a C2 step; starts after ``t_d``."""
+    steps = tuple((p[0], t_m, p[1]) if len(p) == 2 else tuple(p) for p in steps)
     joints = {}
     for f in FINGERS:
         kind = "thumb" if f == "thumb" else "long"
         start = RELAXED_DEG[kind]
         segs: list[list[tuple[float, float, float]]] = [[], []]
         t = t_d
-        for pose, hold in steps:
+        for pose, transition, hold in steps:
             if pose not in POSES_DEG:
                 raise ValueError(f"unknown pose {pose!r}; expected one of {sorted(POSES_DEG)}")
             goal = _pose(pose, f)
             for j in range(2):
-                segs[j].append((t, t_m, goal[j] * DEG))
-            t += t_m + hold
+                segs[j].append((t, transition, goal[j] * DEG))
+            t += transition + hold
         sig = [keyframes(start[j] * DEG, segs[j]) for j in range(2)]
         if kind == "long":
             sig.append(keyframes(coupling * start[1] * DEG, [(a, b, coupling * c) for a, b, c in segs[1]]))
         joints[f] = tuple(sig)
-    duration = t_d + sum(t_m + hold for _, hold in steps)
+    duration = t_d + sum(transition + hold for _, transition, hold in steps)
     return FingerMotion("sequence", duration, joints)
+
+
+def random_sequence(duration_s: float, seed: int, transition_s: tuple[float, float] = (0.25, 0.6),
+                    hold_s: tuple[float, float] = (0.6, 2.0)) -> tuple[tuple[str, float, float], ...]:
+    """A random gesture script of about ``duration_s``: poses drawn from ``POSES_DEG`` (never the same
+    twice in a row), transition and hold times uniform in the given ranges, seconds."""
+    rng = np.random.default_rng(seed)
+    names = sorted(POSES_DEG)
+    steps, t, current = [], 0.5, "relaxed"
+    while t < duration_s - 1.0:
+        pose = str(rng.choice([n for n in names if n != current]))
+        tr, hold = float(rng.uniform(*transition_s)), float(rng.uniform(*hold_s))
+        steps.append((pose, tr, hold))
+        t += tr + hold
+        current = pose
+    return tuple(steps)
 
 
 def circle_motion(t_m: float = 3.25, t_d: float = 0.2, coupling: float = 1.0, cycles: int = 5) -> FingerMotion:
