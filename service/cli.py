@@ -192,6 +192,72 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from .api.app import create_app
+    from .api.config import ServiceSettings
+    from .api.server import uvicorn_config
+
+    settings = ServiceSettings.load(args.config, host=args.host, port=args.port).with_admin_token()
+    print("fingertrack service settings:", settings.masked())
+    print(f"admin token (shown once): {settings.admin_token}")
+    print(f"listening on http://{settings.host}:{settings.port} (docs at /docs)")
+    uvicorn.Server(uvicorn_config(settings, create_app(settings))).run()
+    return 0
+
+
+def _cmd_glove(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from clients.glove import stream_glove
+    from .sim.session import SimConfig
+
+    config = SimConfig(motion=args.motion, t_m_s=args.tm, hand=args.hand, noise=args.noise, seed=args.seed,
+                       rate_hz=args.rate, hand_motion=args.hand_motion)
+
+    async def run():
+        pub = await stream_glove(args.url, args.session, args.token, config)
+        await pub.close()
+        return pub
+    pub = asyncio.run(run())
+    print(f"streamed {args.motion} to {args.url} session {args.session}; {len(pub.errors)} error replies, "
+          f"{pub.reconnects} reconnects")
+    for e in list(pub.errors)[:10]:
+        print(f"  error {e['code']}: {e['detail']}")
+    return 0
+
+
+def _cmd_watch(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from clients.client import Subscription
+    from clients.demo import angles_line
+
+    async def run():
+        last = -1e9
+        count = 0
+        async for msg in Subscription(args.url, args.session, args.token):
+            if msg["type"] == "gesture":
+                print(f"gesture {msg['gesture']} {msg['event']} t={msg['t']:.3f} confidence {msg['confidence']:.2f}")
+            elif msg["type"] == "frame" and msg["t"] - last >= args.every:
+                last = msg["t"]
+                print(angles_line(msg))
+            count += 1
+            if args.count and count >= args.count:
+                return
+    try:
+        asyncio.run(run())
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from clients.demo import run_demo
+    return run_demo()
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     if args.which == "paper":
         from .bench import paper
@@ -243,6 +309,36 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any estimator setting")
     rep.add_argument("--out", help="write the frames and gesture events as JSON Lines")
     rep.set_defaults(func=_cmd_replay)
+
+    srv = sub.add_parser("serve", help="run the tracking service (FastAPI + uvicorn)")
+    srv.add_argument("--host", default=None, help="listen address (default 127.0.0.1)")
+    srv.add_argument("--port", type=int, default=None, help="TCP port (default 8765)")
+    srv.add_argument("--config", default=None, help="settings file (JSON object); environment FINGERTRACK_* also applies")
+    srv.set_defaults(func=_cmd_serve)
+
+    glv = sub.add_parser("glove", help="stream a simulated glove + optical tracker to a service in real time")
+    glv.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
+    glv.add_argument("--token", required=True, help="a token with the source role")
+    glv.add_argument("--session", default="default")
+    glv.add_argument("--motion", choices=sorted(FINGER_MOTIONS), default="sequence")
+    glv.add_argument("--tm", type=_positive_float, default=None)
+    glv.add_argument("--hand", choices=("right", "left"), default="right")
+    glv.add_argument("--rate", type=_positive_float, default=200.0)
+    glv.add_argument("--noise", choices=NOISE_KINDS, default="both")
+    glv.add_argument("--hand-motion", choices=sorted(HAND_MOTIONS), default="still")
+    glv.add_argument("--seed", type=int, default=0)
+    glv.set_defaults(func=_cmd_glove)
+
+    wat = sub.add_parser("watch", help="subscribe and print gesture events and live joint angles")
+    wat.add_argument("--url", required=True)
+    wat.add_argument("--token", required=True, help="a token with the viewer role")
+    wat.add_argument("--session", default="default")
+    wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines")
+    wat.add_argument("--count", type=int, default=0, help="stop after this many messages (0: never)")
+    wat.set_defaults(func=_cmd_watch)
+
+    demo = sub.add_parser("demo", help="the service, a simulated glove and a subscriber, end to end (~10 s)")
+    demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures")
     bench.add_argument("which", choices=("paper", "gestures"), help="which benchmark")

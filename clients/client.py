@@ -1,0 +1,214 @@
+"""Python client of the fingertrack service (asyncio, with a thin synchronous wrapper).
+
+* ``Publisher``: a glove or tracker source. Sends ``hello`` (and the last ``calibration``) on every
+  (re)connection, so a reconnect restores the source's state; server ``error`` replies are kept in
+  ``errors`` (bounded).
+* ``Subscription``: an async iterator of ``frame``/``gesture`` messages. On a dropped connection it
+  reconnects with exponential back-off and the same session, token and format: the subscription and
+  its options survive a reconnect.
+
+Messages are dicts in protocol v1; ``service.protocol`` has the typed models (``parse_message``).
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import random
+from collections import deque
+from typing import Any, AsyncIterator, Iterable
+
+import msgpack
+from websockets.asyncio.client import connect
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+
+MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
+
+
+class Backoff:
+    """Exponential back-off with jitter: ``initial_s``, doubling up to ``max_s``."""
+
+    def __init__(self, initial_s: float = 0.1, max_s: float = 5.0, seed: int | None = None):
+        self.initial_s, self.max_s = initial_s, max_s
+        self.delay = initial_s
+        self._rng = random.Random(seed)
+
+    def next(self) -> float:
+        d = self.delay * (0.5 + self._rng.random() / 2)
+        self.delay = min(self.max_s, self.delay * 2)
+        return d
+
+    def reset(self) -> None:
+        self.delay = self.initial_s
+
+
+def _url(base: str, path: str, token: str | None, binary: bool) -> str:
+    base = base.rstrip("/").replace("http://", "ws://").replace("https://", "wss://")
+    query = []
+    if token:
+        query.append(f"token={token}")
+    if binary:
+        query.append("format=msgpack")
+    return f"{base}{path}" + ("?" + "&".join(query) if query else "")
+
+
+def _decode(data) -> dict:
+    return msgpack.unpackb(data) if isinstance(data, bytes) else json.loads(data)
+
+
+def _encode(message: dict, binary: bool):
+    return msgpack.packb(message) if binary else json.dumps(message, separators=(",", ":"))
+
+
+class Publisher:
+    def __init__(self, url: str, session: str, token: str, hand: str = "right", source: str = "python-client",
+                 binary: bool = False, backoff: Backoff | None = None, max_errors: int = 1000):
+        self.url = _url(url, f"/v1/ingest/{session}", token, binary)
+        self.binary = binary
+        self.hello = {"type": "hello", "protocol": 1, "hand": hand, "source": source}
+        self.calibration: dict | None = None
+        self.backoff = backoff or Backoff()
+        self.errors: deque = deque(maxlen=max_errors)
+        self.server_hello: dict | None = None
+        self._ws = None
+        self._reader: asyncio.Task | None = None
+        self.reconnects = 0
+
+    async def connect(self) -> None:
+        self._ws = await connect(self.url, max_size=None)
+        await self._ws.send(_encode(self.hello, self.binary))
+        reply = _decode(await self._ws.recv())
+        if reply.get("type") == "error":
+            raise ConnectionRefusedError(f"{reply['code']}: {reply['detail']}")
+        self.server_hello = reply
+        if self.calibration is not None:
+            await self._ws.send(_encode(self.calibration, self.binary))
+        self._reader = asyncio.create_task(self._read())
+
+    async def _read(self) -> None:
+        try:
+            async for data in self._ws:
+                msg = _decode(data)
+                if msg.get("type") == "error":
+                    self.errors.append(msg)
+        except ConnectionClosed:
+            pass
+
+    async def send(self, message: dict) -> None:
+        """Send one source message, reconnecting (with back-off) if the connection dropped."""
+        if message.get("type") == "calibration":
+            self.calibration = message
+        if message.get("type") == "hello":
+            self.hello = message
+            return
+        while True:
+            try:
+                if self._ws is None:
+                    await self.connect()
+                    self.backoff.reset()
+                    if message is self.calibration:
+                        return                      # connect() has just sent it
+                await self._ws.send(_encode(message, self.binary))
+                return
+            except (ConnectionClosed, OSError):
+                self._ws = None
+                self.reconnects += 1
+                await asyncio.sleep(self.backoff.next())
+
+    async def close(self) -> None:
+        if self._ws is not None:
+            await self._ws.close()
+        if self._reader is not None:
+            await asyncio.gather(self._reader, return_exceptions=True)
+
+
+class Subscription:
+    def __init__(self, url: str, session: str, token: str, binary: bool = False, backoff: Backoff | None = None,
+                 reconnect: bool = True):
+        self.url = _url(url, f"/v1/stream/{session}", token, binary)
+        self.backoff = backoff or Backoff()
+        self.reconnect = reconnect
+        self.reconnects = 0
+        self.server_hello: dict | None = None
+        self._ws = None
+        self._closed = False
+
+    async def __aiter__(self) -> AsyncIterator[dict]:
+        while not self._closed:
+            try:
+                async with connect(self.url, max_size=None) as ws:
+                    self._ws = ws
+                    self.backoff.reset()
+                    async for data in ws:
+                        msg = _decode(data)
+                        if msg.get("type") == "hello":
+                            self.server_hello = msg
+                            continue
+                        yield msg
+                    if ws.close_code in (1008, 1003):     # refused: token, role or protocol
+                        raise PermissionError(f"stream closed by the server: {ws.close_code} {ws.close_reason}")
+            except (ConnectionClosed, OSError) as err:
+                if isinstance(err, InvalidStatus) or not self.reconnect or self._closed:
+                    raise
+            if not self.reconnect or self._closed:
+                return
+            self.reconnects += 1
+            await asyncio.sleep(self.backoff.next())
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._ws is not None:
+            await self._ws.close()
+
+
+# -- thin synchronous wrapper ---------------------------------------------------------------------
+
+def publish(url: str, session: str, token: str, messages: Iterable[dict], hand: str = "right") -> list[dict]:
+    """Send messages as fast as the connection takes them; returns the server's error replies."""
+    async def run():
+        pub = Publisher(url, session, token, hand=hand)
+        for m in messages:
+            await pub.send(m)
+        await asyncio.sleep(0.2)
+        await pub.close()
+        return list(pub.errors)
+    return asyncio.run(run())
+
+
+def collect(url: str, session: str, token: str, count: int, timeout_s: float = 10.0) -> list[dict]:
+    """Receive ``count`` messages (or as many as arrive within ``timeout_s``)."""
+    async def run():
+        out: list[dict] = []
+        sub = Subscription(url, session, token)
+
+        async def take():
+            async for m in sub:
+                out.append(m)
+                if len(out) >= count:
+                    return
+        try:
+            await asyncio.wait_for(take(), timeout_s)
+        except asyncio.TimeoutError:
+            pass
+        await sub.close()
+        return out
+    return asyncio.run(run())
+
+
+def rest(url: str, method: str, path: str, token: str | None = None, body: Any = None) -> tuple[int, Any]:
+    """A REST call with the standard library: ``(status, decoded JSON or text)``."""
+    import urllib.error
+    import urllib.request
+    req = urllib.request.Request(url.rstrip("/") + path, method=method,
+                                 data=None if body is None else json.dumps(body).encode(),
+                                 headers={"Content-Type": "application/json",
+                                          **({"Authorization": f"Bearer {token}"} if token else {})})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as resp:
+            text = resp.read().decode()
+            status = resp.status
+    except urllib.error.HTTPError as err:
+        text, status = err.read().decode(), err.code
+    try:
+        return status, json.loads(text)
+    except ValueError:
+        return status, text

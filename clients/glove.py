@@ -1,0 +1,55 @@
+"""A simulated glove plus optical tracker streaming in real time (paced by the clock): the
+simulator's recording, with each tick's IMU samples sent as one ``imu_batch``."""
+from __future__ import annotations
+
+import asyncio
+import time
+from typing import Callable
+
+from service.sim.session import SimConfig, simulate
+
+from .client import Publisher
+
+
+def source_messages(config: SimConfig) -> list[tuple[float, dict]]:
+    """``(arrival time on the source clock, message)`` with each tick's IMU samples batched."""
+    sess = simulate(config)
+    latency = sess.optical.latency_s
+    out: list[tuple[float, dict]] = []
+    batch: list[dict] = []
+    batch_t = None
+    for m in sess.messages(include_truth=False):
+        if m["type"] == "imu":
+            if batch and m["t"] != batch_t:
+                out.append((batch_t, {"type": "imu_batch", "samples": batch}))
+                batch = []
+            batch_t = m["t"]
+            batch.append({k: m[k] for k in ("t", "id", "gyr", "acc")})
+            continue
+        if batch:
+            out.append((batch_t, {"type": "imu_batch", "samples": batch}))
+            batch = []
+        arrival = m["t"] + latency if m["type"] == "pose" else m.get("t", sess.t[0])
+        out.append((arrival, m))
+    if batch:
+        out.append((batch_t, {"type": "imu_batch", "samples": batch}))
+    return out
+
+
+async def stream_glove(url: str, session: str, token: str, config: SimConfig, speed: float = 1.0,
+                       on_send: Callable[[float, dict], None] | None = None) -> Publisher:
+    """Stream a simulated session in real time; ``on_send(wall_time, message)`` after each send."""
+    msgs = source_messages(config)
+    pub = Publisher(url, session, token, hand=config.hand, source=f"fingertrack-glove {config.motion}")
+    t0_src = msgs[0][0]
+    t0_wall = time.perf_counter()
+    for arrival, m in msgs:
+        due = t0_wall + (arrival - t0_src) / speed
+        delay = due - time.perf_counter()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        await pub.send(m)
+        if on_send is not None:
+            on_send(time.perf_counter(), m)
+    await asyncio.sleep(0.1)
+    return pub

@@ -1,0 +1,281 @@
+"""The FastAPI application: REST health/config/metrics and the two WebSockets of protocol v1.
+
+* ``WS /v1/ingest/{session}`` (role ``source``): ``hello`` first (answered with the server's hello, or
+  refused with a clear reason when its protocol is not 1), then ``calibration``, ``pose``, ``imu``,
+  ``imu_batch``. Bad input gets an ``error`` reply (code and detail) and is dropped; the connection
+  and every other session go on.
+* ``WS /v1/stream/{session}`` (role ``viewer``): ``frame`` and ``gesture`` messages.
+* JSON text by default; MessagePack binary when the client asks (subprotocol ``fingertrack.msgpack``
+  or ``?format=msgpack``).
+* Tokens with roles (``source``, ``viewer``, ``admin``; admin may do everything) as a bearer header
+  or ``?token=``. Without one no session data is served and no configuration changes.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from contextlib import asynccontextmanager
+
+import msgpack
+from fastapi import Body, FastAPI, HTTPException, Request, WebSocket, WebSocketDisconnect
+from fastapi.responses import Response
+from pydantic import ValidationError
+
+from ..protocol import PROTOCOL_VERSION, Hello, ProtocolError, parse_message
+from .config import ServiceSettings
+from .metrics import Metrics
+from .sessions import LiveSession, Subscriber
+
+MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
+CAN = {"ingest": ("source", "admin"), "stream": ("viewer", "admin"), "read": ("viewer", "admin"),
+       "configure": ("admin",), "metrics": ("source", "viewer", "admin")}
+SESSION_NAME_MAX = 64
+
+
+def _token(headers, query) -> str | None:
+    auth = headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return query.get("token")
+
+
+def _check_name(name: str) -> None:
+    if not (1 <= len(name) <= SESSION_NAME_MAX) or not all(c.isalnum() or c in "-_." for c in name):
+        raise ValueError(f"session name must be 1-{SESSION_NAME_MAX} characters of letters, digits, '-', '_', '.', got {name!r}")
+
+
+class TokenBucket:
+    def __init__(self, rate: float):
+        self.rate, self.capacity = rate, rate
+        self.tokens, self.t = rate, time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.capacity, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+def create_app(settings: ServiceSettings) -> FastAPI:
+    settings = settings.with_admin_token()
+    metrics = Metrics()
+    sessions: dict[str, LiveSession] = {}
+    state = {"closing": False}
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        async def flusher():
+            while True:
+                await asyncio.sleep(settings.flush_interval_s / 2)
+                for s in list(sessions.values()):
+                    if s.recorder is not None:
+                        s.recorder.flush()
+        task = asyncio.create_task(flusher())
+        yield
+        state["closing"] = True
+        task.cancel()
+        for s in sessions.values():
+            for sub in s.subscribers:
+                sub.closed = True
+                sub.wake.set()
+            s.close()
+        await asyncio.sleep(0.05)          # let the stream handlers close with 1001
+
+    app = FastAPI(title="fingertrack", version="0.1.0", lifespan=lifespan,
+                  description="Finger tracking for VR hand interaction: protocol v1 over WebSocket, REST config.")
+    app.state.settings = settings
+    app.state.sessions = sessions
+    app.state.metrics = metrics
+
+    def require(request_or_ws, action: str) -> str:
+        role = settings.role_of(_token(request_or_ws.headers, request_or_ws.query_params))
+        if role is None:
+            raise HTTPException(401, "a valid token is required (Authorization: Bearer TOKEN or ?token=TOKEN)")
+        if role not in CAN[action]:
+            raise HTTPException(403, f"role {role!r} may not {action}; needs one of {list(CAN[action])}")
+        return role
+
+    def get_session(name: str, create: bool) -> LiveSession:
+        _check_name(name)
+        s = sessions.get(name)
+        if s is None:
+            if not create:
+                raise HTTPException(404, f"no session {name!r}")
+            if len(sessions) >= settings.max_sessions:
+                raise HTTPException(503, f"session limit {settings.max_sessions} reached")
+            s = sessions[name] = LiveSession(name, settings, metrics)
+            metrics.sessions.set(len(sessions))
+        return s
+
+    @app.get("/health")
+    def health():
+        return {"status": "ok"}
+
+    @app.get("/ready")
+    def ready():
+        if state["closing"]:
+            raise HTTPException(503, "shutting down")
+        return {"ready": True, "sessions": len(sessions), "protocol": PROTOCOL_VERSION}
+
+    @app.get("/v1/sessions")
+    def list_sessions(request: Request):
+        require(request, "read")
+        return [s.summary() for s in sessions.values()]
+
+    @app.get("/v1/sessions/{session}/config")
+    def get_config(session: str, request: Request):
+        require(request, "read")
+        try:
+            return get_session(session, create=False).config.as_dict()
+        except ValueError as err:
+            raise HTTPException(422, str(err)) from None
+
+    @app.put("/v1/sessions/{session}/config")
+    def put_config(session: str, request: Request, change: dict = Body(...)):
+        require(request, "configure")
+        unknown = set(change) - {"estimator", "estimator_params", "gestures", "record"}
+        if unknown:
+            raise HTTPException(422, f"unknown config fields {sorted(unknown)}; expected estimator, estimator_params, gestures, record")
+        try:
+            return get_session(session, create=True).update_config(change)
+        except ValidationError as err:
+            raise HTTPException(422, json.loads(err.json(include_url=False))) from None
+        except ValueError as err:
+            raise HTTPException(422, str(err)) from None
+
+    @app.get("/metrics")
+    def get_metrics(request: Request):
+        require(request, "metrics")
+        return Response(metrics.render(), media_type="text/plain; version=0.0.4")
+
+    async def accept(ws: WebSocket, action: str) -> bool:
+        binary = MSGPACK_SUBPROTOCOL in ws.scope.get("subprotocols", []) or ws.query_params.get("format") == "msgpack"
+        try:
+            require(ws, action)
+        except HTTPException as err:
+            await ws.close(code=1008, reason=str(err.detail)[:120])
+            return False
+        await ws.accept(subprotocol=MSGPACK_SUBPROTOCOL if MSGPACK_SUBPROTOCOL in ws.scope.get("subprotocols", []) else None)
+        ws.state.binary = binary
+        return True
+
+    async def send(ws: WebSocket, message: dict) -> None:
+        if ws.state.binary:
+            await ws.send_bytes(msgpack.packb(message))
+        else:
+            await ws.send_text(json.dumps(message, separators=(",", ":")))
+
+    async def send_error(ws: WebSocket, code: str, detail: str) -> None:
+        metrics.errors.labels(code).inc()
+        await send(ws, {"type": "error", "code": code, "detail": detail})
+
+    @app.websocket("/v1/ingest/{session}")
+    async def ingest(ws: WebSocket, session: str):
+        if not await accept(ws, "ingest"):
+            return
+        try:
+            live = get_session(session, create=True)
+        except (HTTPException, ValueError) as err:
+            await ws.close(code=1008, reason=str(getattr(err, "detail", err))[:120])
+            return
+        live.sources += 1
+        bucket = TokenBucket(settings.rate_limit_msgs_per_s)
+        greeted = False
+        try:
+            while True:
+                data = await ws.receive()
+                if data["type"] == "websocket.disconnect":
+                    break
+                raw_bytes = data.get("bytes")
+                text = data.get("text")
+                size = len(raw_bytes) if raw_bytes is not None else len(text or "")
+                if size > settings.max_message_bytes:
+                    await send_error(ws, "message_too_large", f"{size} bytes; the limit is {settings.max_message_bytes}")
+                    continue
+                if not bucket.take():
+                    await send_error(ws, "rate_limited", f"more than {settings.rate_limit_msgs_per_s:g} messages/s; message dropped")
+                    continue
+                try:
+                    raw = msgpack.unpackb(raw_bytes) if raw_bytes is not None else json.loads(text, parse_constant=_reject)
+                    msg = parse_message(raw)
+                except ProtocolError as err:
+                    await send_error(ws, err.code, err.detail)
+                    continue
+                except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as err:
+                    await send_error(ws, "invalid_json" if text is not None else "invalid_msgpack", f"cannot decode: {err}")
+                    continue
+                if isinstance(msg, Hello):
+                    if msg.protocol != PROTOCOL_VERSION:
+                        await send_error(ws, "unsupported_protocol",
+                                         f"protocol {msg.protocol} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
+                        await ws.close(code=1008, reason=f"unsupported protocol {msg.protocol}")
+                        return
+                    greeted = True
+                    await send(ws, {"type": "hello", "protocol": PROTOCOL_VERSION, "server": "fingertrack", "session": session})
+                elif not greeted:
+                    await send_error(ws, "expected_hello", f"the first message must be hello, got {msg.type}")
+                    continue
+                try:
+                    live.ingest(raw, msg)
+                except ValueError as err:          # e.g. a calibration that does not fit the hand
+                    await send_error(ws, "invalid_message", str(err))
+        except WebSocketDisconnect:
+            pass
+        finally:
+            live.sources -= 1
+
+    @app.websocket("/v1/stream/{session}")
+    async def stream(ws: WebSocket, session: str):
+        if not await accept(ws, "stream"):
+            return
+        try:
+            live = get_session(session, create=True)
+        except (HTTPException, ValueError) as err:
+            await ws.close(code=1008, reason=str(getattr(err, "detail", err))[:120])
+            return
+        sub = Subscriber(settings.subscriber_queue_frames, settings.subscriber_queue_events, binary=ws.state.binary)
+        live.subscribers.add(sub)
+        metrics.subscribers.inc()
+
+        async def watch_disconnect():
+            try:
+                while True:
+                    data = await ws.receive()
+                    if data["type"] == "websocket.disconnect":
+                        return
+            except Exception:
+                return
+
+        closer = asyncio.create_task(watch_disconnect())
+        try:
+            await send(ws, {"type": "hello", "protocol": PROTOCOL_VERSION, "server": "fingertrack", "session": session})
+            while not closer.done():
+                if not sub.queue:
+                    waiter = asyncio.create_task(sub.wake.wait())
+                    await asyncio.wait({waiter, closer}, return_when=asyncio.FIRST_COMPLETED)
+                    waiter.cancel()
+                if state["closing"] or (sub.closed and not sub.queue):
+                    reason = "server shutting down" if state["closing"] else "subscriber too slow: gesture events would be lost"
+                    await ws.close(code=1001 if state["closing"] else 1008, reason=reason)
+                    break
+                while sub.queue:
+                    msg, t0 = sub.pop()
+                    await send(ws, msg)
+                    metrics.messages_out.labels(session).inc()
+                    metrics.latency.labels(session).observe(time.perf_counter() - t0)
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            closer.cancel()
+            live.subscribers.discard(sub)
+            metrics.subscribers.dec()
+
+    return app
+
+
+def _reject(name: str):
+    raise ValueError(f"non-finite number {name} is not allowed")

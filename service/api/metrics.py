@@ -1,0 +1,22 @@
+"""Prometheus metrics of one service instance (its own registry, so several apps can live in one
+process, as the tests do)."""
+from __future__ import annotations
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+
+class Metrics:
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.messages_in = Counter("fingertrack_messages_in", "source messages received", ["session"], registry=self.registry)
+        self.messages_out = Counter("fingertrack_messages_out", "messages sent to subscribers", ["session"], registry=self.registry)
+        self.errors = Counter("fingertrack_errors", "error replies by code", ["code"], registry=self.registry)
+        self.dropped_frames = Counter("fingertrack_dropped_frames", "frames dropped for slow subscribers", ["session"], registry=self.registry)
+        self.sessions = Gauge("fingertrack_sessions", "live sessions", registry=self.registry)
+        self.subscribers = Gauge("fingertrack_subscribers", "connected subscribers", registry=self.registry)
+        self.latency = Histogram("fingertrack_ingest_to_send_seconds", "time from receiving a source message to sending "
+                                 "the output it caused", ["session"], registry=self.registry,
+                                 buckets=(0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.5))
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

@@ -1,0 +1,56 @@
+"""Running the app with uvicorn: ``fingertrack serve`` and an in-process server for tests and the demo."""
+from __future__ import annotations
+
+import socket
+import threading
+import time
+
+import uvicorn
+
+from .app import create_app
+from .config import ServiceSettings
+
+
+def uvicorn_config(settings: ServiceSettings, app=None) -> uvicorn.Config:
+    return uvicorn.Config(app or create_app(settings), host=settings.host, port=settings.port, log_level="warning",
+                          ws_max_size=settings.max_message_bytes, ws_ping_interval=settings.ping_interval_s,
+                          ws_ping_timeout=settings.ping_timeout_s, timeout_graceful_shutdown=2, lifespan="on")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class ServerThread:
+    """A real uvicorn server on a localhost port, in a background thread (tests, demo)."""
+
+    def __init__(self, settings: ServiceSettings):
+        if settings.port == 0:
+            settings = settings.model_copy(update={"port": free_port()})
+        self.app = create_app(settings)
+        self.settings = self.app.state.settings
+        self.server = uvicorn.Server(uvicorn_config(self.settings, self.app))
+        self.thread = threading.Thread(target=self.server.run, daemon=True)
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.settings.host}:{self.settings.port}"
+
+    @property
+    def ws_url(self) -> str:
+        return f"ws://{self.settings.host}:{self.settings.port}"
+
+    def __enter__(self) -> "ServerThread":
+        self.thread.start()
+        deadline = time.monotonic() + 10
+        while not self.server.started:
+            if time.monotonic() > deadline or not self.thread.is_alive():
+                raise RuntimeError("the server did not start")
+            time.sleep(0.01)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(timeout=10)

@@ -1,0 +1,184 @@
+"""Live sessions: one tracked hand per session name, its subscribers and its recording.
+
+Backpressure: every subscriber has its own bounded queue. Frames beyond ``subscriber_queue_frames``
+push out the subscriber's oldest frame (counted per session and in the metrics); gesture events are
+kept in order and never dropped (a subscriber more than ``subscriber_queue_events`` events behind is
+closed instead). Ingest only appends to queues, so a slow subscriber never slows ingest or the others.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from gestures.recognizer import GestureSettings
+from gestures.stream import TrackedHand
+from ..pipeline.hand import PipelineSettings
+from .config import ServiceSettings
+from .metrics import Metrics
+
+
+class SubscriberTooSlow(Exception):
+    pass
+
+
+@dataclass(eq=False)
+class Subscriber:
+    frames_max: int
+    events_max: int
+    binary: bool = False
+    queue: deque = field(default_factory=deque)      # (kind, message, t_ingest) in order
+    frames_queued: int = 0
+    dropped: int = 0
+    wake: asyncio.Event = field(default_factory=asyncio.Event)
+    closed: bool = False
+
+    def put(self, message: dict, t_ingest: float) -> int:
+        """Queue a message; returns how many frames were dropped to make room."""
+        dropped = 0
+        if message["type"] == "frame":
+            if self.frames_queued >= self.frames_max:
+                for i, (kind, _, _) in enumerate(self.queue):
+                    if kind == "frame":
+                        del self.queue[i]
+                        self.frames_queued -= 1
+                        dropped = 1
+                        break
+            self.frames_queued += 1
+        elif sum(1 for k, _, _ in self.queue if k != "frame") >= self.events_max:
+            self.closed = True
+            raise SubscriberTooSlow()
+        self.queue.append((message["type"], message, t_ingest))
+        self.dropped += dropped
+        self.wake.set()
+        return dropped
+
+    def pop(self):
+        kind, msg, t = self.queue.popleft()
+        if kind == "frame":
+            self.frames_queued -= 1
+        if not self.queue:
+            self.wake.clear()
+        return msg, t
+
+
+class Recorder:
+    """Appends source messages to a JSON Lines file, flushed at least every ``flush_interval_s``."""
+
+    def __init__(self, path: Path, flush_interval_s: float):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._fh = open(path, "a", encoding="utf-8")
+        self._interval = flush_interval_s
+        self._last_flush = time.monotonic()
+
+    def write(self, message: dict) -> None:
+        self._fh.write(json.dumps(message, separators=(",", ":")) + "\n")
+        if time.monotonic() - self._last_flush >= self._interval:
+            self.flush()
+
+    def flush(self) -> None:
+        if not self._fh.closed:
+            self._fh.flush()
+            self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.flush()
+            self._fh.close()
+
+
+class SessionConfig:
+    """What ``GET/PUT /v1/sessions/{session}/config`` reads and changes."""
+
+    def __init__(self, estimator: str, record: bool):
+        self.estimator = estimator
+        self.estimator_params: dict[str, Any] = {}
+        self.gestures = GestureSettings()
+        self.record = record
+
+    def as_dict(self) -> dict:
+        return {"estimator": self.estimator, "estimator_params": self.estimator_params,
+                "gestures": self.gestures.model_dump(), "record": self.record}
+
+
+class LiveSession:
+    def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics):
+        self.name = name
+        self.settings = settings
+        self.metrics = metrics
+        self.config = SessionConfig(settings.estimator, settings.record_all)
+        self.hand = TrackedHand(settings=PipelineSettings(estimator=settings.estimator, output_rate_hz=settings.output_rate_hz))
+        self.subscribers: set[Subscriber] = set()
+        self.recorder: Recorder | None = None
+        self.sources = 0
+        self.last_status: dict = {}
+        self.frames_out = 0
+        self.dropped_frames = 0
+        self.created = time.time()
+        self._apply_recording()
+
+    def _apply_recording(self) -> None:
+        want = self.config.record and self.settings.record_dir is not None
+        if want and self.recorder is None:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            self.recorder = Recorder(Path(self.settings.record_dir) / f"{self.name}-{stamp}.jsonl", self.settings.flush_interval_s)  # type: ignore[arg-type]
+        elif not want and self.recorder is not None:
+            self.recorder.close()
+            self.recorder = None
+
+    def update_config(self, change: dict) -> dict:
+        """Validate everything first, then apply: a bad change changes nothing."""
+        estimator = change.get("estimator", self.config.estimator)
+        params = change.get("estimator_params", self.config.estimator_params if estimator == self.config.estimator else {})
+        gestures = self.config.gestures
+        if "gestures" in change:
+            gestures = GestureSettings(**{**self.config.gestures.model_dump(), **change["gestures"]})
+        from ..estimators.registry import estimator_class
+        estimator_class(estimator).Settings(**params)
+        record = bool(change.get("record", self.config.record))
+        if record and self.settings.record_dir is None:
+            raise ValueError("record: the service has no record_dir; start it with one to record sessions")
+        if (estimator, params) != (self.config.estimator, self.config.estimator_params):
+            self.hand.session.set_estimator(estimator, params)
+        self.config.estimator, self.config.estimator_params = estimator, params
+        self.config.gestures = gestures
+        self.hand.set_gesture_settings(gestures)
+        self.config.record = record
+        self._apply_recording()
+        return self.config.as_dict()
+
+    def ingest(self, raw: dict, parsed) -> None:
+        """Run one validated source message through the hand and fan the outputs out."""
+        t0 = time.perf_counter()
+        self.metrics.messages_in.labels(self.name).inc()
+        if self.recorder is not None:
+            self.recorder.write(raw)
+        for out in self.hand.handle(parsed):
+            if out["type"] == "frame":
+                self.last_status = out["status"]
+                out["status"]["dropped"]["subscriber_frames"] = self.dropped_frames
+                self.frames_out += 1
+            for sub in list(self.subscribers):
+                try:
+                    dropped = sub.put(out, t0)
+                except SubscriberTooSlow:
+                    self.subscribers.discard(sub)
+                    continue
+                if dropped:
+                    self.dropped_frames += dropped
+                    self.metrics.dropped_frames.labels(self.name).inc(dropped)
+
+    def summary(self) -> dict:
+        return {"session": self.name, "hand": self.hand.session.hand, "sources": self.sources,
+                "subscribers": len(self.subscribers), "frames_out": self.frames_out,
+                "dropped_subscriber_frames": self.dropped_frames, "config": self.config.as_dict(),
+                "status": self.last_status, "recording": str(self.recorder.path) if self.recorder else None}
+
+    def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.close()
