@@ -39,15 +39,14 @@ def source_messages(config: SimConfig) -> list[tuple[float, dict]]:
 async def stream_glove(url: str, session: str, token: str, config: SimConfig, speed: float = 1.0,
                        on_send: Callable[[float, dict], None] | None = None) -> Publisher:
     """Stream a simulated session in real time; ``on_send(wall_time, message)`` after each send."""
-    msgs = source_messages(config)
+    msgs = await asyncio.to_thread(source_messages, config)      # simulating takes a moment: off the loop
     pub = Publisher(url, session, token, hand=config.hand, source=f"fingertrack-glove {config.motion}")
     t0_src = msgs[0][0]
     t0_wall = time.perf_counter()
     for arrival, m in msgs:
         due = t0_wall + (arrival - t0_src) / speed
-        delay = due - time.perf_counter()
-        if delay > 0:
-            await asyncio.sleep(delay)
+        # always yield to the loop, even when behind schedule, so other tasks keep running
+        await asyncio.sleep(max(0.0, due - time.perf_counter()))
         await pub.send(m)
         if on_send is not None:
             on_send(time.perf_counter(), m)

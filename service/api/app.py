@@ -219,10 +219,18 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                 elif not greeted:
                     await send_error(ws, "expected_hello", f"the first message must be hello, got {msg.type}")
                     continue
+                counters = live.hand.session.counters
+                late, dup = counters.late, counters.duplicate
                 try:
                     live.ingest(raw, msg)
                 except ValueError as err:          # e.g. a calibration that does not fit the hand
                     await send_error(ws, "invalid_message", str(err))
+                    continue
+                if counters.late > late:
+                    await send_error(ws, "time_backwards", f"{msg.type} at t={getattr(msg, 't', None)} is older than what "
+                                     "was already processed; dropped")
+                elif counters.duplicate > dup:
+                    await send_error(ws, "duplicate", f"{msg.type} at t={getattr(msg, 't', None)} was already received; dropped")
         except WebSocketDisconnect:
             pass
         finally:

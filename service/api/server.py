@@ -24,15 +24,26 @@ def free_port() -> int:
 
 
 class ServerThread:
-    """A real uvicorn server on a localhost port, in a background thread (tests, demo)."""
+    """A real uvicorn server on a localhost port, in a background thread (tests, demo).
 
-    def __init__(self, settings: ServiceSettings):
+    ``send_buffer_bytes`` fixes the kernel send buffer of every connection (set on the listening
+    socket, which accepted sockets inherit), e.g. to make a stalled client's backpressure reach the
+    service within seconds instead of after megabytes of autotuned buffer."""
+
+    def __init__(self, settings: ServiceSettings, send_buffer_bytes: int | None = None):
         if settings.port == 0:
             settings = settings.model_copy(update={"port": free_port()})
         self.app = create_app(settings)
         self.settings = self.app.state.settings
         self.server = uvicorn.Server(uvicorn_config(self.settings, self.app))
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
+        sockets = None
+        if send_buffer_bytes is not None:
+            sock = socket.socket()
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, send_buffer_bytes)
+            sock.bind((self.settings.host, self.settings.port))
+            sockets = [sock]
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": sockets}, daemon=True)
 
     @property
     def url(self) -> str:

@@ -20,6 +20,8 @@ from ..estimators.rigid import quaternion as quat
 from ..model.kinematics import BaseMotion
 
 MIN_POSES = 5
+MIN_POSES_QUADRATIC = 8
+"""Fewer poses in the fit window (e.g. right after the optics start or return) fit rates only."""
 
 
 def _continuous_signs(q: np.ndarray) -> np.ndarray:
@@ -69,7 +71,8 @@ class OpticalTrack:
       valid poses within ``window_s`` before ``t`` relative to the newest of them (body frame, valid
       for the small rotations of one window), turned into the world frame; position, velocity and
       acceleration: the same fit of the positions. A fit over ``window_s`` instead of a double
-      difference keeps the optical jitter out of the derivatives.
+      difference keeps the optical jitter out of the derivatives; with fewer than
+      ``MIN_POSES_QUADRATIC`` poses in the window only the rates are fitted (accelerations zero).
     * occlusion: when the last pose up to the covering one says ``valid: false``, or the newest valid
       pose is older than ``timeout_s``, the last valid orientation and position are held with zero
       rates, and ``at`` reports it.
@@ -131,10 +134,15 @@ class OpticalTrack:
         r_ref = Rotation.from_quat(quats[-1])
         tau = ts - t
         rv = (r_ref.inv() * Rotation.from_quat(quats)).as_rotvec()
-        if len(window) >= 3:
+        if len(window) >= MIN_POSES_QUADRATIC:
             design = np.stack([np.ones_like(tau), tau, 0.5 * tau**2], axis=1)
             coef_p = np.linalg.lstsq(design, pos, rcond=None)[0]
             coef_r = np.linalg.lstsq(design, rv, rcond=None)[0]
+        elif len(window) >= 3:
+            # too few poses for a second derivative that is not mostly jitter: rates only
+            design = np.stack([np.ones_like(tau), tau], axis=1)
+            coef_p = np.vstack([np.linalg.lstsq(design, pos, rcond=None)[0], np.zeros(3)])
+            coef_r = np.vstack([np.linalg.lstsq(design, rv, rcond=None)[0], np.zeros(3)])
         else:
             coef_p = np.stack([pos[-1], np.zeros(3), np.zeros(3)])
             coef_r = np.stack([rv[-1], np.zeros(3), np.zeros(3)])
