@@ -264,6 +264,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(paper.run(args.out, quick=args.quick, seeds=args.seeds, workers=args.workers))
         print(f"\nwrote {args.out}/results.csv, summary.md, fig10.png, fig9.png")
         return 0
+    if args.which == "latency":
+        from .bench import latency
+        print(latency.run(args.out, seconds=args.seconds))
+        print(f"wrote {args.out}/results.json, summary.md")
+        return 0
     if args.which == "gestures":
         from .bench import gestures
         print(gestures.run(args.out, quick=args.quick, workers=args.workers))
@@ -340,8 +345,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the service, a simulated glove and a subscriber, end to end (~10 s)")
     demo.set_defaults(func=_cmd_demo)
 
-    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures")
-    bench.add_argument("which", choices=("paper", "gestures"), help="which benchmark")
+    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, service latency")
+    bench.add_argument("which", choices=("paper", "gestures", "latency"), help="which benchmark")
+    bench.add_argument("--seconds", type=_positive_float, default=20.0, help="latency: streaming time, s (default 20)")
     bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
     bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")
     bench.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")

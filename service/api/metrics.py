@@ -16,7 +16,8 @@ class Metrics:
         self.subscribers = Gauge("fingertrack_subscribers", "connected subscribers", registry=self.registry)
         self.latency = Histogram("fingertrack_ingest_to_send_seconds", "time from receiving a source message to sending "
                                  "the output it caused", ["session"], registry=self.registry,
-                                 buckets=(0.0005, 0.001, 0.002, 0.003, 0.005, 0.0075, 0.01, 0.02, 0.05, 0.1, 0.5))
+                                 buckets=(0.0005, 0.001, 0.0015, 0.002, 0.0025, 0.003, 0.0035, 0.004, 0.0045, 0.005,
+                                          0.006, 0.0075, 0.01, 0.015, 0.02, 0.05, 0.1, 0.5))
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

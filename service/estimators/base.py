@@ -176,6 +176,11 @@ class FingerEstimator:
         return self._t_last is not None
 
     @property
+    def last_t(self) -> float | None:
+        """Time of the last processed sample, s."""
+        return self._t_last
+
+    @property
     def state(self) -> dict:
         """A deep copy of the internal state (restorable with the setter)."""
         return copy.deepcopy({"t_last": self._t_last, "filter": self._state})
@@ -195,6 +200,11 @@ class FingerEstimator:
     def update(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:
         """One sample. Raises ``ValueError`` naming the bad input and leaves the state untouched."""
         t, gyr, acc, hand = self._validate(t, gyr, acc, hand)
+        return self._advance(t, gyr, acc, hand)
+
+    def update_trusted(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:
+        """``update`` for input already validated upstream (the hand pipeline gets its samples from
+        the protocol models and its own optics, and keeps time increasing); skips the checks."""
         return self._advance(t, gyr, acc, hand)
 
     def _advance(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:

@@ -31,17 +31,19 @@ THUMB_METACARPAL_M = 0.251 * HAND_LENGTH_M
 def joint_poses(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
                 hand_rotation: np.ndarray, hand_position: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``name -> (position (3,), orientation [x,y,z,w])`` in the world frame for joint angles
-    ``φ`` per finger (rad) and the metacarpus pose (rotation matrix, position)."""
+    ``φ`` per finger (rad) and the metacarpus pose (rotation matrix, position). All orientations are
+    converted to quaternions in one vectorised call."""
     to_xr = FINGER_TO_OPENXR
-    hand_q = matrix_to_quat(hand_rotation @ to_xr)
-    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    positions: dict[str, np.ndarray] = {}
+    rotations: dict[str, np.ndarray] = {}
+    hand_xr = hand_rotation @ to_xr
 
     def world(p_m):
         return hand_position + hand_rotation @ p_m
 
     middle = calib.finger("middle")
-    out["wrist"] = (np.asarray(hand_position, dtype=float).copy(), hand_q)
-    out["palm"] = (world(0.5 * np.array([0.0, middle.base_position_m[1], 0.0])), hand_q)
+    positions["wrist"], rotations["wrist"] = np.asarray(hand_position, dtype=float).copy(), hand_xr
+    positions["palm"], rotations["palm"] = world(0.5 * np.array([0.0, middle.base_position_m[1], 0.0])), hand_xr
     for name, geom in calib.fingers.items():
         theta = joint_to_phalanx_angles(np.asarray(joint_angles[name], dtype=float))
         rb = geom.base_matrix()
@@ -52,12 +54,13 @@ def joint_poses(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
         else:
             meta = np.array([base[0], 0.0, base[2]])
             bones = ("proximal", "intermediate", "distal", "tip")
-        out[f"{name}_metacarpal"] = (world(meta), hand_q)
+        positions[f"{name}_metacarpal"], rotations[f"{name}_metacarpal"] = world(meta), hand_xr
         point = base.copy()
-        frames = [rb @ rot_x(th) for th in theta]
+        frames = rb @ rot_x(theta)                                   # (n, 3, 3) phalanx frames
         for i, bone in enumerate(bones):
             r = frames[min(i, len(frames) - 1)]
-            out[f"{name}_{bone}"] = (world(point), matrix_to_quat(hand_rotation @ r @ to_xr))
+            positions[f"{name}_{bone}"], rotations[f"{name}_{bone}"] = world(point), hand_rotation @ r @ to_xr
             if i < len(frames):
                 point = point + geom.lengths_m[i] * r[:, 1]
-    return {n: out[n] for n in JOINT_NAMES}
+    quats = matrix_to_quat(np.stack([rotations[n] for n in JOINT_NAMES]))
+    return {n: (positions[n], quats[k]) for k, n in enumerate(JOINT_NAMES)}

@@ -264,11 +264,10 @@ class HandSession:
             return
         gyr = np.array([self._last_sample[s][1] for s in fs.active_sensors])
         acc = np.array([self._last_sample[s][2] for s in fs.active_sensors])
-        try:
-            est = fs.estimator.update(t, gyr, acc, hand)
-        except ValueError:
+        if fs.estimator.started and t <= fs.estimator.last_t:   # cannot happen with increasing ticks; be safe
             self.counters.estimator_errors += 1
             return
+        est = fs.estimator.update_trusted(t, gyr, acc, hand)
         fs.phi = est.phi
         fs.mode = finger_mode(est.mode)
 

@@ -116,7 +116,7 @@ class OpticalTrack:
 
     def at(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``(kinematics, tracking)``; ``None`` before the first valid pose."""
-        from scipy.spatial.transform import Rotation, Slerp
+        from scipy.spatial.transform import Rotation
 
         poses = self._relevant(t)
         valid = [p for p in poses if p[1]] or ([self._pruned_valid] if self._pruned_valid is not None else [])
@@ -146,12 +146,13 @@ class OpticalTrack:
         else:
             coef_p = np.stack([pos[-1], np.zeros(3), np.zeros(3)])
             coef_r = np.stack([rv[-1], np.zeros(3), np.zeros(3)])
-        if len(window) >= 2 and ts[-2] <= t <= ts[-1]:
-            rot = Slerp(ts[-2:], Rotation.from_quat(quats[-2:]))([t])[0]
-        elif ts[-1] == t:
-            rot = r_ref
-        else:
-            rot = r_ref * Rotation.from_rotvec(coef_r[1] * (t - ts[-1]))
         r_ref_m = r_ref.as_matrix()
-        return BaseMotion(rot.as_matrix(), coef_p[0], coef_p[1], coef_p[2],
-                          r_ref_m @ coef_r[1], r_ref_m @ coef_r[2]), True
+        if len(window) >= 2 and ts[-2] <= t <= ts[-1] and ts[-1] > ts[-2]:
+            # slerp between the bracketing poses: R_ref · Exp(s · rv_prev), rv_prev = log(R_ref⁻¹ R_prev)
+            s = (ts[-1] - t) / (ts[-1] - ts[-2])
+            rot_m = r_ref_m @ Rotation.from_rotvec(s * rv[-2]).as_matrix()
+        elif ts[-1] == t:
+            rot_m = r_ref_m
+        else:
+            rot_m = r_ref_m @ Rotation.from_rotvec(coef_r[1] * (t - ts[-1])).as_matrix()
+        return BaseMotion(rot_m, coef_p[0], coef_p[1], coef_p[2], r_ref_m @ coef_r[1], r_ref_m @ coef_r[2]), True
