@@ -260,3 +260,56 @@ def test_recording_then_replaying_gives_the_frames_streamed_live(server):
     assert first < 20 and len(live) > 200
     assert [json.dumps(m, sort_keys=True) for m in replayed[start:start + len(live)]] == \
         [json.dumps(m, sort_keys=True) for m in live]
+
+
+def test_msgpack_stream_and_ingest(server):
+    import msgpack
+
+    async def go():
+        async with connect(f"{server.ws_url}/v1/stream/mp?token={VIEWER}", subprotocols=["fingertrack.msgpack"]) as sub:
+            assert sub.subprotocol == "fingertrack.msgpack"
+            hello = msgpack.unpackb(await sub.recv())
+            async with connect(f"{server.ws_url}/v1/ingest/mp?token={SOURCE}&format=msgpack") as src:
+                for _, m in source_messages(_config(seed=7))[:200]:
+                    await src.send(msgpack.packb(m))
+                frame = None
+                while frame is None or frame["type"] != "frame":
+                    frame = msgpack.unpackb(await asyncio.wait_for(sub.recv(), 5))
+            return hello, frame
+    hello, frame = asyncio.run(go())
+    assert hello["type"] == "hello" and frame["type"] == "frame" and len(frame["joints"]) == 26
+
+
+def test_subscription_survives_a_server_restart(tmp_path):
+    """The client reconnects with back-off to the same session with the same options."""
+    port = __import__("service.api.server", fromlist=["free_port"]).free_port()
+    settings = ServiceSettings.load(port=port, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
+
+    async def go():
+        got = []
+        sub = Subscription(f"http://127.0.0.1:{port}", "re", VIEWER, binary=True)
+
+        async def collect():
+            async for m in sub:
+                got.append(m)
+
+        first = ServerThread(settings).__enter__()
+        task = asyncio.create_task(collect())
+        await asyncio.sleep(0.3)
+        pub = await stream_glove(first.url, "re", SOURCE, _config(seed=8), speed=4.0)
+        await pub.close()
+        before = len(got)
+        await asyncio.to_thread(first.__exit__, None, None, None)
+        second = ServerThread(settings).__enter__()
+        await asyncio.sleep(1.0)                       # the client's back-off brings it back
+        pub = await stream_glove(second.url, "re", SOURCE, _config(seed=9), speed=4.0)
+        await pub.close()
+        await asyncio.sleep(0.3)
+        await sub.close()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        await asyncio.to_thread(second.__exit__, None, None, None)
+        return before, got, sub.reconnects
+    before, got, reconnects = asyncio.run(go())
+    assert before > 50 and len(got) > before + 50 and reconnects >= 1
+    assert all(m["type"] in ("frame", "gesture") for m in got)
