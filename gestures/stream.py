@@ -24,14 +24,15 @@ class TrackedHand:
         self.recognizer.settings = settings
 
     def handle(self, message) -> list[dict]:
-        out: list[dict] = []
-        for frame in self.session.handle(message):
+        return [m for group in self.handle_iter(message) for m in group]
+
+    def handle_iter(self, message) -> Iterator[list[dict]]:
+        """For each frame the message completes, as soon as it is ready: the frame and its events."""
+        for frame in self.session.handle_iter(message):
             annotation, events = self.recognizer.update(frame)
             msg = frame.to_message(self.session.calibration)
             msg["gesture"] = annotation
-            out.append(msg)
-            out.extend(events)
-        return out
+            yield [msg, *events]
 
 
 def replay(messages: Iterable, settings: PipelineSettings | None = None,

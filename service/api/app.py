@@ -222,7 +222,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                 counters = live.hand.session.counters
                 late, dup = counters.late, counters.duplicate
                 try:
-                    live.ingest(raw, msg)
+                    await live.ingest(raw, msg)
                 except ValueError as err:          # e.g. a calibration that does not fit the hand
                     await send_error(ws, "invalid_message", str(err))
                     continue

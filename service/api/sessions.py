@@ -120,6 +120,7 @@ class LiveSession:
         self.frames_out = 0
         self.dropped_frames = 0
         self.created = time.time()
+        self._lock = asyncio.Lock()
         self._apply_recording()
 
     def _apply_recording(self) -> None:
@@ -152,13 +153,20 @@ class LiveSession:
         self._apply_recording()
         return self.config.as_dict()
 
-    def ingest(self, raw: dict, parsed) -> None:
-        """Run one validated source message through the hand and fan the outputs out."""
+    async def ingest(self, raw: dict, parsed) -> None:
+        """Run one validated source message through the hand and fan the outputs out; after each
+        frame it yields to the event loop so the subscribers' senders go out before the next tick."""
         t0 = time.perf_counter()
-        self.metrics.messages_in.labels(self.name).inc()
-        if self.recorder is not None:
-            self.recorder.write(raw)
-        for out in self.hand.handle(parsed):
+        async with self._lock:          # several sources (glove, tracker) may feed one hand: one at a time
+            self.metrics.messages_in.labels(self.name).inc()
+            if self.recorder is not None:
+                self.recorder.write(raw)
+            for group in self.hand.handle_iter(parsed):
+                self._fan_out(group, t0)
+                await asyncio.sleep(0)
+
+    def _fan_out(self, group: list[dict], t0: float) -> None:
+        for out in group:
             if out["type"] == "frame":
                 self.last_status = out["status"]
                 out["status"]["dropped"]["subscriber_frames"] = self.dropped_frames

@@ -26,7 +26,7 @@ frames, which is what ``fingertrack replay`` relies on.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -162,6 +162,16 @@ class HandSession:
 
     # -- input ---------------------------------------------------------------------------------------
     def handle(self, msg) -> list[HandFrame]:
+        """All frames this message completes."""
+        return list(self.handle_iter(msg))
+
+    def handle_iter(self, msg) -> Iterator[HandFrame]:
+        """The same frames, each yielded as soon as its tick is processed (a message that completes
+        several ticks need not hold the first frame back until the last tick is done)."""
+        self._accept(msg)
+        yield from self._process_ready()
+
+    def _accept(self, msg) -> None:
         if isinstance(msg, Imu):
             self._add_imu(msg.t, msg.id, msg.gyr, msg.acc)
         elif isinstance(msg, ImuBatch):
@@ -180,8 +190,7 @@ class HandSession:
                 self.calibration = default_calibration(msg.hand)
                 self._build_fingers()
         elif isinstance(msg, Truth):
-            return []
-        return self._process_ready()
+            return
 
     def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
         if sid not in self.calibration.sensor_ids:
@@ -224,14 +233,12 @@ class HandSession:
         return self._newest_imu_t - t >= self.settings.pose_timeout_s and \
             (self.optics.latest_valid_t is not None or self._newest_imu_t - t >= 2 * self.settings.pose_timeout_s)
 
-    def _process_ready(self) -> list[HandFrame]:
-        frames: list[HandFrame] = []
-        for t in sorted(self._pending):
+    def _process_ready(self) -> Iterator[HandFrame]:
+        while self._pending:
+            t = min(self._pending)
             if not self._ready(t):
-                break
-            tick = self._pending.pop(t)
-            frames += self._process_tick(t, tick)
-        return frames
+                return
+            yield from self._process_tick(t, self._pending.pop(t))
 
     def _process_tick(self, t: float, tick: dict) -> list[HandFrame]:
         hand, tracking = self.optics.at(t)
