@@ -163,6 +163,16 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         ws.state.binary = binary
         return True
 
+    async def open_session(ws: WebSocket, action: str, session: str) -> LiveSession | None:
+        """Check the token and the session name; ``None`` (connection refused or closed) if not allowed."""
+        if not await accept(ws, action):
+            return None
+        try:
+            return get_session(session, create=True)
+        except (HTTPException, ValueError) as err:
+            await ws.close(code=1008, reason=str(getattr(err, "detail", err))[:120])
+            return None
+
     async def send(ws: WebSocket, message: dict) -> None:
         if ws.state.binary:
             await ws.send_bytes(msgpack.packb(message))
@@ -175,12 +185,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
 
     @app.websocket("/v1/ingest/{session}")
     async def ingest(ws: WebSocket, session: str):
-        if not await accept(ws, "ingest"):
-            return
-        try:
-            live = get_session(session, create=True)
-        except (HTTPException, ValueError) as err:
-            await ws.close(code=1008, reason=str(getattr(err, "detail", err))[:120])
+        live = await open_session(ws, "ingest", session)
+        if live is None:
             return
         live.sources += 1
         bucket = TokenBucket(settings.rate_limit_msgs_per_s)
@@ -238,12 +244,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
 
     @app.websocket("/v1/stream/{session}")
     async def stream(ws: WebSocket, session: str):
-        if not await accept(ws, "stream"):
-            return
-        try:
-            live = get_session(session, create=True)
-        except (HTTPException, ValueError) as err:
-            await ws.close(code=1008, reason=str(getattr(err, "detail", err))[:120])
+        live = await open_session(ws, "stream", session)
+        if live is None:
             return
         sub = Subscriber(settings.subscriber_queue_frames, settings.subscriber_queue_events, binary=ws.state.binary)
         live.subscribers.add(sub)
