@@ -197,7 +197,7 @@ def test_a_subscriber_that_never_reads_does_not_delay_another(small_buffer_serve
     finally:
         stalled.close()
     # the other subscriber's frames keep their pace: the spread of their lag is not worse than without
-    assert np.percentile(with_slow, 90) < np.percentile(baseline, 90) + 0.003
+    assert np.percentile(with_slow, 90) < np.percentile(baseline, 90) + 0.005
     _, sessions = rest(server.url, "GET", "/v1/sessions", ADMIN)
     slow = next(s for s in sessions if s["session"] == "slow")
     assert slow["dropped_subscriber_frames"] > 0
