@@ -195,11 +195,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def _cmd_serve(args: argparse.Namespace) -> int:
     import gc
 
-    import uvicorn
-
     from .api.app import create_app
     from .api.config import ServiceSettings
-    from .api.server import uvicorn_config
+    from .api.server import FingertrackServer, uvicorn_config
 
     settings = ServiceSettings.load(args.config, host=args.host, port=args.port).with_admin_token()
     print("fingertrack service settings:", settings.masked())
@@ -210,7 +208,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     # garbage-collector pauses out of the frame latency tail (measured with `bench latency`)
     gc.freeze()
     gc.set_threshold(50_000, 20, 100)
-    uvicorn.Server(uvicorn_config(settings, app)).run()
+    FingertrackServer(uvicorn_config(settings, app)).run()
     return 0
 
 

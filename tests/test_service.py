@@ -313,3 +313,43 @@ def test_subscription_survives_a_server_restart(tmp_path):
     before, got, reconnects = asyncio.run(go())
     assert before > 50 and len(got) > before + 50 and reconnects >= 1
     assert all(m["type"] in ("frame", "gesture") for m in got)
+
+
+def test_limits_and_graceful_shutdown(tmp_path):
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    max_message_bytes=4096, rate_limit_msgs_per_s=50, record_dir=str(tmp_path),
+                                    record_all=True)
+    srv = ServerThread(settings).__enter__()
+
+    async def go():
+        async with connect(f"{srv.ws_url}/v1/stream/lim?token={VIEWER}") as sub:
+            await sub.recv()                                            # hello
+            async with connect(f"{srv.ws_url}/v1/ingest/lim?token={SOURCE}") as src:
+                await src.send(json.dumps({"type": "hello", "protocol": 1, "hand": "right"}))
+                await src.recv()
+                await src.send(json.dumps({"type": "hello", "protocol": 1, "hand": "right", "source": "x" * 5000}))
+                too_large = json.loads(await src.recv())
+                codes = []
+                for k in range(120):                                    # far above 50 messages/s
+                    await src.send(json.dumps({"type": "pose", "t": 0.01 * k, "valid": False}))
+                try:
+                    while True:
+                        codes.append(json.loads(await asyncio.wait_for(src.recv(), 0.5))["code"])
+                except asyncio.TimeoutError:
+                    pass
+            await asyncio.to_thread(srv.__exit__, None, None, None)     # graceful shutdown
+            try:
+                while True:
+                    await asyncio.wait_for(sub.recv(), 5)
+            except Exception:
+                pass
+            return too_large, codes, sub.close_code
+    too_large, codes, close_code = asyncio.run(go())
+    assert too_large["code"] == "message_too_large" and "4096" in too_large["detail"]
+    assert "rate_limited" in codes and len(codes) >= 50
+    assert close_code == 1001
+    # the recording was flushed and closed: every line is a valid message
+    recordings = list(tmp_path.glob("lim-*.jsonl"))
+    assert len(recordings) == 1
+    lines = recordings[0].read_text().splitlines()
+    assert lines and all(parse_line(line) for line in lines)

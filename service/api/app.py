@@ -76,17 +76,25 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                         s.recorder.flush()
         task = asyncio.create_task(flusher())
         yield
-        state["closing"] = True
         task.cancel()
+        await drain()
+
+    async def drain() -> None:
+        """Graceful shutdown: subscribers are closed with 1001 and a reason, recordings flushed and
+        closed. Runs before the server closes the remaining connections."""
+        if state["closing"]:
+            return
+        state["closing"] = True
         for s in sessions.values():
             for sub in s.subscribers:
                 sub.closed = True
                 sub.wake.set()
             s.close()
-        await asyncio.sleep(0.05)          # let the stream handlers close with 1001
+        await asyncio.sleep(0.1)            # let the stream handlers send their close frames
 
     app = FastAPI(title="fingertrack", version="0.1.0", lifespan=lifespan,
                   description="Finger tracking for VR hand interaction: protocol v1 over WebSocket, REST config.")
+    app.state.drain = drain
     app.state.settings = settings
     app.state.sessions = sessions
     app.state.metrics = metrics

@@ -12,9 +12,22 @@ from .config import ServiceSettings
 
 
 def uvicorn_config(settings: ServiceSettings, app=None) -> uvicorn.Config:
+    # messages above max_message_bytes get an error reply and the connection stays; only frames four
+    # times larger are cut off at the WebSocket layer (close 1009)
     return uvicorn.Config(app or create_app(settings), host=settings.host, port=settings.port, log_level="warning",
-                          ws_max_size=settings.max_message_bytes, ws_ping_interval=settings.ping_interval_s,
+                          ws_max_size=4 * settings.max_message_bytes, ws_ping_interval=settings.ping_interval_s,
                           ws_ping_timeout=settings.ping_timeout_s, timeout_graceful_shutdown=2, lifespan="on")
+
+
+class FingertrackServer(uvicorn.Server):
+    """uvicorn's server with the app's graceful drain run before connections are cut (uvicorn would
+    otherwise close WebSockets with 1012 before the app's shutdown hook runs)."""
+
+    async def shutdown(self, sockets=None) -> None:
+        drain = getattr(getattr(self.config.app, "state", None), "drain", None)
+        if drain is not None:
+            await drain()
+        await super().shutdown(sockets)
 
 
 def free_port() -> int:
@@ -35,7 +48,7 @@ class ServerThread:
             settings = settings.model_copy(update={"port": free_port()})
         self.app = create_app(settings)
         self.settings = self.app.state.settings
-        self.server = uvicorn.Server(uvicorn_config(self.settings, self.app))
+        self.server = FingertrackServer(uvicorn_config(self.settings, self.app))
         sockets = None
         if send_buffer_bytes is not None:
             sock = socket.socket()
