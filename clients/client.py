@@ -21,6 +21,8 @@ import msgpack
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
+from service.protocol import parse_output
+
 MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
 
 
@@ -93,8 +95,11 @@ class Publisher:
         except ConnectionClosed:
             pass
 
-    async def send(self, message: dict) -> None:
-        """Send one source message, reconnecting (with back-off) if the connection dropped."""
+    async def send(self, message) -> None:
+        """Send one source message (a dict or a ``service.protocol`` model), reconnecting (with
+        back-off) if the connection dropped."""
+        if hasattr(message, "model_dump"):
+            message = message.model_dump(exclude_none=True)
         if message.get("type") == "calibration":
             self.calibration = message
         if message.get("type") == "hello":
@@ -123,8 +128,10 @@ class Publisher:
 
 class Subscription:
     def __init__(self, url: str, session: str, token: str, binary: bool = False, backoff: Backoff | None = None,
-                 reconnect: bool = True):
+                 reconnect: bool = True, typed: bool = False):
+        """``typed``: yield ``service.protocol`` models (``Frame``, ``Gesture``) instead of dicts."""
         self.url = _url(url, f"/v1/stream/{session}", token, binary)
+        self.typed = typed
         self.backoff = backoff or Backoff()
         self.reconnect = reconnect
         self.reconnects = 0
@@ -143,7 +150,7 @@ class Subscription:
                         if msg.get("type") == "hello":
                             self.server_hello = msg
                             continue
-                        yield msg
+                        yield parse_output(msg) if self.typed else msg
                     if ws.close_code in (1008, 1003):     # refused: token, role or protocol
                         raise PermissionError(f"stream closed by the server: {ws.close_code} {ws.close_reason}")
             except (ConnectionClosed, OSError) as err:

@@ -262,6 +262,36 @@ def test_recording_then_replaying_gives_the_frames_streamed_live(server):
         [json.dumps(m, sort_keys=True) for m in live]
 
 
+def test_typed_client_messages(server):
+    from service.protocol import Frame, Gesture, Hello
+
+    async def go():
+        got = []
+        sub = Subscription(server.ws_url, "typed", VIEWER, typed=True)
+
+        async def collect():
+            async for m in sub:
+                got.append(m)
+        task = asyncio.create_task(collect())
+        await asyncio.sleep(0.2)
+        pub = Publisher(server.url, "typed", SOURCE)
+        await pub.send(Hello(type="hello", protocol=1, hand="right", source="typed-test"))
+        for _, m in source_messages(_config(seed=10)):
+            if m["type"] != "hello":
+                await pub.send(parse_line(json.dumps(m)))
+        await asyncio.sleep(0.3)
+        await pub.close()
+        await sub.close()
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        return got
+    got = asyncio.run(go())
+    frames = [m for m in got if isinstance(m, Frame)]
+    gestures = [m for m in got if isinstance(m, Gesture)]
+    assert len(frames) > 200 and [(g.gesture, g.event) for g in gestures][:2] == [("point", "start"), ("point", "end")]
+    assert gestures[0].ray is not None and len(frames[0].joints) == 26
+
+
 def test_msgpack_stream_and_ingest(server):
     import msgpack
 

@@ -144,6 +144,58 @@ class ErrorMessage(_Message):
     detail: str
 
 
+class JointPose(_Message):
+    position: Vec3
+    orientation: Quat
+
+
+class Ray(_Message):
+    origin: Vec3
+    direction: Vec3
+
+
+class Frame(_Message):
+    """Service -> VR client: joint angles (rad) per finger with the estimator mode, the 26 OpenXR joint
+    poses (world frame), the status, and the gesture layer's continuous values."""
+
+    type: Literal["frame"]
+    t: float
+    seq: int
+    hand: Literal["right", "left"]
+    fingers: dict[str, dict[str, float | str]]
+    joints: dict[str, JointPose]
+    status: dict
+    gesture: dict = {}
+
+
+class Gesture(_Message):
+    type: Literal["gesture"]
+    t: float
+    gesture: Literal["point", "grasp", "pinch", "open"]
+    event: Literal["start", "end"]
+    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
+    ray: Ray | None = None
+
+
+class ServerHello(_Message):
+    type: Literal["hello"]
+    protocol: int
+    server: str = ""
+    session: str = ""
+
+
+OutputMessage = Annotated[Union[Frame, Gesture, ErrorMessage], Field(discriminator="type")]
+_OUTPUT_ADAPTER: TypeAdapter = TypeAdapter(OutputMessage)
+
+
+def parse_output(obj: object) -> Frame | Gesture | ErrorMessage:
+    """Validate a message from the service (for clients); raises ``ProtocolError``."""
+    try:
+        return _OUTPUT_ADAPTER.validate_python(obj)
+    except ValidationError as err:
+        raise ProtocolError("invalid_message", _describe(err)) from None
+
+
 SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, Truth], Field(discriminator="type")]
 _ADAPTER: TypeAdapter = TypeAdapter(SourceMessage)
 SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "truth")
