@@ -383,3 +383,47 @@ def test_limits_and_graceful_shutdown(tmp_path):
     assert len(recordings) == 1
     lines = recordings[0].read_text().splitlines()
     assert lines and all(parse_line(line) for line in lines)
+
+
+def test_serve_glove_and_watch_commands(tmp_path):
+    """The console commands as a user runs them: serve in its own process, glove and watch against it."""
+    import subprocess
+    import sys
+    import threading
+
+    from service.api.server import free_port
+    from service.cli import main
+
+    port = free_port()
+    cfg = tmp_path / "service.json"
+    cfg.write_text(json.dumps({"tokens": {SOURCE: "source", VIEWER: "viewer"}}))
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        banner = [proc.stdout.readline() for _ in range(3)]
+        assert banner[0].startswith("fingertrack service settings:") and SOURCE not in banner[0]
+        assert "'src…': 'source'" in banner[0]
+        admin = banner[1].split(":", 1)[1].strip()
+        assert banner[1].startswith("admin token (shown once):") and len(admin) > 20
+        deadline = time.monotonic() + 15
+        while True:
+            try:
+                if rest(url, "GET", "/health")[0] == 200:
+                    break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        watch_rc = []
+        watcher = threading.Thread(target=lambda: watch_rc.append(
+            main(["watch", "--url", url, "--token", VIEWER, "--session", "cli", "--count", "40", "--every", "0.05"])))
+        watcher.start()
+        time.sleep(0.5)
+        assert main(["glove", "--url", url, "--token", SOURCE, "--session", "cli", "--motion", "point", "--noise", "white"]) == 0
+        watcher.join(timeout=20)
+        assert watch_rc == [0]
+        assert rest(url, "GET", "/v1/sessions", admin)[1][0]["session"] == "cli"
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
