@@ -269,6 +269,13 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(paper.run(args.out, quick=args.quick, seeds=args.seeds, workers=args.workers))
         print(f"\nwrote {args.out}/results.csv, summary.md, fig10.png, fig9.png")
         return 0
+    if args.which == "peers":
+        from .bench import peers
+        if not args.data:
+            raise ValueError("bench peers needs --data DIR (a folder of BROAD .mat trials)")
+        print(peers.run(args.data, args.out, quick=args.quick))
+        print(f"wrote {args.out}/results.csv, summary.md, peers.png")
+        return 0
     if args.which == "latency":
         from .bench import latency
         print(latency.run(args.out, seconds=args.seconds))
@@ -351,7 +358,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, service latency")
-    bench.add_argument("which", choices=("paper", "gestures", "latency"), help="which benchmark")
+    bench.add_argument("which", choices=("paper", "gestures", "latency", "peers"), help="which benchmark")
+    bench.add_argument("--data", default=None, help="peers: folder of BROAD .mat trials")
     bench.add_argument("--seconds", type=_positive_float, default=20.0, help="latency: streaming time, s (default 20)")
     bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
     bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")

@@ -105,12 +105,16 @@ def measurement_model(q: np.ndarray, refs_world: list[np.ndarray], refs_sensor: 
     rot = quat.to_matrix(q)
     ys, hs, rs = [], [], []
     for d, s, sig in zip(refs_world, refs_sensor, sigmas):
+        # a missing pair (non-finite) is kept as a row of zeros with a huge variance: no information
+        ok = np.all(np.isfinite(d), axis=-1) & np.all(np.isfinite(s), axis=-1)
+        d = np.where(ok[..., None], d, 0.0)
         h = np.einsum("...ji,...j->...i", rot, d)                            # R(q)ᵀ d
-        ys.append(s - h)
+        ys.append(np.where(ok[..., None], np.where(ok[..., None], s, 0.0) - h, 0.0))
         block = np.zeros(h.shape[:-1] + (3, 6))
         block[..., :3] = skew(h)
         hs.append(block)
-        rs.append(np.asarray(sig, dtype=float)[..., None] ** 2 * np.ones(3))
+        sig = np.where(ok, np.asarray(sig, dtype=float), 1e6)
+        rs.append(sig[..., None] ** 2 * np.ones(3))
     y = np.concatenate(ys, axis=-1)
     H = np.concatenate(hs, axis=-2)
     diag = np.concatenate([np.broadcast_to(r, y.shape[:-1] + (3,)) for r in rs], axis=-1)

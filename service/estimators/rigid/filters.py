@@ -38,22 +38,40 @@ class _RigidFilter:
     def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
             ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
         """(N, 3) samples at a fixed ``dt`` (optionally (N, 3) second references); returns (N, 4)."""
-        out = np.empty((len(gyr), 4))
+        out = np.empty(np.shape(gyr)[:-1] + (4,))
         for k in range(len(gyr)):
             out[k] = self.update(gyr[k], acc[k], dt, None if ref_world is None else ref_world[k],
                                  None if ref_sensor is None else ref_sensor[k])
         return out
 
 
+def tilt_from_accelerometer(acc: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """``[w,x,y,z]`` quaternions (..., 4) of the smallest rotation taking the measured specific force
+    direction (sensor frame) onto ``up`` (world): an initial attitude with an arbitrary heading."""
+    a = np.asarray(acc, dtype=float)
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    u = np.broadcast_to(np.asarray(up, dtype=float), a.shape)
+    c = np.sum(a * u, axis=-1, keepdims=True)
+    q = np.concatenate([1.0 + c, np.cross(a, u)], axis=-1)
+    # opposite vectors: any axis perpendicular to a
+    flip = (1.0 + c[..., 0]) < 1e-9
+    if np.any(flip):
+        perp = np.cross(a, np.eye(3)[np.argmin(np.abs(a), axis=-1)])
+        q = np.where(flip[..., None], np.concatenate([np.zeros_like(c), perp], axis=-1), q)
+    return quat.normalize(q)
+
+
 @dataclass
 class MadgwickImu(_RigidFilter):
-    """Madgwick filter (paper eqs. 9-19) on one rigid IMU. ``beta`` rad/s."""
+    """Madgwick filter (paper eqs. 9-19) on one rigid IMU, or a stack of them (``batch_shape``).
+    ``beta`` rad/s."""
 
     beta: float = 0.041
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    batch_shape: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.q = np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), self.batch_shape + (4,)).copy()
 
     def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
                ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
@@ -79,11 +97,13 @@ class EkfImu(_RigidFilter):
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     gravity: float = 9.81
     use_filterpy: bool = True
+    batch_shape: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
-        self.q = np.array([1.0, 0.0, 0.0, 0.0])
-        self.bias = np.zeros(3)
-        self.P = np.diag([self.initial_angle_std**2] * 3 + [self.initial_bias_std**2] * 3)
+        b = self.batch_shape
+        self.q = np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), b + (4,)).copy()
+        self.bias = np.zeros(b + (3,))
+        self.P = np.broadcast_to(np.diag([self.initial_angle_std**2] * 3 + [self.initial_bias_std**2] * 3), b + (6, 6)).copy()
         self._kalman = FilterpyKalman() if self.use_filterpy else BatchedKalman()
 
     def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
@@ -92,11 +112,11 @@ class EkfImu(_RigidFilter):
         P = self._kalman.predict(self.P, F, Q)
         refs_w = [self.gravity * np.asarray(self.up, dtype=float)]
         refs_s = [np.asarray(acc, dtype=float)]
-        sig = [np.asarray(self.acc_noise)]
+        sig = [np.full(self.batch_shape, self.acc_noise)]
         if ref_world is not None:
             refs_w.append(np.asarray(ref_world, dtype=float))
             refs_s.append(np.asarray(ref_sensor, dtype=float))
-            sig.append(np.asarray(self.ref_noise))
+            sig.append(np.full(self.batch_shape, self.ref_noise))
         y, H, R = measurement_model(q, refs_w, refs_s, sig)
         dx, self.P = self._kalman.update(P, H, R, y)
         self.q, self.bias = inject(q, self.bias, dx)

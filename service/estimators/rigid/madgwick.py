@@ -13,7 +13,8 @@ One step, for each sensor (vectorised over leading dimensions):
 * eq. 18: ``q̇ = q̇_ω - β ∇F/|∇F|``; eq. 15: ``q_+ = q + q̇ Δt``; eq. 19: normalise.
 
 With one pair and ``d = [0, 0, 1]`` this is the IMU-only Madgwick filter of the ``ahrs`` package
-(tested to 1e-9). A zero-length measurement or a vanishing gradient skips the correction, as ahrs
+(tested to 1e-9). A zero-length or non-finite reference pair contributes no gradient (the others
+still correct); with no usable pair, or a vanishing gradient, the correction is skipped, as ahrs
 does, so no NaN enters the state.
 """
 from __future__ import annotations
@@ -71,7 +72,7 @@ def objective_and_jacobian_fast(q: np.ndarray, d: np.ndarray, s: np.ndarray) -> 
 
 def _unit(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     n = np.linalg.norm(v, axis=-1, keepdims=True)
-    ok = n > 0
+    ok = np.isfinite(n) & (n > 0)
     return np.where(ok, v / np.where(ok, n, 1.0), 0.0), ok[..., 0]
 
 
@@ -81,13 +82,14 @@ def madgwick_step(q: np.ndarray, gyr: np.ndarray, dt: float | np.ndarray, beta: 
     ``refs_world``/``refs_sensor``: lists of (..., 3) vectors (normalised here); ``beta`` rad/s."""
     qdot = 0.5 * multiply_vector(q, gyr)                                      # eq. 9
     grad = np.zeros_like(q)
-    valid = np.ones(q.shape[:-1], dtype=bool)
+    valid = np.zeros(q.shape[:-1], dtype=bool)
     for d, s in zip(refs_world, refs_sensor):
         d_unit, d_ok = _unit(d)
         s_unit, s_ok = _unit(s)
-        f, j = objective_and_jacobian_fast(q, d_unit, s_unit)                 # eq. 11
-        grad = grad + np.einsum("...ji,...j->...i", j, f)                      # eq. 12: Jᵀ F
-        valid &= d_ok & s_ok
+        ok = d_ok & s_ok                      # a missing reference (zero or NaN) contributes nothing
+        f, j = objective_and_jacobian_fast(q, np.where(ok[..., None], d_unit, 0.0), np.where(ok[..., None], s_unit, 0.0))  # eq. 11
+        grad = grad + np.where(ok[..., None], np.einsum("...ji,...j->...i", j, f), 0.0)   # eq. 12: Jᵀ F
+        valid |= ok
     gnorm = np.linalg.norm(grad, axis=-1, keepdims=True)
     use = valid[..., None] & (gnorm > 0)
     correction = np.where(use, grad / np.where(use, gnorm, 1.0), 0.0)
