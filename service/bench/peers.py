@@ -133,12 +133,14 @@ OURS = [(f"fingertrack-{k}" + ("+optical" if o else ""), k, o) for k in ("madgwi
 def run(data_dir: str | Path, out_dir: str | Path, quick: bool = False, progress: bool = True) -> str:
     from tqdm import tqdm
 
-    missing = [m for m in ("vqf", "ahrs", "imufusion") if __import__("importlib").util.find_spec(m) is None]
-    if missing:
-        raise ValueError(f"bench peers needs the peer libraries {missing}: pip install -e '.[peers]'")
+    import importlib.util
+
     files = sorted(Path(data_dir).glob("*.mat"))
     if not files:
         raise ValueError(f"{data_dir}: no .mat trials found")
+    missing = [m for m in ("vqf", "ahrs", "imufusion") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise ValueError(f"bench peers needs the peer libraries {missing}: pip install -e '.[peers]'")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     trials = [load_trial(f) for f in files]
