@@ -219,3 +219,19 @@ def rest(url: str, method: str, path: str, token: str | None = None, body: Any =
         return status, json.loads(text)
     except ValueError:
         return status, text
+
+
+def wait_healthy(url: str, timeout_s: float = 15.0, alive=lambda: True) -> None:
+    """Poll ``GET /health`` until the service answers 200; ``alive()`` false (e.g. its process
+    exited) or the timeout raises ``RuntimeError``."""
+    import time
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            if rest(url, "GET", "/health")[0] == 200:
+                return
+        except OSError:
+            pass
+        if time.monotonic() > deadline or not alive():
+            raise RuntimeError(f"the service at {url} did not become healthy")
+        time.sleep(0.1)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from websockets.asyncio.client import connect
 
-from clients.client import Publisher, Subscription, rest
+from clients.client import Publisher, Subscription, rest, wait_healthy
 from clients.glove import source_messages, stream_glove
 from gestures.stream import replay
 from service.api.config import ServiceSettings
@@ -406,15 +406,7 @@ def test_serve_glove_and_watch_commands(tmp_path):
         assert "'src…': 'source'" in banner[0]
         admin = banner[1].split(":", 1)[1].strip()
         assert banner[1].startswith("admin token (shown once):") and len(admin) > 20
-        deadline = time.monotonic() + 15
-        while True:
-            try:
-                if rest(url, "GET", "/health")[0] == 200:
-                    break
-            except OSError:
-                pass
-            assert time.monotonic() < deadline
-            time.sleep(0.1)
+        wait_healthy(url, 15.0, alive=lambda: proc.poll() is None)
         watch_rc = []
         watcher = threading.Thread(target=lambda: watch_rc.append(
             main(["watch", "--url", url, "--token", VIEWER, "--session", "cli", "--count", "40", "--every", "0.05"])))

@@ -68,7 +68,7 @@ async def _measure(url: str, source: str, viewer: str, config: SimConfig) -> lis
 
 
 def run(out_dir: str | Path, seconds: float = 20.0) -> str:
-    from clients.client import rest
+    from clients.client import rest, wait_healthy
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -77,26 +77,23 @@ def run(out_dir: str | Path, seconds: float = 20.0) -> str:
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Path(tmp) / "service.json"
         cfg.write_text(json.dumps({"tokens": {source: "source", viewer: "viewer"}, "admin_token": admin}))
+        log = open(Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                                stdout=subprocess.DEVNULL, stderr=log)
         url = f"http://127.0.0.1:{port}"
         try:
-            deadline = time.monotonic() + 20
-            while True:
-                try:
-                    if rest(url, "GET", "/health")[0] == 200:
-                        break
-                except OSError:
-                    pass
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError("the service did not start: " + (proc.stderr.read().decode() if proc.stderr else ""))
-                time.sleep(0.1)
+            try:
+                wait_healthy(url, 20.0, alive=lambda: proc.poll() is None)
+            except RuntimeError:
+                log.seek(0)
+                raise RuntimeError("the service did not start: " + log.read()) from None
             config = SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=0)
             lat = np.array(asyncio.run(_measure(url, source, viewer, config)))
             _, metrics_text = rest(url, "GET", "/metrics", admin)
         finally:
             proc.terminate()
             proc.wait(timeout=10)
+            log.close()
     ms = lat * 1e3
     result = {
         "seconds": seconds, "frames": int(len(ms)),
