@@ -122,3 +122,22 @@ def test_fast_objective_equals_the_explicit_formula():
     f2, j2 = objective_and_jacobian_fast(q, d, s)
     np.testing.assert_allclose(f2, f1, atol=1e-13)
     np.testing.assert_allclose(j2, j1, atol=1e-13)
+
+
+@pytest.mark.parametrize("second", [False, True])
+def test_compiled_madgwick_equals_the_numpy_reference(second):
+    from service.estimators.rigid.filters import MadgwickImu
+    rng = np.random.default_rng(11)
+    n, b = 500, 3
+    gyr = rng.normal(0, 1.0, (n, b, 3))
+    acc = np.array([0.4, -0.2, 9.7]) + rng.normal(0, 1.0, (n, b, 3))
+    rw = np.tile([1.0, 0.0, 0.0], (n, b, 1)) if second else None
+    rs = rng.normal(0, 1.0, (n, b, 3)) if second else None
+    if second:
+        rs[100:120] = np.nan                                  # missing references are skipped
+    fast = MadgwickImu(beta=0.05, up=(0.0, 0.0, 1.0), batch_shape=(b,), engine="numba")
+    ref = MadgwickImu(beta=0.05, up=(0.0, 0.0, 1.0), batch_shape=(b,), engine="numpy")
+    np.testing.assert_allclose(fast.run(gyr, acc, 0.005, rw, rs), ref.run(gyr, acc, 0.005, rw, rs), atol=1e-12)
+    stream = MadgwickImu(beta=0.05, up=(0.0, 0.0, 1.0), batch_shape=(b,), engine="numba")
+    last = [stream.update(gyr[k], acc[k], 0.005, None if rw is None else rw[k], None if rs is None else rs[k]) for k in range(n)][-1]
+    np.testing.assert_allclose(last, fast.quaternion, atol=1e-12)
