@@ -91,7 +91,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 
     if args.list:
         for name, cls in REGISTRY.items():
-            doc = (cls.__module__ and __import__(cls.__module__, fromlist=["_"]).__doc__ or "").strip().splitlines()
+            doc = (sys.modules[cls.__module__].__doc__ or "").strip().splitlines()
             print(f"{name}\t{doc[0] if doc else ''}")
         return 0
     if not args.recording or not args.out:
