@@ -202,3 +202,24 @@ def test_chain_closure_rejects_unobservable_placements():
     one = replace(geom, sensors=geom.sensors[:1])
     with pytest.raises(ValueError, match="cannot determine"):
         REGISTRY["vector"](one)
+
+
+def test_observation_model_equals_the_simulator_kinematics():
+    """The estimators' predicted specific force (all sensors at once, cross-product matrices) equals
+    the model's point kinematics for random finger states on a randomly moving hand."""
+    from service.estimators.observations import FingerObservations
+    from service.model.kinematics import chain_point, point_in_metacarpus, point_in_world
+    from service.sim.motions import make_hand_motion
+    rng = np.random.default_rng(21)
+    calib = default_calibration("left")
+    base = make_hand_motion("random", seed=4).base_motion(np.linspace(0, 3, 9))
+    g = np.array([0.0, -9.81, 0.0])
+    for finger in FINGERS:
+        geom = calib.finger(finger)
+        n = geom.n_phalanges
+        theta, dtheta, ddtheta = (rng.normal(0, s, (9, n)) for s in (0.8, 3.0, 40.0))
+        got = FingerObservations(geom).reference_force_world(base, theta, g, dtheta, ddtheta)
+        for k, sensor in enumerate(geom.sensors):
+            local = chain_point(geom, sensor.phalanx, sensor.offset_m, theta, dtheta, ddtheta)
+            expected = point_in_world(base, point_in_metacarpus(geom, local)).acceleration - g
+            np.testing.assert_allclose(got[:, k], expected, atol=1e-10)

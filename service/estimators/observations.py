@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.frames import apply_transpose, cross
+from ..model.frames import apply_transpose, skew
 from ..model.hand import FingerGeometry, joint_limits
 from ..model.kinematics import BaseMotion
 
@@ -85,15 +85,18 @@ class FingerObservations:
         base_t = self.base.T
         rho = self.base_position + (self._lever @ y) @ base_t                        # eq. 1, (..., S, 3)
         rot_t = np.swapaxes(hand.rotation, -1, -2)
-        w = np.einsum("...ij,...j->...i", rot_t, hand.angular_velocity)[..., None, :]
-        dw = np.einsum("...ij,...j->...i", rot_t, hand.angular_acceleration)[..., None, :]
+        w = np.einsum("...ij,...j->...i", rot_t, hand.angular_velocity)
+        dw = np.einsum("...ij,...j->...i", rot_t, hand.angular_acceleration)
         lin = np.einsum("...ij,...j->...i", rot_t, hand.acceleration - gravity_world)[..., None, :]
-        out = lin + cross(dw, rho) + cross(w, cross(w, rho))
+        # α×ρ + ω×(ω×ρ) = (K_α + K_ω K_ω) ρ with cross-product matrices: one product for all sensors
+        k_w = skew(w)
+        hand_terms = skew(dw) + k_w @ k_w
+        out = lin + rho @ np.swapaxes(hand_terms, -1, -2)
         if dtheta is not None:
             z = np.zeros(theta.shape + (3,))                                        # z_j = dy_j/dθ_j
             z[..., 1], z[..., 2] = -s, c
             vel = (self._lever @ (dtheta[..., None] * z)) @ base_t
-            out = out + 2.0 * cross(w, vel)
+            out = out + vel @ (-2.0 * k_w)                                          # 2 ω×ρ' (row form: ρ' K_ωᵀ)
             if ddtheta is not None:
                 acc = ddtheta[..., None] * z - dtheta[..., None] ** 2 * y              # eq. 2 terms
                 out = out + (self._lever @ acc) @ base_t

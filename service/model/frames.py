@@ -104,14 +104,3 @@ def apply_transpose(mats: np.ndarray, vecs: np.ndarray) -> np.ndarray:
     """``mats.T @ vecs`` for stacks: expresses world vectors in the rotated frame."""
     return np.einsum("...ji,...j->...i", mats, vecs)
 
-
-def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a × b`` over the last axis with broadcasting; ``np.cross`` without its axis bookkeeping,
-    which costs more than the arithmetic on the small arrays of a per-sample filter step."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
-    out[..., 0] = a1 * b2 - a2 * b1
-    out[..., 1] = a2 * b0 - a0 * b2
-    out[..., 2] = a0 * b1 - a1 * b0
-    return out
