@@ -154,7 +154,8 @@ class FingerEstimator:
         if self.n_sensors == 0:
             raise ValueError(f"finger {geom.name!r} has no sensors")
         self.closure = ChainClosure(geom, extra_couplings=list(extra_couplings))
-        self._branch_low = FingerObservations(geom).branch_low
+        self.obs = FingerObservations(geom)          # the finger's observation constants, shared by every method
+        self._branch_low = self.obs.branch_low
         self.gravity_world = np.asarray(gravity_world, dtype=float)
         self._initial_theta = None if initial_theta is None else np.broadcast_to(
             np.asarray(initial_theta, dtype=float), self.batch_shape + (geom.n_phalanges,)).copy()

@@ -17,7 +17,6 @@ from pydantic import Field
 
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import initial_sensor_theta, rk4_step_linear_rate
-from .observations import FingerObservations
 from .vector import VectorObservation
 
 
@@ -32,7 +31,6 @@ class Complementary(FingerEstimator):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
         self.vector = VectorObservation(self.geom, batch_shape=self.batch_shape, gravity_world=self.gravity_world)
 
     def _init_state(self, gyr, acc, hand, theta0):

@@ -44,7 +44,6 @@ from ..sim.errors import DEG, MG
 from . import kalman
 from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimator
 from .integration import initial_sensor_theta
-from .observations import FingerObservations
 
 N_STATE = 5
 LOST_RATE_RAD_S = 1.0
@@ -67,10 +66,6 @@ class ChainSettings(EstimatorSettings):
 class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
 
     def _init_state(self, gyr, acc, hand, theta0):
         s = self.settings

@@ -22,7 +22,6 @@ from pydantic import Field
 from ..sim.errors import DEG, MG
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import initial_sensor_theta
-from .observations import FingerObservations
 from .rigid import quaternion as quat
 from .rigid.ekf import BatchedKalman, FilterpyKalman, inject, measurement_model, process_model
 
@@ -46,7 +45,6 @@ class Ekf(FingerEstimator):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
         self._kalman = FilterpyKalman()
 
     def _init_state(self, gyr, acc, hand, theta0):

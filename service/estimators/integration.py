@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from .base import MODE_FAST, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
-from .observations import FingerObservations
 from .vector import VectorObservation
 
 
@@ -38,10 +37,6 @@ def initial_sensor_theta(estimator: FingerEstimator, acc, hand, theta0) -> np.nd
 class GyroIntegration(FingerEstimator):
     name = "integration"
     Settings = IntegrationSettings
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
 
     def _init_state(self, gyr, acc, hand, theta0):
         return {"theta": initial_sensor_theta(self, acc, hand, theta0), "rate": self.obs.relative_rate(gyr, hand)}

@@ -18,7 +18,6 @@ from pydantic import Field
 
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator
 from .integration import initial_sensor_theta
-from .observations import FingerObservations
 from .rigid import quaternion as quat
 from .rigid.madgwick import madgwick_step
 
@@ -34,10 +33,6 @@ class MadgwickSettings(EstimatorSettings):
 class Madgwick(FingerEstimator):
     name = "madgwick"
     Settings = MadgwickSettings
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
 
     def _init_state(self, gyr, acc, hand, theta0):
         theta = initial_sensor_theta(self, acc, hand, theta0)

@@ -26,7 +26,6 @@ from pydantic import Field
 from ..sim.errors import DEG, MG
 from .base import MODE_FAST, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import rk4_step_linear_rate
-from .observations import FingerObservations
 from .vector import VectorObservation
 
 
@@ -44,7 +43,6 @@ class Switching(FingerEstimator):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
         self.vector = VectorObservation(self.geom, batch_shape=self.batch_shape, gravity_world=self.gravity_world)
 
     def slow_error_bound(self, rates: np.ndarray, rate_changes: np.ndarray, inplane: np.ndarray) -> np.ndarray:

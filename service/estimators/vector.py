@@ -17,7 +17,6 @@ from pydantic import Field
 
 from ..model.kinematics import BaseMotion
 from .base import MODE_NO_INFO, MODE_SLOW, ChainClosure, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
-from .observations import FingerObservations
 
 
 class VectorSettings(EstimatorSettings):
@@ -28,10 +27,6 @@ class VectorSettings(EstimatorSettings):
 class VectorObservation(FingerEstimator):
     name = "vector"
     Settings = VectorSettings
-
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self.obs = FingerObservations(self.geom)
 
     def observe(self, acc: np.ndarray, hand: BaseMotion) -> tuple[np.ndarray, np.ndarray]:
         """``(θ per sensor, in-plane magnitude)`` for samples (..., S, 3); vectorised over ``...``."""
