@@ -89,11 +89,12 @@ def _inclination_deg(q_xyzw, rot_true):
     return np.degrees(np.arccos(np.clip(np.sum(up_est * up_true, axis=1), -1, 1)))
 
 
-@pytest.mark.parametrize("core", ["madgwick", "ekf"])
+@pytest.mark.parametrize("core", ["madgwick", "ekf", "inertial"])
 def test_rigid_cores_track_inclination_of_a_moving_body(core):
-    from service.estimators.rigid.filters import EkfImu, MadgwickImu
+    from service.estimators.rigid.filters import EkfImu, InertialImu, MadgwickImu
     t, rot, gyr, acc = _rigid_body(gyro_bias=(0.02, -0.01, 0.015))
-    f = MadgwickImu(beta=0.05) if core == "madgwick" else EkfImu(use_filterpy=False)
+    f = {"madgwick": lambda: MadgwickImu(beta=0.05), "ekf": lambda: EkfImu(use_filterpy=False),
+         "inertial": lambda: InertialImu(1 / 200.0)}[core]()
     f.quaternion = Rotation.from_matrix(rot[0]).as_quat()
     q = f.run(gyr, acc, 1 / 200.0)
     incl = _inclination_deg(q, rot)

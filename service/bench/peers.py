@@ -7,13 +7,14 @@ IMU to an east-north-up frame; NaN where the markers were lost), ``movement`` an
 Metric: the inclination error, the angle between the true and the estimated gravity direction in the
 sensor frame, RMS over the movement phases (samples with ground truth). Heading is not scored.
 
-Methods: ours (``fingertrack-madgwick``, ``fingertrack-ekf``) IMU-only and with a second reference
+Methods: ours (``fingertrack-inertial``, the inertial-frame core with gyro bias and scale-factor
+estimation, ``rigid/inertial.py``; ``fingertrack-madgwick``, ``fingertrack-ekf``) IMU-only and with a second reference
 vector from the optical data (``+optical``: the east axis in sensor coordinates from the optical
 ground truth, which is what a finger filter gets from the optical metacarpus pose; it carries
 information the 6D peers do not have). Peers with their documented defaults: ``vqf``, ``vqf-basic``,
 ``vqf-offline`` (VQF, Laidig & Seel 2023), ``ahrs-madgwick``, ``ahrs-ekf`` (the ``ahrs`` package),
-``imufusion`` (Fusion AHRS, no magnetometer). Our filters start from the first accelerometer sample
-(tilt only); the peers initialise themselves.
+``imufusion`` (Fusion AHRS, no magnetometer). Our Madgwick and EKF start from the first
+accelerometer sample (tilt only); the inertial core and the peers initialise themselves.
 
 Timing, measured in the same run: microseconds per sample. Streaming = one sample per call on one
 trial; batch = our filters over all trials at once (leading batch dimension), the peers' batch entry
@@ -28,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..estimators.rigid import quaternion as quat
-from ..estimators.rigid.filters import EkfImu, MadgwickImu, tilt_from_accelerometer
+from ..estimators.rigid.filters import EkfImu, InertialImu, MadgwickImu, tilt_from_accelerometer
 
 UP_ENU = np.array([0.0, 0.0, 1.0])
 EAST_ENU = np.array([1.0, 0.0, 0.0])
@@ -38,8 +39,9 @@ OUR_BETA = 0.041
 """Madgwick gain for BROAD (Madgwick's recommendation for MARG sensors, as the comparison paper used)."""
 
 
-def load_trial(path: Path) -> dict:
+def load_trial(path: str | Path) -> dict:
     from scipy.io import loadmat
+    path = Path(path)
     d = loadmat(path)
     for key in ("imu_gyr", "imu_acc", "opt_quat", "sampling_rate"):
         if key not in d:
@@ -66,11 +68,22 @@ def _east_in_sensor(q_true: np.ndarray) -> np.ndarray:
     return np.einsum("nji,j->ni", quat.to_matrix(quat.normalize(q)), EAST_ENU) * np.where(ok, 1.0, np.nan)[:, None]
 
 
+def _make(kind: str, dt: float, batch_shape=()):
+    """One of our rigid cores with the bench's settings (world frame east-north-up)."""
+    if kind == "madgwick":
+        return MadgwickImu(beta=OUR_BETA, up=tuple(UP_ENU), batch_shape=batch_shape)
+    if kind == "ekf":
+        return EkfImu(up=tuple(UP_ENU), use_filterpy=False, batch_shape=batch_shape)
+    if kind == "inertial":
+        return InertialImu(dt, up=tuple(UP_ENU), batch_shape=batch_shape)
+    raise ValueError(f"unknown core {kind!r}")
+
+
 def _ours(kind: str, optical: bool, gyr, acc, q_true, dt, batch_shape=()):
     """Run our core over (N, *B, 3) arrays; returns (N, *B, 4) quaternions [w,x,y,z]."""
-    f = MadgwickImu(beta=OUR_BETA, up=tuple(UP_ENU), batch_shape=batch_shape) if kind == "madgwick" else \
-        EkfImu(up=tuple(UP_ENU), use_filterpy=False, batch_shape=batch_shape)
-    f.q = tilt_from_accelerometer(acc[0], UP_ENU)
+    f = _make(kind, dt, batch_shape)
+    if kind != "inertial":          # the inertial core starts itself (it averages the first tau_acc seconds)
+        f.q = tilt_from_accelerometer(acc[0], UP_ENU)
     ref_w = ref_s = None
     if optical:
         ref_s = np.stack([_east_in_sensor(q_true[:, b]) for b in range(q_true.shape[1])], axis=1) if q_true.ndim == 3 \
@@ -129,8 +142,7 @@ def _peer(name: str, gyr, acc, rate):
 def _streaming_us(kind: str, optical: bool, trial: dict, rate: float, sensors: int = 1, m: int = 3000) -> float:
     """µs per ``update`` call (one sample of ``sensors`` IMUs), our filter's streaming mode."""
     b = (sensors,) if sensors > 1 else ()
-    f = MadgwickImu(beta=OUR_BETA, up=tuple(UP_ENU), batch_shape=b) if kind == "madgwick" else \
-        EkfImu(up=tuple(UP_ENU), use_filterpy=False, batch_shape=b)
+    f = _make(kind, 1.0 / rate, b)
     g = np.broadcast_to(trial["gyr"][:m, None], (m,) + b + (3,)) if b else trial["gyr"][:m]
     a = np.broadcast_to(trial["acc"][:m, None], (m,) + b + (3,)) if b else trial["acc"][:m]
     rs = _east_in_sensor(trial["quat"][:m])
@@ -144,7 +156,7 @@ def _streaming_us(kind: str, optical: bool, trial: dict, rate: float, sensors: i
 
 
 PEERS = ("vqf", "vqf-basic", "vqf-offline", "ahrs-madgwick", "ahrs-ekf", "imufusion")
-OURS = [(f"fingertrack-{k}" + ("+optical" if o else ""), k, o) for k in ("madgwick", "ekf") for o in (False, True)]
+OURS = [(f"fingertrack-{k}" + ("+optical" if o else ""), k, o) for k in ("inertial", "madgwick", "ekf") for o in (False, True)]
 
 
 def run(data_dir: str | Path, out_dir: str | Path, quick: bool = False, progress: bool = True) -> str:
@@ -178,7 +190,8 @@ def run(data_dir: str | Path, out_dir: str | Path, quick: bool = False, progress
     total = sum(len(t["gyr"]) for t in trials)
     jobs = [(label, k, o) for label, k, o in OURS] + [(p, None, None) for p in PEERS]
     # compile the numba kernels once before anything is timed (a one-time start-up cost, ~1 s cold)
-    _ours("madgwick", True, gyr_b[:2], acc_b[:2], q_b[:2], 1.0 / rate, batch_shape=(len(trials),))
+    for kind in ("madgwick", "inertial"):
+        _ours(kind, True, gyr_b[:2], acc_b[:2], q_b[:2], 1.0 / rate, batch_shape=(len(trials),))
     for label, kind, optical in tqdm(jobs, desc="bench peers", unit="method", disable=not progress):
         if kind is not None:
             t0 = time.perf_counter()
@@ -202,9 +215,9 @@ def run(data_dir: str | Path, out_dir: str | Path, quick: bool = False, progress
         for r in rows:
             w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
     methods = [j[0] for j in jobs]
-    hand_us = _streaming_us("madgwick", False, trials[0], rate, sensors=10)
-    text = _summary(rows, methods, quick) + (f"\nStreaming one hand (10 IMUs) per `update` call, fingertrack-madgwick: "
-                                             f"{hand_us:.2f} µs per call.\n")
+    hand = {k: _streaming_us(k, False, trials[0], rate, sensors=10) for k in ("inertial", "madgwick")}
+    text = _summary(rows, methods, quick) + "\nStreaming one hand (10 IMUs) per `update` call: " + ", ".join(
+        f"fingertrack-{k} {us:.2f} µs" for k, us in hand.items()) + " per call.\n"
     (out / "summary.md").write_text(text)
     _plot(rows, methods, out / "peers.png")
     return text

@@ -23,6 +23,7 @@ class _RigidFilter:
     """State holder shared by the rigid filters: the quaternion in ``[x, y, z, w]`` and a batch loop."""
 
     q: np.ndarray
+    batch_shape: tuple[int, ...] = ()
 
     @property
     def quaternion(self) -> np.ndarray:
@@ -34,6 +35,14 @@ class _RigidFilter:
 
     def update(self, gyr, acc, dt, ref_world=None, ref_sensor=None) -> np.ndarray:
         raise NotImplementedError
+
+    def _flat(self, v, n=None):
+        """``v`` as a C-contiguous float (B, 3) (or (N, B, 3)) array, without a copy when it already is one."""
+        want = (self.batch_shape + (3,)) if n is None else ((n,) + self.batch_shape + (3,))
+        v = np.asarray(v, dtype=float)
+        if v.shape != want:
+            v = np.broadcast_to(v, want)
+        return np.ascontiguousarray(v.reshape((-1, 3) if n is None else (n, -1, 3)))
 
     def run(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
             ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
@@ -80,14 +89,6 @@ class MadgwickImu(_RigidFilter):
             raise ValueError(f"engine must be 'numba' or 'numpy', got {self.engine!r}")
         self.q = np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), self.batch_shape + (4,)).copy()
         self._up = np.asarray(self.up, dtype=float)
-
-    def _flat(self, v, n=None):
-        """``v`` as a C-contiguous float (B, 3) (or (N, B, 3)) array, without a copy when it already is one."""
-        want = (self.batch_shape + (3,)) if n is None else ((n,) + self.batch_shape + (3,))
-        v = np.asarray(v, dtype=float)
-        if v.shape != want:
-            v = np.broadcast_to(v, want)
-        return np.ascontiguousarray(v.reshape((-1, 3) if n is None else (n, -1, 3)))
 
     def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
                ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
@@ -161,3 +162,100 @@ class EkfImu(_RigidFilter):
         dx, self.P = self._kalman.update(P, H, R, y)
         self.q, self.bias = inject(q, self.bias, dx)
         return self.quaternion
+
+
+def _up_rotation(up: np.ndarray) -> np.ndarray:
+    """``[w,x,y,z]`` rotation taking the core's internal world frame (z up) to one whose "up" is ``up``."""
+    return tilt_from_accelerometer(np.array([0.0, 0.0, 1.0]), up)
+
+
+class InertialImu(_RigidFilter):
+    """The inertial-frame core (``inertial``: accelerometer low-passed in an almost-inertial frame,
+    gyro bias and scale-factor estimation) on one rigid IMU or a stack (``batch_shape``).
+    ``engine``: ``"numba"`` (``inertial_kernel``) or ``"numpy"`` (``inertial.reference_step``).
+    The sampling interval is fixed at construction (the low-pass coefficients depend on it); the
+    filter starts by itself (the first ``tau_acc`` seconds average the accelerometer)."""
+
+    def __init__(self, dt: float, settings=None, up=(0.0, 1.0, 0.0), batch_shape: tuple[int, ...] = (),
+                 engine: str = "numba") -> None:
+        from . import inertial
+        if engine not in ("numba", "numpy"):
+            raise ValueError(f"engine must be 'numba' or 'numpy', got {engine!r}")
+        self.settings = settings if settings is not None else inertial.InertialSettings()
+        self.dt = float(dt)
+        self.c = inertial.coefficients(self.settings, self.dt)
+        self.batch_shape = tuple(batch_shape)
+        self.engine = engine
+        self.up = np.asarray(up, dtype=float)
+        self._to_world = _up_rotation(self.up)
+        self._from_world = self._to_world * np.array([1.0, -1.0, -1.0, -1.0])
+        self.state = inertial.initial_state(self.settings, int(np.prod(self.batch_shape, dtype=int)))
+
+    # the world frame of the public API is the caller's (``up``); the core's is z up
+    @property
+    def q(self) -> np.ndarray:
+        from . import inertial
+        return quat.multiply(self._to_world, inertial.output(self.state)).reshape(self.batch_shape + (4,))
+
+    @q.setter
+    def q(self, q_wxyz: np.ndarray) -> None:
+        """Sets the attitude (``[w,x,y,z]`` sensor -> world): the strapdown part takes it, the
+        correction is reset, the low-passes restart; the gyro error estimates are kept."""
+        from . import inertial
+        from .inertial_kernel import N_X, P, QC, QG, X
+        fresh = inertial.initial_state(self.settings, self.state.shape[0])
+        keep = slice(X, P + N_X * N_X)
+        fresh[:, keep] = self.state[:, keep]
+        q = np.broadcast_to(np.asarray(q_wxyz, dtype=float), self.batch_shape + (4,)).reshape(-1, 4)
+        fresh[:, QG:QG + 4] = quat.normalize(quat.multiply(self._from_world, q))
+        fresh[:, QC:QC + 4] = [1.0, 0.0, 0.0, 0.0]
+        self.state = fresh
+
+    @property
+    def gyro_errors(self) -> tuple[np.ndarray, np.ndarray]:
+        """(bias rad/s, scale-factor error) estimates, each (*batch, 3)."""
+        from .inertial_kernel import X
+        return (self.state[:, X:X + 3].reshape(self.batch_shape + (3,)),
+                self.state[:, X + 3:X + 6].reshape(self.batch_shape + (3,)))
+
+    def _world_to_core(self, v: np.ndarray) -> np.ndarray:
+        """Vectors from the caller's world frame into the core's (z up)."""
+        return np.ascontiguousarray(quat.rotate_into_sensor(self._to_world, v))
+
+    def update(self, gyr, acc, dt=None, ref_world=None, ref_sensor=None) -> np.ndarray:
+        """One sample of every sensor; returns ``[x,y,z,w]`` (*batch, 4)."""
+        if dt is not None:
+            self._check_dt(dt)
+        use = ref_world is not None
+        g, a = self._flat(gyr), self._flat(acc)
+        rw = self._flat(ref_world) if use else g
+        rs = self._flat(ref_sensor) if use else g
+        out = np.empty((self.state.shape[0], 4))
+        if self.engine == "numba":
+            from .inertial_kernel import run_sample
+            run_sample(self.state, g, a, self.c, rw, rs, use, self._to_world, out)
+            return out.reshape(self.batch_shape + (4,))
+        from .inertial import reference_step
+        for j in range(self.state.shape[0]):
+            reference_step(self.state[j], g[j], a[j], self.c, self._world_to_core(rw[j]) if use else None,
+                           rs[j] if use else None)
+        return self.quaternion
+
+    def run(self, gyr, acc, dt=None, ref_world=None, ref_sensor=None) -> np.ndarray:
+        """(N, *batch, 3) samples; returns (N, *batch, 4) ``[x,y,z,w]``."""
+        if self.engine != "numba":
+            return super().run(gyr, acc, dt, ref_world, ref_sensor)
+        self._check_dt(dt)
+        from .inertial_kernel import run_batch
+        n = len(gyr)
+        use = ref_world is not None
+        g, a = self._flat(gyr, n), self._flat(acc, n)
+        rw = self._flat(ref_world, n) if use else g
+        rs = self._flat(ref_sensor, n) if use else g
+        out = run_batch(self.state, g, a, self.c, rw, rs, use, self._to_world)
+        out = quat.multiply(self._to_world, out)
+        return quat.to_xyzw(out.reshape((n,) + self.batch_shape + (4,)))
+
+    def _check_dt(self, dt) -> None:
+        if dt is not None and abs(float(dt) - self.dt) > 1e-9 * self.dt:
+            raise ValueError(f"InertialImu was built for dt = {self.dt} s, got dt = {dt} s; build one per rate")
