@@ -45,7 +45,7 @@ TMP_SIZE = 128
 T_X, T_OUT, T_H, T_HX, T_E, T_W, T_PHT, T_S, T_SI, T_K, T_Q, T_REF = 0, 3, 6, 24, 26, 29, 32, 50, 59, 68, 86, 90
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _lowpass(s, off, x, xo, n, b0, b1, b2, a1, a2, tau, dt, out, oo):
     """Second-order low-pass of ``x[xo:xo+n]`` into ``out[oo:oo+n]``. State ``s[off]`` = sample count
     during the start-up (NaN after), ``s[off+1 : off+1+2n]`` = direct-form-II-transposed state. For
@@ -72,7 +72,7 @@ def _lowpass(s, off, x, xo, n, b0, b1, b2, a1, a2, tau, dt, out, oo):
         out[oo + i] = y
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _rotate(q, qo, vx, vy, vz, out, oo):
     """``out[oo:oo+3] = R(q[qo:qo+4]) v``."""
     w, x, y, z = q[qo], q[qo + 1], q[qo + 2], q[qo + 3]
@@ -84,13 +84,13 @@ def _rotate(q, qo, vx, vy, vz, out, oo):
     out[oo + 2] = vz + w * tz + x * ty - y * tx
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _left_multiply(pw, px, py, pz, s, off):
     """``s[off:off+4] = p ⊗ s[off:off+4]``, normalised."""
     _compose(pw, px, py, pz, s[off], s[off + 1], s[off + 2], s[off + 3], s, off)
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def _compose(pw, px, py, pz, qw, qx, qy, qz, s, off):
     """``s[off:off+4] = p ⊗ q``, normalised."""
     w = pw * qw - px * qx - py * qy - pz * qz
@@ -101,7 +101,7 @@ def _compose(pw, px, py, pz, qw, qx, qy, qz, s, off):
     s[off], s[off + 1], s[off + 2], s[off + 3] = w / n, x / n, y / n, z / n
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, inline="always", error_model="numpy")
 def output_quaternion(s, out, oo):
     """``out[oo:oo+4] = QC ⊗ QG`` [w,x,y,z]: sensor -> world (z up)."""
     pw, px, py, pz = s[QC], s[QC + 1], s[QC + 2], s[QC + 3]
@@ -112,7 +112,7 @@ def output_quaternion(s, out, oo):
     out[oo + 3] = pw * qz + px * qy - py * qx + pz * qw
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
     """One sample of one sensor, in place: gyro ``g`` rad/s, accelerometer ``a`` m/s², optional
     second reference ``r`` (world, z up) with its sensor-frame counterpart ``m``. ``t``: scratch
@@ -270,7 +270,7 @@ def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
         s[X + 3 + i] = min(max(s[X + 3 + i], -c[C_CLIP_SCALE]), c[C_CLIP_SCALE])
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
     """All samples: ``state`` (B, STATE_SIZE) in place; ``gyr``/``acc``/refs (N, B, 3) (refs ignored
     unless ``use_ref``; ``ref_w`` in the caller's world frame, which ``to_world`` [w,x,y,z] maps the
@@ -299,7 +299,7 @@ def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
     """One sample of every sensor: ``state`` (B, STATE_SIZE), inputs (B, 3), ``ref_w`` in the caller's frame;
     ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public convention), so a
