@@ -61,7 +61,7 @@ def test_integration_stays_within_0_1_deg_over_10_s():
         assert np.abs(np.degrees(tr.phi - sess.joint_angles[finger])).max() < 0.1
 
 
-@pytest.mark.parametrize("name", ["switching", "madgwick", "ekf", "chain"])
+@pytest.mark.parametrize("name", ["switching", "madgwick", "ekf", "chain", "inertial"])
 @pytest.mark.parametrize("hand_motion", ["still", "slow-rotation", "fast-reach"])
 def test_noise_free_accuracy_within_half_a_degree(grasp_sessions, name, hand_motion):
     sess = grasp_sessions[hand_motion]

@@ -5,13 +5,14 @@ from .base import FingerEstimator
 from .cf import Complementary
 from .chain import Chain
 from .ekf import Ekf
+from .inertial import InertialFinger
 from .integration import GyroIntegration
 from .madgwick import Madgwick
 from .switching import Switching
 from .vector import VectorObservation
 
 REGISTRY: dict[str, type[FingerEstimator]] = {
-    cls.name: cls for cls in (VectorObservation, GyroIntegration, Switching, Madgwick, Ekf, Complementary, Chain)
+    cls.name: cls for cls in (VectorObservation, GyroIntegration, Switching, Madgwick, Ekf, Complementary, Chain, InertialFinger)
 }
 
 
