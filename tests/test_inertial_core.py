@@ -127,3 +127,20 @@ def test_bad_input_is_skipped_without_touching_the_state(body):
         InertialImu(0.0)
     with pytest.raises(ValueError, match="engine"):
         InertialImu(0.005, engine="fortran")
+
+
+def test_with_the_scale_states_off_it_is_vqf(body):
+    """The shared part (inertial-frame low-pass, full inclination correction, bias from motion and
+    from rests) equals VQF's 6D filter, the peer library, on a rest followed by tumbling."""
+    import vqf
+    q, gyr, acc = body
+    rng = np.random.default_rng(8)
+    rest = int(10 * RATE)
+    tilt = Rotation.from_quat(q[0])
+    g = np.concatenate([np.radians([0.4, -0.3, 0.2]) + rng.normal(0, 0.002, (rest, 3)), gyr[: int(40 * RATE)]])
+    a = np.concatenate([tilt.inv().apply([0.0, 0.0, 9.81]) + rng.normal(0, 0.02, (rest, 3)), acc[: int(40 * RATE)]])
+    expected = vqf.VQF(1 / RATE).updateBatch(np.ascontiguousarray(g), np.ascontiguousarray(a))["quat6D"]
+    ours = InertialImu(1 / RATE, InertialSettings(scale_sigma_init=0.0), up=(0, 0, 1)).run(g, a)
+    ours_wxyz = np.concatenate([ours[:, 3:], ours[:, :3]], axis=1)
+    sign = np.sign(np.sum(ours_wxyz * expected, axis=1))[:, None]
+    np.testing.assert_allclose(ours_wxyz * sign, expected, atol=1e-9)

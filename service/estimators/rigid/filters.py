@@ -253,8 +253,7 @@ class InertialImu(_RigidFilter):
         rw = self._flat(ref_world, n) if use else g
         rs = self._flat(ref_sensor, n) if use else g
         out = run_batch(self.state, g, a, self.c, rw, rs, use, self._to_world)
-        out = quat.multiply(self._to_world, out)
-        return quat.to_xyzw(out.reshape((n,) + self.batch_shape + (4,)))
+        return out.reshape((n,) + self.batch_shape + (4,))
 
     def _check_dt(self, dt) -> None:
         if dt is not None and abs(float(dt) - self.dt) > 1e-9 * self.dt:

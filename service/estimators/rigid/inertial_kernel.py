@@ -271,35 +271,6 @@ def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
 
 
 @njit(cache=True, error_model="numpy")
-def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
-    """All samples: ``state`` (B, STATE_SIZE) in place; ``gyr``/``acc``/refs (N, B, 3) (refs ignored
-    unless ``use_ref``; ``ref_w`` in the caller's world frame, which ``to_world`` [w,x,y,z] maps the
-    core's z-up frame into); returns the core's quaternions (N, B, 4) [w,x,y,z], sensor -> z-up world."""
-    n, nb = gyr.shape[0], gyr.shape[1]
-    out = np.empty((n, nb, 4))
-    t = np.zeros(TMP_SIZE)
-    fw, fx, fy, fz = to_world[0], -to_world[1], -to_world[2], -to_world[3]
-    for k in range(n):
-        for j in range(nb):
-            s = state[j]
-            if use_ref:
-                t[T_Q], t[T_Q + 1], t[T_Q + 2], t[T_Q + 3] = fw, fx, fy, fz
-                _rotate(t, T_Q, ref_w[k, j, 0], ref_w[k, j, 1], ref_w[k, j, 2], t, T_REF)
-                step(s, gyr[k, j, 0], gyr[k, j, 1], gyr[k, j, 2], acc[k, j, 0], acc[k, j, 1], acc[k, j, 2], c,
-                     t[T_REF], t[T_REF + 1], t[T_REF + 2], ref_s[k, j, 0], ref_s[k, j, 1], ref_s[k, j, 2], True, t)
-            else:
-                step(s, gyr[k, j, 0], gyr[k, j, 1], gyr[k, j, 2], acc[k, j, 0], acc[k, j, 1], acc[k, j, 2], c,
-                     0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, t)
-            pw, px, py, pz = s[QC], s[QC + 1], s[QC + 2], s[QC + 3]
-            qw, qx, qy, qz = s[QG], s[QG + 1], s[QG + 2], s[QG + 3]
-            out[k, j, 0] = pw * qw - px * qx - py * qy - pz * qz
-            out[k, j, 1] = pw * qx + px * qw + py * qz - pz * qy
-            out[k, j, 2] = pw * qy - px * qz + py * qw + pz * qx
-            out[k, j, 3] = pw * qz + px * qy - py * qx + pz * qw
-    return out
-
-
-@njit(cache=True, error_model="numpy")
 def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
     """One sample of every sensor: ``state`` (B, STATE_SIZE), inputs (B, 3), ``ref_w`` in the caller's frame;
     ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public convention), so a
@@ -322,3 +293,15 @@ def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
         out[j, 0] = rw * qx + rx * qw + ry * qz - rz * qy
         out[j, 1] = rw * qy - rx * qz + ry * qw + rz * qx
         out[j, 2] = rw * qz + rx * qy - ry * qx + rz * qw
+
+
+@njit(cache=True, error_model="numpy")
+def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
+    """All samples: ``state`` (B, STATE_SIZE) in place; ``gyr``/``acc``/refs (N, B, 3) (refs ignored
+    unless ``use_ref``; ``ref_w`` in the caller's world frame, which ``to_world`` [w,x,y,z] maps the
+    core's z-up frame into); returns ``to_world ⊗ q`` (N, B, 4) as ``[x,y,z,w]``, sensor -> caller's world."""
+    n, nb = gyr.shape[0], gyr.shape[1]
+    out = np.empty((n, nb, 4))
+    for k in range(n):
+        run_sample(state, gyr[k], acc[k], c, ref_w[k], ref_s[k], use_ref, to_world, out[k])
+    return out
