@@ -231,8 +231,7 @@ def _summary(rows, methods, quick) -> str:
     for m in methods:
         sel = [r for r in rows if r["method"] == m]
         mean = np.mean([r["inclination_rmse_deg"] for r in sel])
-        stream = np.nanmean([r["us_per_sample"] for r in sel])
-        batch = np.nanmean([r["batch_us_per_sample"] for r in sel])
+        stream, batch = (_finite_mean([r[k] for r in sel]) for k in ("us_per_sample", "batch_us_per_sample"))
         lines.append(f"| {m} | {mean:.3f} | {'-' if np.isnan(stream) else f'{stream:.2f}'} | "
                      f"{'-' if np.isnan(batch) else f'{batch:.3f}'} |")
     lines += ["", "Per trial, inclination RMSE in degrees:", "",
@@ -243,6 +242,13 @@ def _summary(rows, methods, quick) -> str:
     lines += ["", "`+optical` rows use a second reference vector from the optical ground truth (information the 6D "
               "peers do not have)."]
     return "\n".join(lines) + "\n"
+
+
+def _finite_mean(values) -> float:
+    """Mean of the finite values, NaN when there are none (a method without that mode)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
 
 
 def _plot(rows, methods, path: Path) -> None:
