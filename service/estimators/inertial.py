@@ -11,11 +11,12 @@ way the modified Madgwick filter adds it (paper 2.3):
 * the phalanx angle is the flexion of the sensor orientation relative to the metacarpus, as in
   ``madgwick``.
 
-The kernel's coefficients depend on the sampling interval; they are recomputed when ``dt`` changes
-by more than 1 µs (a glove's clock jitter stays below that in the simulator; the live pipeline
-resamples to the glove's rate).
+The kernel's coefficients depend on the sampling interval: they are computed for ``dt`` rounded to
+1 µs and cached, so a jittery glove clock costs a dictionary lookup per sample, not a filter design.
 """
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 from pydantic import Field
@@ -36,6 +37,13 @@ class InertialFingerSettings(EstimatorSettings):
     second_reference: bool = Field(True, description="use the flexion-plane normal as second reference vector")
 
 
+@lru_cache(maxsize=256)
+def _coefficients(settings: rigid_inertial.InertialSettings, dt_us: int) -> np.ndarray:
+    c = rigid_inertial.coefficients(settings, dt_us * 1e-6)
+    c.flags.writeable = False
+    return c
+
+
 class InertialFinger(FingerEstimator):
     name = "inertial"
     Settings = InertialFingerSettings
@@ -49,16 +57,14 @@ class InertialFinger(FingerEstimator):
         from_world = to_world * np.array([1.0, -1.0, -1.0, -1.0])
         rows[:, K.QG:K.QG + 4] = quat.normalize(quat.multiply(from_world, q_world.reshape(-1, 4)))
         return {"core": rows, "q": quat.to_xyzw(q_world), "theta": theta, "rate": self.obs.relative_rate(gyr, hand),
-                "to_world": to_world, "dt": np.nan, "c": np.zeros(K.C_SIZE)}
+                "to_world": to_world}
 
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings
         rate = self.obs.relative_rate(gyr, hand)
         if dt <= 0:                                   # the first sample: the initial configuration
             return dict(state, rate=rate), state["theta"], np.full(state["theta"].shape, MODE_FUSED, np.int8)
-        c = state["c"]
-        if not abs(dt - state["dt"]) <= 1e-6:
-            c = rigid_inertial.coefficients(s.core, dt)
+        c = _coefficients(s.core, int(round(dt * 1e6)))
         rot_prev = quat.to_matrix(quat.from_xyzw(state["q"]))                                # (*B, S, 3, 3)
         f_in = acc
         if s.kinematic_acceleration:
@@ -79,5 +85,5 @@ class InertialFinger(FingerEstimator):
         K.run_sample(rows, g, a, c, rw, rs, s.second_reference, state["to_world"], out)
         q = out.reshape(state["q"].shape)
         theta = self.obs.rotation_to_sensor_theta(hand, quat.to_matrix(quat.from_xyzw(q)), state["theta"])
-        new = {"core": rows, "q": q, "theta": theta, "rate": rate, "to_world": state["to_world"], "dt": float(dt), "c": c}
+        new = {"core": rows, "q": q, "theta": theta, "rate": rate, "to_world": state["to_world"]}
         return new, theta, np.full(theta.shape, MODE_FUSED, np.int8)
