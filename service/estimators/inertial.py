@@ -26,7 +26,6 @@ from .integration import initial_sensor_theta
 from .rigid import inertial as rigid_inertial
 from .rigid import inertial_kernel as K
 from .rigid import quaternion as quat
-from .rigid.filters import tilt_from_accelerometer
 
 
 class InertialFingerSettings(EstimatorSettings):
@@ -50,12 +49,10 @@ class InertialFinger(FingerEstimator):
 
     def _init_state(self, gyr, acc, hand, theta0):
         theta = initial_sensor_theta(self, acc, hand, theta0)
-        up = -self.gravity_world / np.linalg.norm(self.gravity_world)
-        to_world = tilt_from_accelerometer(np.array([0.0, 0.0, 1.0]), up)
+        to_world = rigid_inertial.world_rotation(-self.gravity_world / np.linalg.norm(self.gravity_world))
         q_world = quat.from_matrix(self.obs.sensor_theta_to_rotation(hand, theta))          # (*B, S, 4)
-        rows = rigid_inertial.initial_state(self.settings.core, int(np.prod(theta.shape, dtype=int)))
-        from_world = to_world * np.array([1.0, -1.0, -1.0, -1.0])
-        rows[:, K.QG:K.QG + 4] = quat.normalize(quat.multiply(from_world, q_world.reshape(-1, 4)))
+        rows = rigid_inertial.initial_state(self.settings.core, int(np.prod(theta.shape, dtype=int)),
+                                            q_world.reshape(-1, 4), to_world)
         return {"core": rows, "q": quat.to_xyzw(q_world), "theta": theta, "rate": self.obs.relative_rate(gyr, hand),
                 "to_world": to_world}
 

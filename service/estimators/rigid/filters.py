@@ -164,11 +164,6 @@ class EkfImu(_RigidFilter):
         return self.quaternion
 
 
-def _up_rotation(up: np.ndarray) -> np.ndarray:
-    """``[w,x,y,z]`` rotation taking the core's internal world frame (z up) to one whose "up" is ``up``."""
-    return tilt_from_accelerometer(np.array([0.0, 0.0, 1.0]), up)
-
-
 class InertialImu(_RigidFilter):
     """The inertial-frame core (``inertial``: accelerometer low-passed in an almost-inertial frame,
     gyro bias and scale-factor estimation) on one rigid IMU or a stack (``batch_shape``).
@@ -187,8 +182,7 @@ class InertialImu(_RigidFilter):
         self.batch_shape = tuple(batch_shape)
         self.engine = engine
         self.up = np.asarray(up, dtype=float)
-        self._to_world = _up_rotation(self.up)
-        self._from_world = self._to_world * np.array([1.0, -1.0, -1.0, -1.0])
+        self._to_world = inertial.world_rotation(self.up)
         self.state = inertial.initial_state(self.settings, int(np.prod(self.batch_shape, dtype=int)))
 
     # the world frame of the public API is the caller's (``up``); the core's is z up
@@ -202,13 +196,11 @@ class InertialImu(_RigidFilter):
         """Sets the attitude (``[w,x,y,z]`` sensor -> world): the strapdown part takes it, the
         correction is reset, the low-passes restart; the gyro error estimates are kept."""
         from . import inertial
-        from .inertial_kernel import N_X, P, QC, QG, X
-        fresh = inertial.initial_state(self.settings, self.state.shape[0])
+        from .inertial_kernel import N_X, P, X
+        q = np.broadcast_to(np.asarray(q_wxyz, dtype=float), self.batch_shape + (4,)).reshape(-1, 4)
+        fresh = inertial.initial_state(self.settings, self.state.shape[0], q, self._to_world)
         keep = slice(X, P + N_X * N_X)
         fresh[:, keep] = self.state[:, keep]
-        q = np.broadcast_to(np.asarray(q_wxyz, dtype=float), self.batch_shape + (4,)).reshape(-1, 4)
-        fresh[:, QG:QG + 4] = quat.normalize(quat.multiply(self._from_world, q))
-        fresh[:, QC:QC + 4] = [1.0, 0.0, 0.0, 0.0]
         self.state = fresh
 
     @property
@@ -224,8 +216,7 @@ class InertialImu(_RigidFilter):
 
     def update(self, gyr, acc, dt=None, ref_world=None, ref_sensor=None) -> np.ndarray:
         """One sample of every sensor; returns ``[x,y,z,w]`` (*batch, 4)."""
-        if dt is not None:
-            self._check_dt(dt)
+        self._check_dt(dt)
         use = ref_world is not None
         g, a = self._flat(gyr), self._flat(acc)
         rw = self._flat(ref_world) if use else g

@@ -115,12 +115,25 @@ def coefficients(settings: InertialSettings, dt: float) -> np.ndarray:
     return c
 
 
-def initial_state(settings: InertialSettings, batch: int) -> np.ndarray:
-    """(batch, STATE_SIZE): identity quaternions, zero gyro errors with their prior covariance,
-    low-passes in their start-up (averaging) phase."""
+def world_rotation(up) -> np.ndarray:
+    """``[w,x,y,z]`` rotation taking the core's world frame (z up) into a caller's frame whose "up"
+    (specific force at rest) is ``up``."""
+    from .filters import tilt_from_accelerometer
+    return tilt_from_accelerometer(np.array([0.0, 0.0, 1.0]), np.asarray(up, dtype=float))
+
+
+def initial_state(settings: InertialSettings, batch: int, attitude: np.ndarray | None = None,
+                  to_world: np.ndarray | None = None) -> np.ndarray:
+    """(batch, STATE_SIZE): zero gyro errors with their prior covariance, low-passes in their
+    start-up (averaging) phase; the strapdown quaternion is ``attitude`` ((batch, 4) ``[w,x,y,z]``
+    sensor -> the caller's world, ``to_world`` from :func:`world_rotation`) or the identity."""
+    from .quaternion import multiply, normalize
     st = np.zeros((batch, K.STATE_SIZE))
     st[:, K.QG] = 1.0
     st[:, K.QC] = 1.0
+    if attitude is not None:
+        from_world = np.asarray(to_world, dtype=float) * np.array([1.0, -1.0, -1.0, -1.0])
+        st[:, K.QG:K.QG + 4] = normalize(multiply(from_world, np.asarray(attitude, dtype=float).reshape(batch, 4)))
     p0 = [(settings.bias_sigma_init_deg_s * DEG) ** 2] * 3 + [settings.scale_sigma_init ** 2] * 3
     for i in range(K.N_X):
         st[:, K.P + K.N_X * i + i] = p0[i]
