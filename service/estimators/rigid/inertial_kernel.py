@@ -42,135 +42,155 @@ C_SIZE = 27
 TMP_SIZE = 128
 
 # scratch offsets
-T_X, T_OUT, T_H, T_HX, T_E, T_W, T_PHT, T_S, T_SI, T_K, T_Q, T_REF = 0, 3, 6, 24, 26, 29, 32, 50, 59, 68, 86, 90
+T_X, T_OUT, T_H, T_HX, T_E, T_W, T_PHT, T_S, T_SI, T_K = 0, 3, 6, 24, 26, 29, 32, 50, 59, 68
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _lowpass(s, off, x, xo, n, b0, b1, b2, a1, a2, tau, dt, out, oo):
-    """Second-order low-pass of ``x[xo:xo+n]`` into ``out[oo:oo+n]``. State ``s[off]`` = sample count
-    during the start-up (NaN after), ``s[off+1 : off+1+2n]`` = direct-form-II-transposed state. For
-    the first ``tau`` seconds the output is the running mean, which then seeds the steady state."""
-    z = off + 1
-    if not math.isnan(s[off]):
-        cnt = s[off] + 1.0
-        s[off] = cnt
-        for i in range(n):
-            s[z + i] += x[xo + i]
-            out[oo + i] = s[z + i] / cnt
-        if cnt * dt >= tau:
-            for i in range(n):
-                m = out[oo + i]
-                s[z + i] = m * (1.0 - b0)
-                s[z + n + i] = m * (b2 - a2)
-            s[off] = np.nan
-        return
-    for i in range(n):
-        xi = x[xo + i]
-        y = b0 * xi + s[z + i]
-        s[z + i] = b1 * xi - a1 * y + s[z + n + i]
-        s[z + n + i] = b2 * xi - a2 * y
-        out[oo + i] = y
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _rotate(q, qo, vx, vy, vz, out, oo):
-    """``out[oo:oo+3] = R(q[qo:qo+4]) v``."""
-    w, x, y, z = q[qo], q[qo + 1], q[qo + 2], q[qo + 3]
-    tx = 2.0 * (y * vz - z * vy)
-    ty = 2.0 * (z * vx - x * vz)
-    tz = 2.0 * (x * vy - y * vx)
-    out[oo] = vx + w * tx + y * tz - z * ty
-    out[oo + 1] = vy + w * ty + z * tx - x * tz
-    out[oo + 2] = vz + w * tz + x * ty - y * tx
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _left_multiply(pw, px, py, pz, s, off):
-    """``s[off:off+4] = p ⊗ s[off:off+4]``, normalised."""
-    _compose(pw, px, py, pz, s[off], s[off + 1], s[off + 2], s[off + 3], s, off)
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def _compose(pw, px, py, pz, qw, qx, qy, qz, s, off):
-    """``s[off:off+4] = p ⊗ q``, normalised."""
-    w = pw * qw - px * qx - py * qy - pz * qz
-    x = pw * qx + px * qw + py * qz - pz * qy
-    y = pw * qy - px * qz + py * qw + pz * qx
-    z = pw * qz + px * qy - py * qx + pz * qw
-    n = math.sqrt(w * w + x * x + y * y + z * z)
-    s[off], s[off + 1], s[off + 2], s[off + 3] = w / n, x / n, y / n, z / n
-
-
-@njit(cache=True, inline="always", error_model="numpy")
-def output_quaternion(s, out, oo):
-    """``out[oo:oo+4] = QC ⊗ QG`` [w,x,y,z]: sensor -> world (z up)."""
-    pw, px, py, pz = s[QC], s[QC + 1], s[QC + 2], s[QC + 3]
-    qw, qx, qy, qz = s[QG], s[QG + 1], s[QG + 2], s[QG + 3]
-    out[oo] = pw * qw - px * qx - py * qy - pz * qz
-    out[oo + 1] = pw * qx + px * qw + py * qz - pz * qy
-    out[oo + 2] = pw * qy - px * qz + py * qw + pz * qx
-    out[oo + 3] = pw * qz + px * qy - py * qx + pz * qw
+def _lp(x, z0, z1, b0, b1, b2, a1, a2):
+    """One channel of the second-order low-pass in steady state (direct form II transposed):
+    returns ``(y, z0', z1')``."""
+    y = b0 * x + z0
+    return y, b1 * x - a1 * y + z1, b2 * x - a2 * y
 
 
 @njit(cache=True, error_model="numpy")
-def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
-    """One sample of one sensor, in place: gyro ``g`` rad/s, accelerometer ``a`` m/s², optional
-    second reference ``r`` (world, z up) with its sensor-frame counterpart ``m``. ``t``: scratch
-    of TMP_SIZE floats. Non-finite gyro or accelerometer samples skip their part of the step."""
+def _lowpass_start(s, off, x, xo, n, b0, b2, a2, tau, dt, out, oo):
+    """Start-up phase of the low-pass at ``s[off]`` (state: sample count, NaN once running, then
+    the 2n direct-form-II-transposed values): ``out[oo:oo+n]`` = running mean of ``x[xo:xo+n]``;
+    after ``tau`` seconds the mean seeds the steady state. Only called while ``s[off]`` is a count,
+    so the hot path passes no arrays (numba reference-counts array arguments)."""
+    z = off + 1
+    cnt = s[off] + 1.0
+    s[off] = cnt
+    for i in range(n):
+        s[z + i] += x[xo + i]
+        out[oo + i] = s[z + i] / cnt
+    if cnt * dt >= tau:
+        for i in range(n):
+            m = out[oo + i]
+            s[z + i] = m * (1.0 - b0)
+            s[z + n + i] = m * (b2 - a2)
+        s[off] = np.nan
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _rot(w, x, y, z, vx, vy, vz):
+    """``R(q) v`` for ``q = [w,x,y,z]``."""
+    tx = 2.0 * (y * vz - z * vy)
+    ty = 2.0 * (z * vx - x * vz)
+    tz = 2.0 * (x * vy - y * vx)
+    return vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _qmul(pw, px, py, pz, qw, qx, qy, qz):
+    """``p ⊗ q``."""
+    return (pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _unit(w, x, y, z):
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / n, x / n, y / n, z / n
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _left_multiply(pw, px, py, pz, s, j, off):
+    """``s[j, off:off+4] = p ⊗ s[j, off:off+4]``, normalised."""
+    w, x, y, z = _qmul(pw, px, py, pz, s[j, off], s[j, off + 1], s[j, off + 2], s[j, off + 3])
+    s[j, off], s[j, off + 1], s[j, off + 2], s[j, off + 3] = _unit(w, x, y, z)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _output(s, j):
+    """``QC ⊗ QG`` [w,x,y,z] of sensor ``j``: sensor -> world (z up)."""
+    return _qmul(s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3], s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3])
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def step(s, j, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
+    """One sample of sensor ``j`` (row ``j`` of ``s``), in place: gyro ``g`` rad/s, accelerometer
+    ``a`` m/s², optional second reference ``r`` (world, z up) with its sensor-frame counterpart
+    ``m``. ``t``: scratch of TMP_SIZE floats. Non-finite gyro or accelerometer samples skip their part
+    of the step. Written with scalar helpers and row/offset indexing, no array views or array
+    arguments on the hot path: that is what keeps it at the cost of a C++ filter."""
     dt = c[C_DT]
     clip = c[C_CLIP_BIAS]
-    gyr_ok = math.isfinite(g0) and math.isfinite(g1) and math.isfinite(g2)
-    acc_ok = math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2) and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0)
+    rb0, rb1, rb2, ra1, ra2 = c[C_RB0], c[C_RB1], c[C_RB2], c[C_RA1], c[C_RA2]
+    ab0, ab1, ab2, aa1, aa2 = c[C_AB0], c[C_AB1], c[C_AB2], c[C_AA1], c[C_AA2]
+    gyr_ok = math.isfinite(g0 + g1 + g2)          # a sum is finite only if every term is
+    acc_ok = math.isfinite(a0 + a1 + a2) and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0)
     if gyr_ok:
-        # ---- rest detection, gyro part
-        t[T_X], t[T_X + 1], t[T_X + 2] = g0, g1, g2
-        _lowpass(s, LP_REST_G, t, T_X, 3, c[C_RB0], c[C_RB1], c[C_RB2], c[C_RA1], c[C_RA2], c[C_TAU_REST], dt,
-                 s, REST_GYR)
-        d0, d1, d2 = g0 - s[REST_GYR], g1 - s[REST_GYR + 1], g2 - s[REST_GYR + 2]
-        big = abs(s[REST_GYR]) > clip or abs(s[REST_GYR + 1]) > clip or abs(s[REST_GYR + 2]) > clip
-        if d0 * d0 + d1 * d1 + d2 * d2 >= c[C_REST_TH_GYR] ** 2 or big:
-            s[REST_T] = 0.0
-            s[REST] = 0.0
+        # ---- rest detection, gyro part (its low-pass output is the bias measured at rest)
+        z = LP_REST_G + 1
+        if math.isnan(s[j, LP_REST_G]):
+            s[j, REST_GYR], s[j, z], s[j, z + 3] = _lp(g0, s[j, z], s[j, z + 3], rb0, rb1, rb2, ra1, ra2)
+            s[j, REST_GYR + 1], s[j, z + 1], s[j, z + 4] = _lp(g1, s[j, z + 1], s[j, z + 4], rb0, rb1, rb2, ra1, ra2)
+            s[j, REST_GYR + 2], s[j, z + 2], s[j, z + 5] = _lp(g2, s[j, z + 2], s[j, z + 5], rb0, rb1, rb2, ra1, ra2)
+        else:
+            t[T_X], t[T_X + 1], t[T_X + 2] = g0, g1, g2
+            _lowpass_start(s[j], LP_REST_G, t, T_X, 3, rb0, rb2, ra2, c[C_TAU_REST], dt, s[j], REST_GYR)
+        l0, l1, l2 = s[j, REST_GYR], s[j, REST_GYR + 1], s[j, REST_GYR + 2]
+        d0, d1, d2 = g0 - l0, g1 - l1, g2 - l2
+        th = c[C_REST_TH_GYR]
+        if d0 * d0 + d1 * d1 + d2 * d2 >= th * th or abs(l0) > clip or abs(l1) > clip or abs(l2) > clip:
+            s[j, REST_T] = 0.0
+            s[j, REST] = 0.0
         # ---- strapdown integration of the corrected rate: ω̂ = g - b̂ - diag(g) ŝ
-        wx = g0 - s[X] - g0 * s[X + 3]
-        wy = g1 - s[X + 1] - g1 * s[X + 4]
-        wz = g2 - s[X + 2] - g2 * s[X + 5]
+        wx = g0 - s[j, X] - g0 * s[j, X + 3]
+        wy = g1 - s[j, X + 1] - g1 * s[j, X + 4]
+        wz = g2 - s[j, X + 2] - g2 * s[j, X + 5]
         wn = math.sqrt(wx * wx + wy * wy + wz * wz)
         if wn > 1e-15:
             half = 0.5 * wn * dt
             k = math.sin(half) / wn
-            _compose(s[QG], s[QG + 1], s[QG + 2], s[QG + 3], math.cos(half), k * wx, k * wy, k * wz, s, QG)
+            qw, qx, qy, qz = _qmul(s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3], math.cos(half), k * wx, k * wy, k * wz)
+            s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3] = _unit(qw, qx, qy, qz)
     if not acc_ok:
         return
     # ---- rest detection, accelerometer part
-    t[T_X], t[T_X + 1], t[T_X + 2] = a0, a1, a2
-    _lowpass(s, LP_REST_A, t, T_X, 3, c[C_RB0], c[C_RB1], c[C_RB2], c[C_RA1], c[C_RA2], c[C_TAU_REST], dt, t, T_OUT)
-    d0, d1, d2 = a0 - t[T_OUT], a1 - t[T_OUT + 1], a2 - t[T_OUT + 2]
-    if d0 * d0 + d1 * d1 + d2 * d2 >= c[C_REST_TH_ACC] ** 2:
-        s[REST_T] = 0.0
-        s[REST] = 0.0
+    z = LP_REST_A + 1
+    if math.isnan(s[j, LP_REST_A]):
+        l0, s[j, z], s[j, z + 3] = _lp(a0, s[j, z], s[j, z + 3], rb0, rb1, rb2, ra1, ra2)
+        l1, s[j, z + 1], s[j, z + 4] = _lp(a1, s[j, z + 1], s[j, z + 4], rb0, rb1, rb2, ra1, ra2)
+        l2, s[j, z + 2], s[j, z + 5] = _lp(a2, s[j, z + 2], s[j, z + 5], rb0, rb1, rb2, ra1, ra2)
     else:
-        s[REST_T] += dt
-        if s[REST_T] >= c[C_REST_MIN_T]:
-            s[REST] = 1.0
+        t[T_X], t[T_X + 1], t[T_X + 2] = a0, a1, a2
+        _lowpass_start(s[j], LP_REST_A, t, T_X, 3, rb0, rb2, ra2, c[C_TAU_REST], dt, t, T_OUT)
+        l0, l1, l2 = t[T_OUT], t[T_OUT + 1], t[T_OUT + 2]
+    d0, d1, d2 = a0 - l0, a1 - l1, a2 - l2
+    th = c[C_REST_TH_ACC]
+    if d0 * d0 + d1 * d1 + d2 * d2 >= th * th:
+        s[j, REST_T] = 0.0
+        s[j, REST] = 0.0
+    else:
+        s[j, REST_T] += dt
+        if s[j, REST_T] >= c[C_REST_MIN_T]:
+            s[j, REST] = 1.0
     # ---- accelerometer low-passed in the almost-inertial frame I
-    _rotate(s, QG, a0, a1, a2, t, T_X)
-    _lowpass(s, LP_ACC, t, T_X, 3, c[C_AB0], c[C_AB1], c[C_AB2], c[C_AA1], c[C_AA2], c[C_TAU_ACC], dt, s, ACC_I)
+    v0, v1, v2 = _rot(s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3], a0, a1, a2)
+    z = LP_ACC + 1
+    if math.isnan(s[j, LP_ACC]):
+        s[j, ACC_I], s[j, z], s[j, z + 3] = _lp(v0, s[j, z], s[j, z + 3], ab0, ab1, ab2, aa1, aa2)
+        s[j, ACC_I + 1], s[j, z + 1], s[j, z + 4] = _lp(v1, s[j, z + 1], s[j, z + 4], ab0, ab1, ab2, aa1, aa2)
+        s[j, ACC_I + 2], s[j, z + 2], s[j, z + 5] = _lp(v2, s[j, z + 2], s[j, z + 5], ab0, ab1, ab2, aa1, aa2)
+    else:
+        t[T_X], t[T_X + 1], t[T_X + 2] = v0, v1, v2
+        _lowpass_start(s[j], LP_ACC, t, T_X, 3, ab0, ab2, aa2, c[C_TAU_ACC], dt, s[j], ACC_I)
     # ---- in the world frame, normalised; full inclination correction
-    _rotate(s, QC, s[ACC_I], s[ACC_I + 1], s[ACC_I + 2], t, T_OUT)
-    ex, ey, ez = t[T_OUT], t[T_OUT + 1], t[T_OUT + 2]
+    ex, ey, ez = _rot(s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3], s[j, ACC_I], s[j, ACC_I + 1], s[j, ACC_I + 2])
     en = math.sqrt(ex * ex + ey * ey + ez * ez)
     ex, ey, ez = ex / en, ey / en, ez / en
     cw = math.sqrt(max(0.5 * (ez + 1.0), 0.0))
     if cw > 1e-6:
-        _left_multiply(cw, 0.5 * ey / cw, -0.5 * ex / cw, 0.0, s, QC)
+        _left_multiply(cw, 0.5 * ey / cw, -0.5 * ex / cw, 0.0, s, j, QC)
     else:
-        _left_multiply(0.0, 1.0, 0.0, 0.0, s, QC)
+        _left_multiply(0.0, 1.0, 0.0, 0.0, s, j, QC)
     # ---- second reference: heading correction about the vertical
     if use_ref and math.isfinite(r0 + r1 + r2 + m0 + m1 + m2):
-        output_quaternion(s, t, T_Q)
-        _rotate(t, T_Q, m0, m1, m2, t, T_OUT)
-        hx, hy = t[T_OUT], t[T_OUT + 1]
+        qw, qx, qy, qz = _output(s, j)
+        hx, hy, _ = _rot(qw, qx, qy, qz, m0, m1, m2)
         hn = math.sqrt(hx * hx + hy * hy)
         rn = math.sqrt(r0 * r0 + r1 * r1)
         mn = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
@@ -178,10 +198,9 @@ def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
         if hn > c[C_REF_MIN] * mn and rn > c[C_REF_MIN] * rfull:
             ang = math.atan2(hx * r1 - hy * r0, hx * r0 + hy * r1)
             half = 0.5 * c[C_K_REF] * ang
-            _left_multiply(math.cos(half), 0.0, 0.0, math.sin(half), s, QC)
+            _left_multiply(math.cos(half), 0.0, 0.0, math.sin(half), s, j, QC)
     # ---- gyro error states: Kalman update from the inclination correction (motion) or the rest mean
-    output_quaternion(s, t, T_Q)
-    qw, qx, qy, qz = t[T_Q], t[T_Q + 1], t[T_Q + 2], t[T_Q + 3]
+    qw, qx, qy, qz = _output(s, j)
     R00 = 1 - 2 * qy * qy - 2 * qz * qz
     R01 = 2 * (qy * qx - qw * qz)
     R02 = 2 * (qw * qy + qz * qx)
@@ -201,49 +220,57 @@ def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
     for i in range(2):
         v = 0.0
         for k in range(N_X):
-            v += t[h + 6 * i + k] * s[X + k]
+            v += t[h + 6 * i + k] * s[j, X + k]
         t[T_HX + i] = v
-    _lowpass(s, LP_H, t, T_H, 18, c[C_AB0], c[C_AB1], c[C_AB2], c[C_AA1], c[C_AA2], c[C_TAU_ACC], dt, t, T_H)
-    _lowpass(s, LP_HX, t, T_HX, 2, c[C_AB0], c[C_AB1], c[C_AB2], c[C_AA1], c[C_AA2], c[C_TAU_ACC], dt, t, T_HX)
+    if math.isnan(s[j, LP_H]):
+        z = LP_H + 1
+        for i in range(18):
+            t[h + i], s[j, z + i], s[j, z + 18 + i] = _lp(t[h + i], s[j, z + i], s[j, z + 18 + i], ab0, ab1, ab2, aa1, aa2)
+        z = LP_HX + 1
+        for i in range(2):
+            t[T_HX + i], s[j, z + i], s[j, z + 2 + i] = _lp(t[T_HX + i], s[j, z + i], s[j, z + 2 + i], ab0, ab1, ab2, aa1, aa2)
+    else:
+        _lowpass_start(s[j], LP_H, t, T_H, 18, ab0, ab2, aa2, c[C_TAU_ACC], dt, t, T_H)
+        _lowpass_start(s[j], LP_HX, t, T_HX, 2, ab0, ab2, aa2, c[C_TAU_ACC], dt, t, T_HX)
     e, w = T_E, T_W
-    if s[REST] > 0.5:
+    if s[j, REST] > 0.5:
         for i in range(18):
             t[h + i] = 0.0
         for i in range(3):
             t[h + 7 * i] = 1.0
-            t[e + i] = s[REST_GYR + i] - s[X + i]
+            t[e + i] = s[j, REST_GYR + i] - s[j, X + i]
             t[w + i] = c[C_W_REST]
     else:
         for i in range(3):
             v = 0.0
             for k in range(N_X):
-                v += t[h + 6 * i + k] * s[X + k]
+                v += t[h + 6 * i + k] * s[j, X + k]
             t[e + i] = -v
         t[e] += -ey / dt + t[T_HX]
         t[e + 1] += ex / dt + t[T_HX + 1]
         t[w], t[w + 1], t[w + 2] = c[C_W_MOTION], c[C_W_MOTION], c[C_W_VERTICAL]
     for i in range(3):
-        if s[P + 7 * i] < c[C_P0_BIAS]:
-            s[P + 7 * i] += c[C_V_BIAS]
-        if s[P + 7 * (i + 3)] < c[C_P0_SCALE]:
-            s[P + 7 * (i + 3)] += c[C_V_SCALE]
+        if s[j, P + 7 * i] < c[C_P0_BIAS]:
+            s[j, P + 7 * i] += c[C_V_BIAS]
+        if s[j, P + 7 * (i + 3)] < c[C_P0_SCALE]:
+            s[j, P + 7 * (i + 3)] += c[C_V_SCALE]
         t[e + i] = min(max(t[e + i], -clip), clip)
     # PHᵀ (6x3), S = H P Hᵀ + W (3x3), K = PHᵀ S⁻¹, x += K e, P -= K (PHᵀ)ᵀ
     pht = T_PHT
     for i in range(N_X):
-        for j in range(3):
+        for jj in range(3):
             v = 0.0
             for k in range(N_X):
-                v += s[P + N_X * i + k] * t[h + N_X * j + k]
-            t[pht + 3 * i + j] = v
+                v += s[j, P + N_X * i + k] * t[h + N_X * jj + k]
+            t[pht + 3 * i + jj] = v
     S = T_S
     for i in range(3):
-        for j in range(i, 3):
-            v = t[w + i] if i == j else 0.0
+        for jj in range(i, 3):
+            v = t[w + i] if i == jj else 0.0
             for k in range(N_X):
-                v += t[h + N_X * i + k] * t[pht + 3 * k + j]
-            t[S + 3 * i + j] = v
-            t[S + 3 * j + i] = v
+                v += t[h + N_X * i + k] * t[pht + 3 * k + jj]
+            t[S + 3 * i + jj] = v
+            t[S + 3 * jj + i] = v
     a_, b_, c_, d_, e_, f_ = t[S], t[S + 1], t[S + 2], t[S + 4], t[S + 5], t[S + 8]
     A_ = d_ * f_ - e_ * e_
     B_ = c_ * e_ - b_ * f_
@@ -255,19 +282,37 @@ def step(s, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
     t[si + 6], t[si + 7], t[si + 8] = C_ * inv_det, (b_ * c_ - a_ * e_) * inv_det, (a_ * d_ - b_ * b_) * inv_det
     kk = T_K
     for i in range(N_X):
-        for j in range(3):
-            t[kk + 3 * i + j] = t[pht + 3 * i] * t[si + j] + t[pht + 3 * i + 1] * t[si + 3 + j] + \
-                t[pht + 3 * i + 2] * t[si + 6 + j]
-        s[X + i] += t[kk + 3 * i] * t[e] + t[kk + 3 * i + 1] * t[e + 1] + t[kk + 3 * i + 2] * t[e + 2]
+        for jj in range(3):
+            t[kk + 3 * i + jj] = t[pht + 3 * i] * t[si + jj] + t[pht + 3 * i + 1] * t[si + 3 + jj] + \
+                t[pht + 3 * i + 2] * t[si + 6 + jj]
+        s[j, X + i] += t[kk + 3 * i] * t[e] + t[kk + 3 * i + 1] * t[e + 1] + t[kk + 3 * i + 2] * t[e + 2]
     for i in range(N_X):
-        for j in range(i, N_X):
-            v = s[P + N_X * i + j] - (t[kk + 3 * i] * t[pht + 3 * j] + t[kk + 3 * i + 1] * t[pht + 3 * j + 1]
-                                      + t[kk + 3 * i + 2] * t[pht + 3 * j + 2])
-            s[P + N_X * i + j] = v
-            s[P + N_X * j + i] = v
+        for jj in range(i, N_X):
+            v = s[j, P + N_X * i + jj] - (t[kk + 3 * i] * t[pht + 3 * jj] + t[kk + 3 * i + 1] * t[pht + 3 * jj + 1]
+                                          + t[kk + 3 * i + 2] * t[pht + 3 * jj + 2])
+            s[j, P + N_X * i + jj] = v
+            s[j, P + N_X * jj + i] = v
     for i in range(3):
-        s[X + i] = min(max(s[X + i], -clip), clip)
-        s[X + 3 + i] = min(max(s[X + 3 + i], -c[C_CLIP_SCALE]), c[C_CLIP_SCALE])
+        s[j, X + i] = min(max(s[j, X + i], -clip), clip)
+        s[j, X + 3 + i] = min(max(s[j, X + 3 + i], -c[C_CLIP_SCALE]), c[C_CLIP_SCALE])
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t, k):
+    """Sample ``k`` of every sensor (inputs (N, B, 3), ``out`` (N, B, 4) ``[x,y,z,w]`` in the
+    caller's frame ``to_world ⊗ q``); indexes instead of slicing, so no array views per sample."""
+    rw, rx, ry, rz = to_world[0], to_world[1], to_world[2], to_world[3]
+    for j in range(state.shape[0]):
+        if use_ref:
+            p0, p1, p2 = _rot(rw, -rx, -ry, -rz, ref_w[k, j, 0], ref_w[k, j, 1], ref_w[k, j, 2])
+            step(state, j, gyr[k, j, 0], gyr[k, j, 1], gyr[k, j, 2], acc[k, j, 0], acc[k, j, 1], acc[k, j, 2], c,
+                 p0, p1, p2, ref_s[k, j, 0], ref_s[k, j, 1], ref_s[k, j, 2], True, t)
+        else:
+            step(state, j, gyr[k, j, 0], gyr[k, j, 1], gyr[k, j, 2], acc[k, j, 0], acc[k, j, 1], acc[k, j, 2], c,
+                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, t)
+        pw, px, py, pz = _output(state, j)
+        qw, qx, qy, qz = _qmul(rw, rx, ry, rz, pw, px, py, pz)
+        out[k, j, 0], out[k, j, 1], out[k, j, 2], out[k, j, 3] = qx, qy, qz, qw
 
 
 @njit(cache=True, error_model="numpy")
@@ -275,24 +320,9 @@ def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
     """One sample of every sensor: ``state`` (B, STATE_SIZE), inputs (B, 3), ``ref_w`` in the caller's frame;
     ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public convention), so a
     streaming call needs no numpy work around it."""
-    t = np.zeros(TMP_SIZE)
-    rw, rx, ry, rz = to_world[0], to_world[1], to_world[2], to_world[3]
-    for j in range(state.shape[0]):
-        s = state[j]
-        if use_ref:
-            t[T_Q], t[T_Q + 1], t[T_Q + 2], t[T_Q + 3] = rw, -rx, -ry, -rz
-            _rotate(t, T_Q, ref_w[j, 0], ref_w[j, 1], ref_w[j, 2], t, T_REF)
-            step(s, gyr[j, 0], gyr[j, 1], gyr[j, 2], acc[j, 0], acc[j, 1], acc[j, 2], c,
-                 t[T_REF], t[T_REF + 1], t[T_REF + 2], ref_s[j, 0], ref_s[j, 1], ref_s[j, 2], True, t)
-        else:
-            step(s, gyr[j, 0], gyr[j, 1], gyr[j, 2], acc[j, 0], acc[j, 1], acc[j, 2], c,
-                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, t)
-        output_quaternion(s, t, T_Q)
-        qw, qx, qy, qz = t[T_Q], t[T_Q + 1], t[T_Q + 2], t[T_Q + 3]
-        out[j, 3] = rw * qw - rx * qx - ry * qy - rz * qz
-        out[j, 0] = rw * qx + rx * qw + ry * qz - rz * qy
-        out[j, 1] = rw * qy - rx * qz + ry * qw + rz * qx
-        out[j, 2] = rw * qz + rx * qy - ry * qx + rz * qw
+    nb = state.shape[0]
+    _sample(state, gyr.reshape(1, nb, 3), acc.reshape(1, nb, 3), c, ref_w.reshape(1, nb, 3),
+            ref_s.reshape(1, nb, 3), use_ref, to_world, out.reshape(1, nb, 4), np.zeros(TMP_SIZE), 0)
 
 
 @njit(cache=True, error_model="numpy")
@@ -302,6 +332,7 @@ def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
     core's z-up frame into); returns ``to_world ⊗ q`` (N, B, 4) as ``[x,y,z,w]``, sensor -> caller's world."""
     n, nb = gyr.shape[0], gyr.shape[1]
     out = np.empty((n, nb, 4))
+    t = np.zeros(TMP_SIZE)
     for k in range(n):
-        run_sample(state, gyr[k], acc[k], c, ref_w[k], ref_s[k], use_ref, to_world, out[k])
+        _sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t, k)
     return out
