@@ -180,7 +180,7 @@ def _lowpass_ref(s: np.ndarray, off: int, x: np.ndarray, b: np.ndarray, a: np.nd
 
 def reference_step(s: np.ndarray, gyr: np.ndarray, acc: np.ndarray, c: np.ndarray,
                    ref_w: np.ndarray | None = None, ref_s: np.ndarray | None = None) -> None:
-    """One sample of one sensor, state row ``s`` updated in place (numpy reference of ``K.step``)."""
+    """One sample of one sensor, state row ``s`` updated in place (numpy reference of the kernel's ``_run`` loop body)."""
     dt, clip = c[K.C_DT], c[K.C_CLIP_BIAS]
     ba, aa = c[K.C_AB0:K.C_AB2 + 1], c[K.C_AA1:K.C_AA2 + 1]
     br, ar = c[K.C_RB0:K.C_RB2 + 1], c[K.C_RA1:K.C_RA2 + 1]

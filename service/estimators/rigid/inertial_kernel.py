@@ -63,9 +63,10 @@ def _cos_sin(x):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _lp(x, z0, z1, b0, b1, b2, a1, a2):
-    """One channel of the second-order low-pass in steady state (direct form II transposed):
-    returns ``(y, z0', z1')``."""
+def _lp(x, z0, z1, f):
+    """One channel of the second-order low-pass in steady state (direct form II transposed), ``f`` =
+    ``(b0, b1, b2, a1, a2)``: returns ``(y, z0', z1')``."""
+    b0, b1, b2, a1, a2 = f
     y = b0 * x + z0
     return y, b1 * x - a1 * y + z1, b2 * x - a2 * y
 
@@ -91,8 +92,9 @@ def _lowpass_start(s, off, x, xo, n, b0, b2, a2, tau, dt, out, oo):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _rot(w, x, y, z, vx, vy, vz):
-    """``R(q) v`` for ``q = [w,x,y,z]``."""
+def _rot(q, vx, vy, vz):
+    """``R(q) v`` for ``q = (w, x, y, z)``."""
+    w, x, y, z = q
     tx = 2.0 * (y * vz - z * vy)
     ty = 2.0 * (z * vx - x * vz)
     tz = 2.0 * (x * vy - y * vx)
@@ -100,29 +102,25 @@ def _rot(w, x, y, z, vx, vy, vz):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _qmul(pw, px, py, pz, qw, qx, qy, qz):
-    """``p ⊗ q``."""
+def _qmul(p, q):
+    """``p ⊗ q`` of (w, x, y, z) tuples."""
+    pw, px, py, pz = p
+    qw, qx, qy, qz = q
     return (pw * qw - px * qx - py * qy - pz * qz, pw * qx + px * qw + py * qz - pz * qy,
             pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _unit(w, x, y, z):
+def _unit(q):
+    w, x, y, z = q
     n = math.sqrt(w * w + x * x + y * y + z * z)
     return w / n, x / n, y / n, z / n
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _left_multiply(pw, px, py, pz, s, j, off):
-    """``s[j, off:off+4] = p ⊗ s[j, off:off+4]``, normalised."""
-    w, x, y, z = _qmul(pw, px, py, pz, s[j, off], s[j, off + 1], s[j, off + 2], s[j, off + 3])
-    s[j, off], s[j, off + 1], s[j, off + 2], s[j, off + 3] = _unit(w, x, y, z)
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _output(s, j):
-    """``QC ⊗ QG`` [w,x,y,z] of sensor ``j``: sensor -> world (z up)."""
-    return _qmul(s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3], s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3])
+def _unit_product(p, q):
+    """``p ⊗ q``, normalised."""
+    return _unit(_qmul(p, q))
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
@@ -141,24 +139,6 @@ def _comb6(a, b, c, x, y, z):
 # _U[i][k] is the position of element (i, k) in that 21-tuple.
 _U = ((0, 1, 2, 3, 4, 5), (1, 6, 7, 8, 9, 10), (2, 7, 11, 12, 13, 14),
       (3, 8, 12, 15, 16, 17), (4, 9, 13, 16, 18, 19), (5, 10, 14, 17, 19, 20))
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _load_sym6(s, j, off):
-    """The upper triangle of the 6x6 row-major matrix at ``s[j, off:off+36]`` as a 21-tuple."""
-    o = off
-    return (s[j, o], s[j, o + 1], s[j, o + 2], s[j, o + 3], s[j, o + 4], s[j, o + 5],
-            s[j, o + 7], s[j, o + 8], s[j, o + 9], s[j, o + 10], s[j, o + 11],
-            s[j, o + 14], s[j, o + 15], s[j, o + 16], s[j, o + 17],
-            s[j, o + 21], s[j, o + 22], s[j, o + 23], s[j, o + 28], s[j, o + 29], s[j, o + 35])
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _store_sym6(s, j, off, u):
-    """Writes the 21-tuple ``u`` back as the full symmetric 6x6 row-major matrix."""
-    for i in range(6):
-        for k in range(6):
-            s[j, off + 6 * i + k] = u[_U[i][k]]
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
@@ -184,191 +164,196 @@ def _sym6_minus_outer3(u, a, b, c, d, e, f):
             u[15] - o(3, 3), u[16] - o(3, 4), u[17] - o(3, 5), u[18] - o(4, 4), u[19] - o(4, 5), u[20] - o(5, 5))
 
 
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def step(s, j, g0, g1, g2, a0, a1, a2, c, r0, r1, r2, m0, m1, m2, use_ref, t):
-    """One sample of sensor ``j`` (row ``j`` of ``s``), in place: gyro ``g`` rad/s, accelerometer
-    ``a`` m/s², optional second reference ``r`` (world, z up) with its sensor-frame counterpart
-    ``m``. ``t``: scratch of TMP_SIZE floats. Non-finite gyro or accelerometer samples skip their part
-    of the step. Written with scalar helpers and row/offset indexing, no array views or array
-    arguments on the hot path: that is what keeps it at the cost of a C++ filter."""
+@njit(cache=True, error_model="numpy", fastmath=FMA)
+def _run(s, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t):
+    """Every sample ``k`` of every sensor ``j`` (row ``j`` of ``s``), in place: gyro ``gyr[k, j]``
+    rad/s, accelerometer ``acc[k, j]`` m/s², optional second reference ``ref_w[k, j]`` (the caller's
+    world frame) with its sensor-frame counterpart ``ref_s[k, j]``; ``out[k, j]`` receives
+    ``to_world ⊗ q`` as ``[x,y,z,w]``. ``t``: scratch of TMP_SIZE floats. Non-finite gyro or
+    accelerometer samples skip their part of the step. One flat loop with scalar helpers: numba
+    reference-counts every array passed to a function (even an inlined one), with atomic calls."""
     dt = c[C_DT]
     clip = c[C_CLIP_BIAS]
-    rb0, rb1, rb2, ra1, ra2 = c[C_RB0], c[C_RB1], c[C_RB2], c[C_RA1], c[C_RA2]
-    ab0, ab1, ab2, aa1, aa2 = c[C_AB0], c[C_AB1], c[C_AB2], c[C_AA1], c[C_AA2]
-    gyr_ok = math.isfinite(g0 + g1 + g2)          # a sum is finite only if every term is
-    acc_ok = math.isfinite(a0 + a1 + a2) and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0)
-    if gyr_ok:
-        # ---- rest detection, gyro part (its low-pass output is the bias measured at rest)
-        z = LP_REST_G + 1
-        if math.isnan(s[j, LP_REST_G]):
-            s[j, REST_GYR], s[j, z], s[j, z + 3] = _lp(g0, s[j, z], s[j, z + 3], rb0, rb1, rb2, ra1, ra2)
-            s[j, REST_GYR + 1], s[j, z + 1], s[j, z + 4] = _lp(g1, s[j, z + 1], s[j, z + 4], rb0, rb1, rb2, ra1, ra2)
-            s[j, REST_GYR + 2], s[j, z + 2], s[j, z + 5] = _lp(g2, s[j, z + 2], s[j, z + 5], rb0, rb1, rb2, ra1, ra2)
-        else:
-            t[T_X], t[T_X + 1], t[T_X + 2] = g0, g1, g2
-            _lowpass_start(s[j], LP_REST_G, t, T_X, 3, rb0, rb2, ra2, c[C_TAU_REST], dt, s[j], REST_GYR)
-        l0, l1, l2 = s[j, REST_GYR], s[j, REST_GYR + 1], s[j, REST_GYR + 2]
-        d0, d1, d2 = g0 - l0, g1 - l1, g2 - l2
-        th = c[C_REST_TH_GYR]
-        if d0 * d0 + d1 * d1 + d2 * d2 >= th * th or abs(l0) > clip or abs(l1) > clip or abs(l2) > clip:
-            s[j, REST_T] = 0.0
-            s[j, REST] = 0.0
-        # ---- strapdown integration of the corrected rate: ω̂ = g - b̂ - diag(g) ŝ
-        wx = g0 - s[j, X] - g0 * s[j, X + 3]
-        wy = g1 - s[j, X + 1] - g1 * s[j, X + 4]
-        wz = g2 - s[j, X + 2] - g2 * s[j, X + 5]
-        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-        if wn > 1e-15:
-            half = 0.5 * wn * dt
-            co, si = _cos_sin(half)
-            k = si / wn
-            qw, qx, qy, qz = _qmul(s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3], co, k * wx, k * wy, k * wz)
-            s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3] = _unit(qw, qx, qy, qz)
-    if not acc_ok:
-        return
-    # ---- rest detection, accelerometer part
-    z = LP_REST_A + 1
-    if math.isnan(s[j, LP_REST_A]):
-        l0, s[j, z], s[j, z + 3] = _lp(a0, s[j, z], s[j, z + 3], rb0, rb1, rb2, ra1, ra2)
-        l1, s[j, z + 1], s[j, z + 4] = _lp(a1, s[j, z + 1], s[j, z + 4], rb0, rb1, rb2, ra1, ra2)
-        l2, s[j, z + 2], s[j, z + 5] = _lp(a2, s[j, z + 2], s[j, z + 5], rb0, rb1, rb2, ra1, ra2)
-    else:
-        t[T_X], t[T_X + 1], t[T_X + 2] = a0, a1, a2
-        _lowpass_start(s[j], LP_REST_A, t, T_X, 3, rb0, rb2, ra2, c[C_TAU_REST], dt, t, T_OUT)
-        l0, l1, l2 = t[T_OUT], t[T_OUT + 1], t[T_OUT + 2]
-    d0, d1, d2 = a0 - l0, a1 - l1, a2 - l2
-    th = c[C_REST_TH_ACC]
-    if d0 * d0 + d1 * d1 + d2 * d2 >= th * th:
-        s[j, REST_T] = 0.0
-        s[j, REST] = 0.0
-    else:
-        s[j, REST_T] += dt
-        if s[j, REST_T] >= c[C_REST_MIN_T]:
-            s[j, REST] = 1.0
-    # ---- accelerometer low-passed in the almost-inertial frame I
-    v0, v1, v2 = _rot(s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3], a0, a1, a2)
-    z = LP_ACC + 1
-    if math.isnan(s[j, LP_ACC]):
-        s[j, ACC_I], s[j, z], s[j, z + 3] = _lp(v0, s[j, z], s[j, z + 3], ab0, ab1, ab2, aa1, aa2)
-        s[j, ACC_I + 1], s[j, z + 1], s[j, z + 4] = _lp(v1, s[j, z + 1], s[j, z + 4], ab0, ab1, ab2, aa1, aa2)
-        s[j, ACC_I + 2], s[j, z + 2], s[j, z + 5] = _lp(v2, s[j, z + 2], s[j, z + 5], ab0, ab1, ab2, aa1, aa2)
-    else:
-        t[T_X], t[T_X + 1], t[T_X + 2] = v0, v1, v2
-        _lowpass_start(s[j], LP_ACC, t, T_X, 3, ab0, ab2, aa2, c[C_TAU_ACC], dt, s[j], ACC_I)
-    # ---- in the world frame, normalised; full inclination correction
-    ex, ey, ez = _rot(s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3], s[j, ACC_I], s[j, ACC_I + 1], s[j, ACC_I + 2])
-    en = math.sqrt(ex * ex + ey * ey + ez * ez)
-    ex, ey, ez = ex / en, ey / en, ez / en
-    cw = math.sqrt(max(0.5 * (ez + 1.0), 0.0))
-    if cw > 1e-6:
-        _left_multiply(cw, 0.5 * ey / cw, -0.5 * ex / cw, 0.0, s, j, QC)
-    else:
-        _left_multiply(0.0, 1.0, 0.0, 0.0, s, j, QC)
-    # ---- second reference: heading correction about the vertical
-    if use_ref and math.isfinite(r0 + r1 + r2 + m0 + m1 + m2):
-        qw, qx, qy, qz = _output(s, j)
-        hx, hy, _ = _rot(qw, qx, qy, qz, m0, m1, m2)
-        hn = math.sqrt(hx * hx + hy * hy)
-        rn = math.sqrt(r0 * r0 + r1 * r1)
-        mn = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
-        rfull = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
-        if hn > c[C_REF_MIN] * mn and rn > c[C_REF_MIN] * rfull:
-            ang = math.atan2(hx * r1 - hy * r0, hx * r0 + hy * r1)
-            half = 0.5 * c[C_K_REF] * ang
-            _left_multiply(math.cos(half), 0.0, 0.0, math.sin(half), s, j, QC)
-    # ---- gyro error states: Kalman update from the inclination correction (motion) or the rest mean
-    qw, qx, qy, qz = _output(s, j)
-    R00 = 1 - 2 * qy * qy - 2 * qz * qz
-    R01 = 2 * (qy * qx - qw * qz)
-    R02 = 2 * (qw * qy + qz * qx)
-    R10 = 2 * (qw * qz + qy * qx)
-    R11 = 1 - 2 * qx * qx - 2 * qz * qz
-    R12 = 2 * (qy * qz - qx * qw)
-    R20 = 2 * (qz * qx - qw * qy)
-    R21 = 2 * (qw * qx + qz * qy)
-    R22 = 1 - 2 * qx * qx - 2 * qy * qy
-    # H = [R, R diag(g)], 3x6 row-major in t[T_H:] (a missing gyro sample counts as no rotation)
-    if not gyr_ok:
-        g0 = g1 = g2 = 0.0
-    h = T_H
-    t[h], t[h + 1], t[h + 2], t[h + 3], t[h + 4], t[h + 5] = R00, R01, R02, R00 * g0, R01 * g1, R02 * g2
-    t[h + 6], t[h + 7], t[h + 8], t[h + 9], t[h + 10], t[h + 11] = R10, R11, R12, R10 * g0, R11 * g1, R12 * g2
-    t[h + 12], t[h + 13], t[h + 14], t[h + 15], t[h + 16], t[h + 17] = R20, R21, R22, R20 * g0, R21 * g1, R22 * g2
-    for i in range(2):
-        v = 0.0
-        for k in range(N_X):
-            v += t[h + 6 * i + k] * s[j, X + k]
-        t[T_HX + i] = v
-    if math.isnan(s[j, LP_H]):
-        z = LP_H + 1
-        for i in range(18):
-            t[h + i], s[j, z + i], s[j, z + 18 + i] = _lp(t[h + i], s[j, z + i], s[j, z + 18 + i], ab0, ab1, ab2, aa1, aa2)
-        z = LP_HX + 1
-        for i in range(2):
-            t[T_HX + i], s[j, z + i], s[j, z + 2 + i] = _lp(t[T_HX + i], s[j, z + i], s[j, z + 2 + i], ab0, ab1, ab2, aa1, aa2)
-    else:
-        _lowpass_start(s[j], LP_H, t, T_H, 18, ab0, ab2, aa2, c[C_TAU_ACC], dt, t, T_H)
-        _lowpass_start(s[j], LP_HX, t, T_HX, 2, ab0, ab2, aa2, c[C_TAU_ACC], dt, t, T_HX)
-    x6 = (s[j, X], s[j, X + 1], s[j, X + 2], s[j, X + 3], s[j, X + 4], s[j, X + 5])
-    if s[j, REST] > 0.5:                              # step 4b: H = [I, 0], the rest mean measures the bias
-        h0 = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
-        h1 = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
-        h2 = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
-        e0, e1, e2 = s[j, REST_GYR] - x6[0], s[j, REST_GYR + 1] - x6[1], s[j, REST_GYR + 2] - x6[2]
-        w0 = w1 = w2 = c[C_W_REST]
-    else:                                             # step 4a: the low-passed correction rate
-        h0 = (t[h], t[h + 1], t[h + 2], t[h + 3], t[h + 4], t[h + 5])
-        h1 = (t[h + 6], t[h + 7], t[h + 8], t[h + 9], t[h + 10], t[h + 11])
-        h2 = (t[h + 12], t[h + 13], t[h + 14], t[h + 15], t[h + 16], t[h + 17])
-        e0 = -ey / dt + t[T_HX] - _dot6(h0, x6)
-        e1 = ex / dt + t[T_HX + 1] - _dot6(h1, x6)
-        e2 = -_dot6(h2, x6)
-        w0 = w1 = c[C_W_MOTION]
-        w2 = c[C_W_VERTICAL]
-    for i in range(3):                                # the covariance regains variance up to its prior
-        if s[j, P + 7 * i] < c[C_P0_BIAS]:
-            s[j, P + 7 * i] += c[C_V_BIAS]
-        if s[j, P + 7 * (i + 3)] < c[C_P0_SCALE]:
-            s[j, P + 7 * (i + 3)] += c[C_V_SCALE]
-    e0, e1, e2 = min(max(e0, -clip), clip), min(max(e1, -clip), clip), min(max(e2, -clip), clip)
-    # M = P Hᵀ (columns m0..m2), S = H M + W, K = M S⁻¹ (columns k0..k2), x += K e, P -= K Mᵀ
-    pu = _load_sym6(s, j, P)
-    m0, m1, m2 = _symv6(pu, h0), _symv6(pu, h1), _symv6(pu, h2)
-    a_, b_, c_ = _dot6(h0, m0) + w0, _dot6(h0, m1), _dot6(h0, m2)
-    d_, e_, f_ = _dot6(h1, m1) + w1, _dot6(h1, m2), _dot6(h2, m2) + w2
-    A_ = d_ * f_ - e_ * e_
-    B_ = c_ * e_ - b_ * f_
-    C_ = b_ * e_ - c_ * d_
-    inv_det = 1.0 / (a_ * A_ + b_ * B_ + c_ * C_)
-    s00, s01, s02 = A_ * inv_det, B_ * inv_det, C_ * inv_det
-    s11, s12, s22 = (a_ * f_ - c_ * c_) * inv_det, (b_ * c_ - a_ * e_) * inv_det, (a_ * d_ - b_ * b_) * inv_det
-    k0 = _comb6(m0, m1, m2, s00, s01, s02)
-    k1 = _comb6(m0, m1, m2, s01, s11, s12)
-    k2 = _comb6(m0, m1, m2, s02, s12, s22)
-    dx = _comb6(k0, k1, k2, e0, e1, e2)
-    _store_sym6(s, j, P, _sym6_minus_outer3(pu, k0, m0, k1, m1, k2, m2))
-    cs = c[C_CLIP_SCALE]
-    for i in range(3):
-        s[j, X + i] = min(max(x6[i] + dx[i], -clip), clip)
-        s[j, X + 3 + i] = min(max(x6[3 + i] + dx[3 + i], -cs), cs)
-
-
-@njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
-def _sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t, k):
-    """Sample ``k`` of every sensor (inputs (N, B, 3), ``out`` (N, B, 4) ``[x,y,z,w]`` in the
-    caller's frame ``to_world ⊗ q``); indexes instead of slicing, so no array views per sample."""
-    rw, rx, ry, rz = to_world[0], to_world[1], to_world[2], to_world[3]
-    for j in range(state.shape[0]):
-        if use_ref:
-            p0, p1, p2 = _rot(rw, -rx, -ry, -rz, ref_w[k, j, 0], ref_w[k, j, 1], ref_w[k, j, 2])
-            step(state, j, gyr[k, j, 0], gyr[k, j, 1], gyr[k, j, 2], acc[k, j, 0], acc[k, j, 1], acc[k, j, 2], c,
-                 p0, p1, p2, ref_s[k, j, 0], ref_s[k, j, 1], ref_s[k, j, 2], True, t)
-        else:
-            step(state, j, gyr[k, j, 0], gyr[k, j, 1], gyr[k, j, 2], acc[k, j, 0], acc[k, j, 1], acc[k, j, 2], c,
-                 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, False, t)
-        pw, px, py, pz = _output(state, j)
-        qw, qx, qy, qz = _qmul(rw, rx, ry, rz, pw, px, py, pz)
-        out[k, j, 0], out[k, j, 1], out[k, j, 2], out[k, j, 3] = qx, qy, qz, qw
+    fr = (c[C_RB0], c[C_RB1], c[C_RB2], c[C_RA1], c[C_RA2])      # rest detection low-pass
+    fa = (c[C_AB0], c[C_AB1], c[C_AB2], c[C_AA1], c[C_AA2])      # accelerometer (and H) low-pass
+    ow, ox, oy, oz = to_world[0], to_world[1], to_world[2], to_world[3]
+    for kk in range(gyr.shape[0]):
+        for j in range(s.shape[0]):
+            g0, g1, g2 = gyr[kk, j, 0], gyr[kk, j, 1], gyr[kk, j, 2]
+            a0, a1, a2 = acc[kk, j, 0], acc[kk, j, 1], acc[kk, j, 2]
+            r0 = r1 = r2 = m0 = m1 = m2 = 0.0
+            if use_ref:                               # the reference into the core's frame (z up)
+                r0, r1, r2 = _rot((ow, -ox, -oy, -oz), ref_w[kk, j, 0], ref_w[kk, j, 1], ref_w[kk, j, 2])
+                m0, m1, m2 = ref_s[kk, j, 0], ref_s[kk, j, 1], ref_s[kk, j, 2]
+            gyr_ok = math.isfinite(g0 + g1 + g2)          # a sum is finite only if every term is
+            acc_ok = math.isfinite(a0 + a1 + a2) and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0)
+            if gyr_ok:
+                # ---- rest detection, gyro part (its low-pass output is the bias measured at rest)
+                z = LP_REST_G + 1
+                if math.isnan(s[j, LP_REST_G]):
+                    s[j, REST_GYR], s[j, z], s[j, z + 3] = _lp(g0, s[j, z], s[j, z + 3], fr)
+                    s[j, REST_GYR + 1], s[j, z + 1], s[j, z + 4] = _lp(g1, s[j, z + 1], s[j, z + 4], fr)
+                    s[j, REST_GYR + 2], s[j, z + 2], s[j, z + 5] = _lp(g2, s[j, z + 2], s[j, z + 5], fr)
+                else:
+                    t[T_X], t[T_X + 1], t[T_X + 2] = g0, g1, g2
+                    _lowpass_start(s[j], LP_REST_G, t, T_X, 3, fr[0], fr[2], fr[4], c[C_TAU_REST], dt, s[j], REST_GYR)
+                l0, l1, l2 = s[j, REST_GYR], s[j, REST_GYR + 1], s[j, REST_GYR + 2]
+                d0, d1, d2 = g0 - l0, g1 - l1, g2 - l2
+                th = c[C_REST_TH_GYR]
+                if d0 * d0 + d1 * d1 + d2 * d2 >= th * th or abs(l0) > clip or abs(l1) > clip or abs(l2) > clip:
+                    s[j, REST_T] = 0.0
+                    s[j, REST] = 0.0
+                # ---- strapdown integration of the corrected rate: ω̂ = g - b̂ - diag(g) ŝ
+                wx = g0 - s[j, X] - g0 * s[j, X + 3]
+                wy = g1 - s[j, X + 1] - g1 * s[j, X + 4]
+                wz = g2 - s[j, X + 2] - g2 * s[j, X + 5]
+                wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+                if wn > 1e-15:
+                    half = 0.5 * wn * dt
+                    co, si = _cos_sin(half)
+                    k = si / wn
+                    qg = (s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3])
+                    s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3] = _unit_product(qg, (co, k * wx, k * wy, k * wz))
+            if acc_ok:
+                # ---- rest detection, accelerometer part
+                z = LP_REST_A + 1
+                if math.isnan(s[j, LP_REST_A]):
+                    l0, s[j, z], s[j, z + 3] = _lp(a0, s[j, z], s[j, z + 3], fr)
+                    l1, s[j, z + 1], s[j, z + 4] = _lp(a1, s[j, z + 1], s[j, z + 4], fr)
+                    l2, s[j, z + 2], s[j, z + 5] = _lp(a2, s[j, z + 2], s[j, z + 5], fr)
+                else:
+                    t[T_X], t[T_X + 1], t[T_X + 2] = a0, a1, a2
+                    _lowpass_start(s[j], LP_REST_A, t, T_X, 3, fr[0], fr[2], fr[4], c[C_TAU_REST], dt, t, T_OUT)
+                    l0, l1, l2 = t[T_OUT], t[T_OUT + 1], t[T_OUT + 2]
+                d0, d1, d2 = a0 - l0, a1 - l1, a2 - l2
+                th = c[C_REST_TH_ACC]
+                if d0 * d0 + d1 * d1 + d2 * d2 >= th * th:
+                    s[j, REST_T] = 0.0
+                    s[j, REST] = 0.0
+                else:
+                    s[j, REST_T] += dt
+                    if s[j, REST_T] >= c[C_REST_MIN_T]:
+                        s[j, REST] = 1.0
+                # ---- accelerometer low-passed in the almost-inertial frame I
+                qg = (s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3])
+                v0, v1, v2 = _rot(qg, a0, a1, a2)
+                z = LP_ACC + 1
+                if math.isnan(s[j, LP_ACC]):
+                    s[j, ACC_I], s[j, z], s[j, z + 3] = _lp(v0, s[j, z], s[j, z + 3], fa)
+                    s[j, ACC_I + 1], s[j, z + 1], s[j, z + 4] = _lp(v1, s[j, z + 1], s[j, z + 4], fa)
+                    s[j, ACC_I + 2], s[j, z + 2], s[j, z + 5] = _lp(v2, s[j, z + 2], s[j, z + 5], fa)
+                else:
+                    t[T_X], t[T_X + 1], t[T_X + 2] = v0, v1, v2
+                    _lowpass_start(s[j], LP_ACC, t, T_X, 3, fa[0], fa[2], fa[4], c[C_TAU_ACC], dt, s[j], ACC_I)
+                # ---- in the world frame, normalised; full inclination correction
+                qc = (s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3])
+                ex, ey, ez = _rot(qc, s[j, ACC_I], s[j, ACC_I + 1], s[j, ACC_I + 2])
+                en = math.sqrt(ex * ex + ey * ey + ez * ez)
+                ex, ey, ez = ex / en, ey / en, ez / en
+                cw = math.sqrt(max(0.5 * (ez + 1.0), 0.0))
+                corr = (cw, 0.5 * ey / cw, -0.5 * ex / cw, 0.0) if cw > 1e-6 else (0.0, 1.0, 0.0, 0.0)
+                qc = _unit_product(corr, qc)
+                # ---- second reference: heading correction about the vertical
+                if use_ref and math.isfinite(r0 + r1 + r2 + m0 + m1 + m2):
+                    hx, hy, _ = _rot(_qmul(qc, qg), m0, m1, m2)
+                    hn = math.sqrt(hx * hx + hy * hy)
+                    rn = math.sqrt(r0 * r0 + r1 * r1)
+                    mn = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+                    rfull = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+                    if hn > c[C_REF_MIN] * mn and rn > c[C_REF_MIN] * rfull:
+                        ang = math.atan2(hx * r1 - hy * r0, hx * r0 + hy * r1)
+                        half = 0.5 * c[C_K_REF] * ang
+                        qc = _unit_product((math.cos(half), 0.0, 0.0, math.sin(half)), qc)
+                s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3] = qc
+                # ---- gyro error states: Kalman update from the inclination correction (motion) or the rest mean
+                qw, qx, qy, qz = _qmul(qc, qg)
+                R00 = 1 - 2 * qy * qy - 2 * qz * qz
+                R01 = 2 * (qy * qx - qw * qz)
+                R02 = 2 * (qw * qy + qz * qx)
+                R10 = 2 * (qw * qz + qy * qx)
+                R11 = 1 - 2 * qx * qx - 2 * qz * qz
+                R12 = 2 * (qy * qz - qx * qw)
+                R20 = 2 * (qz * qx - qw * qy)
+                R21 = 2 * (qw * qx + qz * qy)
+                R22 = 1 - 2 * qx * qx - 2 * qy * qy
+                # H = [R, R diag(g)], 3x6 row-major in t[T_H:] (a missing gyro sample counts as no rotation)
+                if not gyr_ok:
+                    g0 = g1 = g2 = 0.0
+                h = T_H
+                t[h], t[h + 1], t[h + 2], t[h + 3], t[h + 4], t[h + 5] = \
+                    R00, R01, R02, R00 * g0, R01 * g1, R02 * g2
+                t[h + 6], t[h + 7], t[h + 8], t[h + 9], t[h + 10], t[h + 11] = \
+                    R10, R11, R12, R10 * g0, R11 * g1, R12 * g2
+                t[h + 12], t[h + 13], t[h + 14], t[h + 15], t[h + 16], t[h + 17] = \
+                    R20, R21, R22, R20 * g0, R21 * g1, R22 * g2
+                for i in range(2):
+                    v = 0.0
+                    for k in range(N_X):
+                        v += t[h + 6 * i + k] * s[j, X + k]
+                    t[T_HX + i] = v
+                if math.isnan(s[j, LP_H]):
+                    z = LP_H + 1
+                    for i in range(18):
+                        t[h + i], s[j, z + i], s[j, z + 18 + i] = _lp(t[h + i], s[j, z + i], s[j, z + 18 + i], fa)
+                    z = LP_HX + 1
+                    for i in range(2):
+                        t[T_HX + i], s[j, z + i], s[j, z + 2 + i] = _lp(t[T_HX + i], s[j, z + i], s[j, z + 2 + i], fa)
+                else:
+                    _lowpass_start(s[j], LP_H, t, T_H, 18, fa[0], fa[2], fa[4], c[C_TAU_ACC], dt, t, T_H)
+                    _lowpass_start(s[j], LP_HX, t, T_HX, 2, fa[0], fa[2], fa[4], c[C_TAU_ACC], dt, t, T_HX)
+                x6 = (s[j, X], s[j, X + 1], s[j, X + 2], s[j, X + 3], s[j, X + 4], s[j, X + 5])
+                if s[j, REST] > 0.5:                              # step 4b: H = [I, 0], the rest mean measures the bias
+                    h0 = (1.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+                    h1 = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+                    h2 = (0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+                    e0, e1, e2 = s[j, REST_GYR] - x6[0], s[j, REST_GYR + 1] - x6[1], s[j, REST_GYR + 2] - x6[2]
+                    w0 = w1 = w2 = c[C_W_REST]
+                else:                                             # step 4a: the low-passed correction rate
+                    h0 = (t[h], t[h + 1], t[h + 2], t[h + 3], t[h + 4], t[h + 5])
+                    h1 = (t[h + 6], t[h + 7], t[h + 8], t[h + 9], t[h + 10], t[h + 11])
+                    h2 = (t[h + 12], t[h + 13], t[h + 14], t[h + 15], t[h + 16], t[h + 17])
+                    e0 = -ey / dt + t[T_HX] - _dot6(h0, x6)
+                    e1 = ex / dt + t[T_HX + 1] - _dot6(h1, x6)
+                    e2 = -_dot6(h2, x6)
+                    w0 = w1 = c[C_W_MOTION]
+                    w2 = c[C_W_VERTICAL]
+                for i in range(3):                                # the covariance regains variance up to its prior
+                    if s[j, P + 7 * i] < c[C_P0_BIAS]:
+                        s[j, P + 7 * i] += c[C_V_BIAS]
+                    if s[j, P + 7 * (i + 3)] < c[C_P0_SCALE]:
+                        s[j, P + 7 * (i + 3)] += c[C_V_SCALE]
+                e0, e1, e2 = min(max(e0, -clip), clip), min(max(e1, -clip), clip), min(max(e2, -clip), clip)
+                # M = P Hᵀ (columns m0..m2), S = H M + W, K = M S⁻¹ (columns k0..k2), x += K e, P -= K Mᵀ
+                pu = (s[j, P], s[j, P + 1], s[j, P + 2], s[j, P + 3], s[j, P + 4], s[j, P + 5],
+                      s[j, P + 7], s[j, P + 8], s[j, P + 9], s[j, P + 10], s[j, P + 11],
+                      s[j, P + 14], s[j, P + 15], s[j, P + 16], s[j, P + 17],
+                      s[j, P + 21], s[j, P + 22], s[j, P + 23], s[j, P + 28], s[j, P + 29], s[j, P + 35])
+                m0, m1, m2 = _symv6(pu, h0), _symv6(pu, h1), _symv6(pu, h2)
+                a_, b_, c_ = _dot6(h0, m0) + w0, _dot6(h0, m1), _dot6(h0, m2)
+                d_, e_, f_ = _dot6(h1, m1) + w1, _dot6(h1, m2), _dot6(h2, m2) + w2
+                A_ = d_ * f_ - e_ * e_
+                B_ = c_ * e_ - b_ * f_
+                C_ = b_ * e_ - c_ * d_
+                inv_det = 1.0 / (a_ * A_ + b_ * B_ + c_ * C_)
+                s00, s01, s02 = A_ * inv_det, B_ * inv_det, C_ * inv_det
+                s11, s12 = (a_ * f_ - c_ * c_) * inv_det, (b_ * c_ - a_ * e_) * inv_det
+                s22 = (a_ * d_ - b_ * b_) * inv_det
+                k0 = _comb6(m0, m1, m2, s00, s01, s02)
+                k1 = _comb6(m0, m1, m2, s01, s11, s12)
+                k2 = _comb6(m0, m1, m2, s02, s12, s22)
+                dx = _comb6(k0, k1, k2, e0, e1, e2)
+                pu = _sym6_minus_outer3(pu, k0, m0, k1, m1, k2, m2)
+                for i in range(6):
+                    for k in range(6):
+                        s[j, P + 6 * i + k] = pu[_U[i][k]]
+                cs = c[C_CLIP_SCALE]
+                for i in range(3):
+                    s[j, X + i] = min(max(x6[i] + dx[i], -clip), clip)
+                    s[j, X + 3 + i] = min(max(x6[3 + i] + dx[3 + i], -cs), cs)
+            q = _qmul((ow, ox, oy, oz), _qmul((s[j, QC], s[j, QC + 1], s[j, QC + 2], s[j, QC + 3]),
+                                              (s[j, QG], s[j, QG + 1], s[j, QG + 2], s[j, QG + 3])))
+            qw, qx, qy, qz = q
+            out[kk, j, 0], out[kk, j, 1], out[kk, j, 2], out[kk, j, 3] = qx, qy, qz, qw
 
 
 @njit(cache=True, error_model="numpy", fastmath=FMA)
@@ -377,8 +362,8 @@ def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
     ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public convention), so a
     streaming call needs no numpy work around it."""
     nb = state.shape[0]
-    _sample(state, gyr.reshape(1, nb, 3), acc.reshape(1, nb, 3), c, ref_w.reshape(1, nb, 3),
-            ref_s.reshape(1, nb, 3), use_ref, to_world, out.reshape(1, nb, 4), np.zeros(TMP_SIZE), 0)
+    _run(state, gyr.reshape(1, nb, 3), acc.reshape(1, nb, 3), c, ref_w.reshape(1, nb, 3),
+         ref_s.reshape(1, nb, 3), use_ref, to_world, out.reshape(1, nb, 4), np.zeros(TMP_SIZE))
 
 
 @njit(cache=True, error_model="numpy", fastmath=FMA)
@@ -386,9 +371,6 @@ def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
     """All samples: ``state`` (B, STATE_SIZE) in place; ``gyr``/``acc``/refs (N, B, 3) (refs ignored
     unless ``use_ref``; ``ref_w`` in the caller's world frame, which ``to_world`` [w,x,y,z] maps the
     core's z-up frame into); returns ``to_world ⊗ q`` (N, B, 4) as ``[x,y,z,w]``, sensor -> caller's world."""
-    n, nb = gyr.shape[0], gyr.shape[1]
-    out = np.empty((n, nb, 4))
-    t = np.zeros(TMP_SIZE)
-    for k in range(n):
-        _sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t, k)
+    out = np.empty((gyr.shape[0], gyr.shape[1], 4))
+    _run(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, np.zeros(TMP_SIZE))
     return out
