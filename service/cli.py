@@ -193,22 +193,17 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    import gc
-
     from .api.app import create_app
     from .api.config import ServiceSettings
-    from .api.server import FingertrackServer, uvicorn_config
+    from .api.server import FingertrackServer, serving_gc, uvicorn_config
 
     settings = ServiceSettings.load(args.config, host=args.host, port=args.port).with_admin_token()
     print("fingertrack service settings:", settings.masked())
     print(f"admin token (shown once): {settings.admin_token}")
     print(f"listening on http://{settings.host}:{settings.port} (docs at /docs)")
     app = create_app(settings)
-    # the per-tick work allocates many small short-lived arrays: fewer, younger-only collections keep
-    # garbage-collector pauses out of the frame latency tail (measured with `bench latency`)
-    gc.freeze()
-    gc.set_threshold(50_000, 20, 100)
-    FingertrackServer(uvicorn_config(settings, app)).run()
+    with serving_gc():
+        FingertrackServer(uvicorn_config(settings, app)).run()
     return 0
 
 
