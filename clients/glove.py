@@ -37,10 +37,13 @@ def source_messages(config: SimConfig) -> list[tuple[float, dict]]:
 
 
 async def stream_glove(url: str, session: str, token: str, config: SimConfig, speed: float = 1.0,
-                       on_send: Callable[[float, dict], None] | None = None) -> Publisher:
-    """Stream a simulated session in real time; ``on_send(wall_time, message)`` after each send."""
-    msgs = await asyncio.to_thread(source_messages, config)      # simulating takes a moment: off the loop
-    pub = Publisher(url, session, token, hand=config.hand, source=f"fingertrack-glove {config.motion}")
+                       on_send: Callable[[float, dict], None] | None = None,
+                       messages: list[tuple[float, dict]] | None = None, binary: bool = False) -> Publisher:
+    """Stream a simulated session in real time; ``on_send(wall_time, message)`` after each send.
+    ``messages``: ``source_messages(config)`` computed beforehand (several gloves that must start
+    together); ``binary``: MessagePack instead of JSON."""
+    msgs = messages if messages is not None else await asyncio.to_thread(source_messages, config)   # off the loop
+    pub = Publisher(url, session, token, hand=config.hand, source=f"fingertrack-glove {config.motion}", binary=binary)
     t0_src = msgs[0][0]
     t0_wall = time.perf_counter()
     for arrival, m in msgs:

@@ -31,6 +31,24 @@ def _interval(text: str) -> tuple[float, float]:
     return a, b
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}")
+    return value
+
+
+def _count_list(text: str) -> tuple[int, ...]:
+    """``1,2,4`` -> (1, 2, 4): positive whole numbers."""
+    try:
+        return tuple(_positive_int(x.strip()) for x in text.split(","))
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated positive whole numbers like 1,2,4, got {text!r}") from None
+
+
 def _non_negative_float(text: str) -> float:
     try:
         value = float(text)
@@ -276,6 +294,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(latency.run(args.out, seconds=args.seconds))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
+    if args.which == "load":
+        from .bench import load
+        print(load.run(args.out, hands=args.hands, subscribers=args.subscribers, seconds=args.seconds,
+                       binary=args.binary))
+        print(f"wrote {args.out}/results.json, summary.md")
+        return 0
     if args.which == "gestures":
         from .bench import gestures
         print(gestures.run(args.out, quick=args.quick, workers=args.workers))
@@ -352,10 +376,16 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the service, a simulated glove and a subscriber, end to end (~10 s)")
     demo.set_defaults(func=_cmd_demo)
 
-    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, service latency")
-    bench.add_argument("which", choices=("paper", "gestures", "latency", "peers"), help="which benchmark")
+    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, real data and peers, "
+                                         "service latency, service load")
+    bench.add_argument("which", choices=("paper", "gestures", "latency", "peers", "load"), help="which benchmark")
     bench.add_argument("--data", default=None, help="peers: folder of BROAD .mat trials")
-    bench.add_argument("--seconds", type=_positive_float, default=20.0, help="latency: streaming time, s (default 20)")
+    bench.add_argument("--seconds", type=_positive_float, default=20.0,
+                       help="latency, load: streaming time (per load level), s (default 20)")
+    bench.add_argument("--hands", type=_count_list, default=(1, 2, 4),
+                       help="load: comma-separated numbers of hands streamed at once, one level each (default 1,2,4)")
+    bench.add_argument("--subscribers", type=_positive_int, default=2, help="load: subscribers per hand (default 2)")
+    bench.add_argument("--binary", action="store_true", help="load: MessagePack instead of JSON")
     bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
     bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")
     bench.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")

@@ -12,17 +12,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import secrets
-import subprocess
-import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from ..api.server import free_port
 from ..sim.session import SimConfig
+from .process import service_process
 
 
 def _histogram_quantile(metrics_text: str, q: float) -> float | None:
@@ -68,32 +64,14 @@ async def _measure(url: str, source: str, viewer: str, config: SimConfig) -> lis
 
 
 def run(out_dir: str | Path, seconds: float = 20.0) -> str:
-    from clients.client import rest, wait_healthy
+    from clients.client import rest
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    port = free_port()
-    source, viewer, admin = (secrets.token_urlsafe(12) for _ in range(3))
-    with tempfile.TemporaryDirectory() as tmp:
-        cfg = Path(tmp) / "service.json"
-        cfg.write_text(json.dumps({"tokens": {source: "source", viewer: "viewer"}, "admin_token": admin}))
-        log = open(Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
-                                stdout=subprocess.DEVNULL, stderr=log)
-        url = f"http://127.0.0.1:{port}"
-        try:
-            try:
-                wait_healthy(url, 20.0, alive=lambda: proc.poll() is None)
-            except RuntimeError:
-                log.seek(0)
-                raise RuntimeError("the service did not start: " + log.read()) from None
-            config = SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=0)
-            lat = np.array(asyncio.run(_measure(url, source, viewer, config)))
-            _, metrics_text = rest(url, "GET", "/metrics", admin)
-        finally:
-            proc.terminate()
-            proc.wait(timeout=10)
-            log.close()
+    with service_process() as svc:
+        config = SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=0)
+        lat = np.array(asyncio.run(_measure(svc.url, svc.source, svc.viewer, config)))
+        _, metrics_text = rest(svc.url, "GET", "/metrics", svc.admin)
     ms = lat * 1e3
     result = {
         "seconds": seconds, "frames": int(len(ms)),

@@ -1,0 +1,62 @@
+"""The service in its own process for the benchmarks: ``fingertrack serve`` on a free localhost port,
+as deployed, with tokens written to a temporary settings file."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import secrets
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..api.server import free_port
+
+
+@dataclass
+class ServiceProcess:
+    url: str
+    pid: int
+    source: str
+    viewer: str
+    admin: str
+
+    def cpu_seconds(self) -> float | None:
+        """User + system CPU time the service process has used so far (Linux ``/proc``; None elsewhere)."""
+        try:
+            fields = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            return None
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime
+
+
+@contextlib.contextmanager
+def service_process(start_timeout_s: float = 20.0, extra_settings: dict | None = None):
+    """Start ``fingertrack serve`` with fresh source/viewer/admin tokens; yields a
+    :class:`ServiceProcess`, terminates the service on exit. A service that does not become healthy
+    raises ``RuntimeError`` with its log."""
+    from clients.client import wait_healthy
+
+    port = free_port()
+    source, viewer, admin = (secrets.token_urlsafe(12) for _ in range(3))
+    with tempfile.TemporaryDirectory() as tmp:
+        cfg = Path(tmp) / "service.json"
+        cfg.write_text(json.dumps({"tokens": {source: "source", viewer: "viewer"}, "admin_token": admin,
+                                   **(extra_settings or {})}))
+        log = open(Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
+                                stdout=subprocess.DEVNULL, stderr=log)
+        url = f"http://127.0.0.1:{port}"
+        try:
+            try:
+                wait_healthy(url, start_timeout_s, alive=lambda: proc.poll() is None)
+            except RuntimeError:
+                log.seek(0)
+                raise RuntimeError("the service did not start: " + log.read()) from None
+            yield ServiceProcess(url, proc.pid, source, viewer, admin)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
+            log.close()

@@ -1,0 +1,38 @@
+"""The scripted load test (``fingertrack bench load``): a real service process, real gloves and
+subscribers at a light load; its accounting and integrity checks."""
+import pytest
+
+from service.bench.load import _integrity, run_level
+from service.cli import main
+
+
+def test_two_hands_at_once_every_frame_reaches_every_subscriber_of_its_own_session():
+    lv = run_level(hands=2, subscribers=2, seconds=3.0)
+    assert lv["sessions_seen"] == 2
+    # 3 s of a hand is a few hundred frames; each one reaches both subscribers of its session, and
+    # what a subscriber did not get is exactly what the service counted as dropped
+    assert lv["frames_produced"] > 2 * 3.0 * 50
+    assert lv["frames_delivered"] == lv["frames_expected"] - lv["frames_dropped"]
+    assert lv["frames_dropped"] == 0 and lv["per_subscriber_min"] * 2 >= lv["frames_produced"] - 2
+    assert lv["integrity_violations"] == 0 and lv["source_errors"] == 0
+    # two hands are about half a core here: the service keeps pace (frames a bounded time behind
+    # their tick, alignment wait included) instead of building a backlog
+    assert lv["schedule_delay_ms"]["p99"] < 500.0
+    assert lv["service_cpu_share"] is None or 0.0 < lv["service_cpu_share"] < 2.0
+
+
+def test_the_integrity_check_sees_reordering_and_cross_talk():
+    ok = [(0.0, 0.001, 1, "right", 0.0), (0.0, 0.001, 2, "right", 0.01)]
+    assert _integrity({("a", 0): ok}, {"a": "right"}) == 0
+    swapped = [ok[1], ok[0]]                                        # seq goes backwards
+    foreign = ok + [(0.0, 0.001, 3, "left", 0.02)]                  # a frame of the other hand's session
+    assert _integrity({("a", 0): swapped, ("a", 1): foreign}, {"a": "right"}) == 2
+
+
+def test_bad_load_arguments_are_refused(tmp_path):
+    with pytest.raises(SystemExit):
+        main(["bench", "load", "--hands", "1,x", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        main(["bench", "load", "--hands", "0", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        main(["bench", "load", "--subscribers", "0", "--out", str(tmp_path)])
