@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.frames import apply_transpose, skew
+from ..model.frames import apply_transpose
 from ..model.hand import FingerGeometry, joint_limits
 from ..model.kinematics import BaseMotion
 
@@ -84,13 +84,9 @@ class FingerObservations:
         y[..., 1], y[..., 2] = c, s
         base_t = self.base.T
         rho = self.base_position + (self._lever @ y) @ base_t                        # eq. 1, (..., S, 3)
-        rot_t = np.swapaxes(hand.rotation, -1, -2)
-        w = np.einsum("...ij,...j->...i", rot_t, hand.angular_velocity)
-        dw = np.einsum("...ij,...j->...i", rot_t, hand.angular_acceleration)
-        lin = np.einsum("...ij,...j->...i", rot_t, hand.acceleration - gravity_world)[..., None, :]
         # α×ρ + ω×(ω×ρ) = (K_α + K_ω K_ω) ρ with cross-product matrices: one product for all sensors
-        k_w = skew(w)
-        hand_terms = skew(dw) + k_w @ k_w
+        rot_t, hand_terms, k_w = hand.body_terms                                    # once per hand state
+        lin = np.einsum("...ij,...j->...i", rot_t, hand.acceleration - gravity_world)[..., None, :]
         out = lin + rho @ np.swapaxes(hand_terms, -1, -2)
         if dtheta is not None:
             z = np.zeros(theta.shape + (3,))                                        # z_j = dy_j/dθ_j

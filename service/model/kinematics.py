@@ -23,10 +23,11 @@ at rest reads +|g| along its up-pointing axis; the paper's eq. 3 has the opposit
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from .frames import DEFAULT_GRAVITY_WORLD, apply, apply_transpose, palmar_axis, phalanx_axis, rot_x
+from .frames import DEFAULT_GRAVITY_WORLD, apply, apply_transpose, palmar_axis, phalanx_axis, rot_x, skew
 from .hand import FingerGeometry, SensorPlacement
 
 
@@ -44,6 +45,18 @@ class BaseMotion:
     acceleration: np.ndarray
     angular_velocity: np.ndarray
     angular_acceleration: np.ndarray
+
+    @cached_property
+    def body_terms(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(R_Mᵀ, K_α + K_ω K_ω, K_ω)`` in metacarpus coordinates (``K_v`` the cross-product matrix
+        of ``v``; ω, α the hand's rates rotated into ``M``): ``(K_α + K_ω K_ω) ρ = α×ρ + ω×(ω×ρ)`` for
+        any point ``ρ`` of ``M``. The same for every finger at one hand state, so computed once per
+        ``BaseMotion`` (which is immutable) and kept."""
+        rot_t = np.swapaxes(self.rotation, -1, -2)
+        w = np.einsum("...ij,...j->...i", rot_t, self.angular_velocity)
+        dw = np.einsum("...ij,...j->...i", rot_t, self.angular_acceleration)
+        k_w = skew(w)
+        return rot_t, skew(dw) + k_w @ k_w, k_w
 
     @staticmethod
     def still(rotation: np.ndarray, position: np.ndarray, n: int) -> "BaseMotion":
