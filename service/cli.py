@@ -93,12 +93,25 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def _parse_params(pairs: list[str], beta: float | None) -> dict:
+    """``NAME=VALUE`` pairs to settings keyword arguments; a dotted name reaches a nested settings
+    object (``core.tau_acc_s=2`` for the ``inertial`` estimator's core). Values stay strings: the
+    settings models validate and convert them."""
     params: dict = {}
     for pair in pairs:
         if "=" not in pair:
             raise ValueError(f"--param expects NAME=VALUE, got {pair!r}")
         name, value = pair.split("=", 1)
-        params[name.strip()] = value.strip()
+        *path, leaf = [part.strip() for part in name.split(".")]
+        if not leaf or not all(path):
+            raise ValueError(f"--param: empty name in {pair!r}")
+        node = params
+        for part in path:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise ValueError(f"--param: {name!r} sets a field inside {part!r}, which is also given a value")
+        if isinstance(node.get(leaf), dict):
+            raise ValueError(f"--param: {name!r} is a group of settings, set its fields as {name}.FIELD=VALUE")
+        node[leaf] = value.strip()
     if beta is not None:
         params["beta"] = beta
     return params
@@ -333,7 +346,8 @@ def build_parser() -> argparse.ArgumentParser:
     est.add_argument("--estimator", default="chain", help="estimator name (see --list; default chain)")
     est.add_argument("--list", action="store_true", help="list the estimators, one per line, name first")
     est.add_argument("--beta", type=float, default=None, help="Madgwick gain beta, rad/s")
-    est.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any estimator setting")
+    est.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                     help="any estimator setting; NAME.FIELD for a nested one (e.g. core.tau_acc_s=2)")
     est.add_argument("--truth", action="store_true", help="print RMS error per joint in degrees (needs truth)")
     est.add_argument("--init-from-truth", action="store_true", help="start from the recording's true initial configuration")
     est.add_argument("--out", help="output CSV: t,finger,mcp,pip,dip,mode (radians)")
@@ -342,7 +356,8 @@ def build_parser() -> argparse.ArgumentParser:
     rep = sub.add_parser("replay", help="run a recording through the hand pipeline and gesture recogniser")
     rep.add_argument("recording", help="protocol-v1 recording, JSON Lines")
     rep.add_argument("--estimator", default="chain", help="estimator name (default chain)")
-    rep.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="any estimator setting")
+    rep.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                     help="any estimator setting; NAME.FIELD for a nested one (e.g. core.tau_acc_s=2)")
     rep.add_argument("--out", help="write the frames and gesture events as JSON Lines")
     rep.set_defaults(func=_cmd_replay)
 

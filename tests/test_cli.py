@@ -59,3 +59,31 @@ def test_simulate_with_an_occlusion(tmp_path):
     assert abs(poses[1]["t"] - poses[0]["t"] - 1 / 60) < 1e-12
     with pytest.raises(SystemExit):
         main(["simulate", "--occlusion", "2:1", "--out", str(rec)])
+
+
+def test_a_dotted_param_sets_a_nested_setting(tmp_path, capsys):
+    from service.cli import _parse_params
+    from service.estimators.inertial import InertialFingerSettings
+
+    params = _parse_params(["core.tau_acc_s=2", "core.scale_sigma_init=0", "second_reference=false"], None)
+    settings = InertialFingerSettings(**params)
+    assert settings.core.tau_acc_s == 2.0 and settings.core.scale_sigma_init == 0.0
+    assert settings.second_reference is False
+    assert settings.core.bias_clip_deg_s == InertialFingerSettings().core.bias_clip_deg_s    # the rest untouched
+    rec = tmp_path / "g.jsonl"
+    main(["simulate", "--motion", "grasp", "--tm", "1", "--noise", "both", "--out", str(rec)])
+    outs = []
+    for extra in ([], ["--param", "core.tau_acc_s=0.5"]):
+        out_csv = tmp_path / f"a{len(extra)}.csv"
+        assert main(["estimate", str(rec), "--estimator", "inertial", *extra, "--out", str(out_csv)]) == 0
+        outs.append(out_csv.read_text())
+    assert outs[0] != outs[1]                                   # the nested setting reached the filter
+    assert main(["estimate", str(rec), "--estimator", "inertial", "--param", "core.tau_ac=2",
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    assert "tau_ac" in capsys.readouterr().err
+    assert main(["estimate", str(rec), "--estimator", "inertial", "--param", "core=2", "--param", "core.tau_acc_s=1",
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    assert "also given a value" in capsys.readouterr().err
+    assert main(["estimate", str(rec), "--estimator", "inertial", "--param", "core.=1",
+                 "--out", str(tmp_path / "x.csv")]) == 2
+    assert "empty name" in capsys.readouterr().err

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 from ..model.frames import DEFAULT_GRAVITY_WORLD
 from ..model.hand import FingerGeometry
@@ -41,6 +41,23 @@ class EstimatorSettings(BaseModel):
     """Base of every estimator's settings: frozen, unknown names are errors."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _nested_groups_keep_their_defaults(cls, data):
+        """A nested settings group given as a mapping (``--param core.tau_acc_s=2``, a JSON config)
+        changes only the fields it names: the others keep *this estimator's* default for the group,
+        which may differ from the group class's own defaults."""
+        if not isinstance(data, dict):
+            return data
+        out = dict(data)
+        for name, field in cls.model_fields.items():
+            given = out.get(name)
+            if isinstance(given, dict):
+                default = field.get_default(call_default_factory=True)
+                if isinstance(default, BaseModel):
+                    out[name] = {**default.model_dump(), **given}
+        return out
 
 
 @dataclass(frozen=True)
