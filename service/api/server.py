@@ -38,15 +38,18 @@ def serving_gc():
     built so far is frozen (never scanned again) and young-generation collections are rarer. The
     per-tick work allocates many small short-lived arrays; with the default policy, collections that
     scan a large heap put pauses of 10 ms and more into the frame latency tail (measured with
-    ``fingertrack bench latency``). The previous policy is restored on exit."""
+    ``fingertrack bench latency``). On exit the thresholds are restored, and the heap is unfrozen
+    unless it was already frozen on entry (an enclosing block keeps its freeze)."""
     old = gc.get_threshold()
+    was_frozen = gc.get_freeze_count() > 0
     gc.freeze()
     gc.set_threshold(50_000, 20, 100)
     try:
         yield
     finally:
         gc.set_threshold(*old)
-        gc.unfreeze()
+        if not was_frozen:
+            gc.unfreeze()
 
 
 def free_port() -> int:

@@ -13,6 +13,8 @@ level it reports:
   latest message of that session) over all frames of all subscribers;
 - integrity: every subscriber's frame ``seq`` strictly increasing and every frame's ``hand`` that of
   its own session (no cross-talk between sessions), and ``error`` messages the gloves received;
+- backlog: how long after the last message the service still needed to process what it had been
+  sent (0.5 s of it is a fixed wait for the last frames);
 - CPU: the service process's CPU time during the streaming window as a share of one core (Linux
   ``/proc``), and this load generator's own share, so that a saturated generator is visible: on a
   2-core machine the gloves, the subscribers and the service compete for the same cores.
@@ -33,7 +35,8 @@ FRAME_FIELDS = ("t", "seq", "hand")
 
 
 async def _level(url: str, source: str, viewer: str, hands: int, subscribers: int, seconds: float,
-                 binary: bool) -> dict:
+                 binary: bool, service_cpu) -> dict:
+    """``service_cpu()``: the service process's CPU seconds so far (None where it cannot be read)."""
     from clients.client import Subscription
     from clients.glove import source_messages, stream_glove
 
@@ -65,27 +68,32 @@ async def _level(url: str, source: str, viewer: str, hands: int, subscribers: in
                 first_send[name] = wall
         return on_send
 
-    cpu0, wall0 = time.process_time(), time.perf_counter()
+    # CPU shares over the streaming window only (the service may work on past it when it falls behind)
+    cpu0, service0, wall0 = time.process_time(), service_cpu(), time.perf_counter()
     pubs = await asyncio.gather(*(stream_glove(url, n, source, c, on_send=on_send_for(n), messages=m, binary=binary)
                                   for n, c, m in zip(names, configs, msgs)))
-    wall = time.perf_counter() - wall0
+    service1, wall = service_cpu(), time.perf_counter() - wall0
     generator_cpu = time.process_time() - cpu0
     await asyncio.sleep(0.5)                                  # the last frames reach the subscribers
-    errors = sum(len(p.errors) for p in pubs)
     for p in pubs:
-        await p.close()
+        await p.close()                                       # returns once the service has read everything sent
+    drain = time.perf_counter() - wall0 - wall
+    errors = sum(len(p.errors) for p in pubs)                 # after closing: replies to the last messages included
     for s in subs.values():
         await s.close()
     for t in tasks:
         t.cancel()
-    await asyncio.gather(*tasks, return_exceptions=True)
+    for r in await asyncio.gather(*tasks, return_exceptions=True):
+        if isinstance(r, BaseException) and not isinstance(r, asyncio.CancelledError):
+            raise RuntimeError(f"a subscriber failed: {r!r}") from r
     # a frame's delay behind the source's schedule: its arrival minus the wall time at which the data
     # of its tick were due to be sent (the first message was sent at first_send, source time m[0][0])
     delays = [r[0] - (first_send[n] + (r[4] - m[0][0])) for n, m in zip(names, msgs)
               for k in range(subscribers) for r in received[(n, k)]]
     return {"names": names, "hands_of": {n: c.hand for n, c in zip(names, configs)}, "received": received,
             "delays": delays,
-            "wall_s": wall, "generator_cpu_s": generator_cpu, "errors": errors}
+            "wall_s": wall, "drain_s": drain, "generator_cpu_s": generator_cpu, "errors": errors,
+            "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
 
 def _integrity(received: dict, hands_of: dict) -> int:
@@ -103,9 +111,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
     from clients.client import rest
 
     with service_process() as svc:
-        cpu0 = svc.cpu_seconds()
-        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, hands, subscribers, seconds, binary))
-        cpu1 = svc.cpu_seconds()
+        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, hands, subscribers, seconds, binary, svc.cpu_seconds))
         _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     by_name = {s["session"]: s for s in sessions}
     produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)
@@ -126,9 +132,10 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                "max": float(delay.max())} if delay.size else None),
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
         "source_errors": int(lvl["errors"]),
-        "service_cpu_share": None if cpu0 is None or cpu1 is None else (cpu1 - cpu0) / lvl["wall_s"],
+        "service_cpu_share": None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"],
         "generator_cpu_share": lvl["generator_cpu_s"] / lvl["wall_s"],
         "stream_wall_s": lvl["wall_s"],
+        "drain_after_stream_s": lvl["drain_s"],
     }
 
 
@@ -148,9 +155,9 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
     enc = "MessagePack" if binary else "JSON"
     lines = [f"# Load: hands at once, {subscribers} subscribers per hand, {seconds:.0f} s per level, {enc}", "",
              "| hands | frames produced | delivered / expected | dropped | send -> receive p50 / p99, ms | "
-             "behind schedule p50 / p99 / max, ms | service CPU, % of a core | generator CPU, % | "
-             "integrity violations | source errors |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "behind schedule p50 / p99 / max, ms | service still busy after the stream, s | "
+             "service CPU, % of a core | generator CPU, % | integrity violations | source errors |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         lat = lv["latency_ms"]
         lat_s = "-" if lat is None else f"{lat['p50']:.1f} / {lat['p99']:.1f}"
@@ -158,7 +165,7 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
         delay_s = "-" if d is None else f"{d['p50']:.0f} / {d['p99']:.0f} / {d['max']:.0f}"
         cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
         lines.append(f"| {lv['hands']} | {lv['frames_produced']} | {lv['frames_delivered']} / {lv['frames_expected']} | "
-                     f"{lv['frames_dropped']} | {lat_s} | {delay_s} | {cpu} | {100 * lv['generator_cpu_share']:.0f} | "
+                     f"{lv['frames_dropped']} | {lat_s} | {delay_s} | {lv['drain_after_stream_s']:.1f} | {cpu} | {100 * lv['generator_cpu_share']:.0f} | "
                      f"{lv['integrity_violations']} | {lv['source_errors']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule: a "

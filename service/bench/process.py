@@ -58,5 +58,9 @@ def service_process(start_timeout_s: float = 20.0, extra_settings: dict | None =
             yield ServiceProcess(url, proc.pid, source, viewer, admin)
         finally:
             proc.terminate()
-            proc.wait(timeout=10)
+            try:
+                proc.wait(timeout=10)
+            except subprocess.TimeoutExpired:                # it ignored SIGTERM: do not leave it running
+                proc.kill()
+                proc.wait()
             log.close()

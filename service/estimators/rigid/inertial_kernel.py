@@ -63,6 +63,12 @@ def _cos_sin(x):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
+def _finite3(x, y, z):
+    """Each of three values finite (a sum would not do: finite values can overflow it)."""
+    return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
 def _lp(x, z0, z1, f):
     """One channel of the second-order low-pass in steady state (direct form II transposed), ``f`` =
     ``(b0, b1, b2, a1, a2)``: returns ``(y, z0', z1')``."""
@@ -185,8 +191,8 @@ def _run(s, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t):
             if use_ref:                               # the reference into the core's frame (z up)
                 r0, r1, r2 = _rot((ow, -ox, -oy, -oz), ref_w[kk, j, 0], ref_w[kk, j, 1], ref_w[kk, j, 2])
                 m0, m1, m2 = ref_s[kk, j, 0], ref_s[kk, j, 1], ref_s[kk, j, 2]
-            gyr_ok = math.isfinite(g0 + g1 + g2)          # a sum is finite only if every term is
-            acc_ok = math.isfinite(a0 + a1 + a2) and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0)
+            gyr_ok = _finite3(g0, g1, g2)
+            acc_ok = _finite3(a0, a1, a2) and (a0 != 0.0 or a1 != 0.0 or a2 != 0.0)
             if gyr_ok:
                 # ---- rest detection, gyro part (its low-pass output is the bias measured at rest)
                 z = LP_REST_G + 1
@@ -254,7 +260,7 @@ def _run(s, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t):
                 corr = (cw, 0.5 * ey / cw, -0.5 * ex / cw, 0.0) if cw > 1e-6 else (0.0, 1.0, 0.0, 0.0)
                 qc = _unit_product(corr, qc)
                 # ---- second reference: heading correction about the vertical
-                if use_ref and math.isfinite(r0 + r1 + r2 + m0 + m1 + m2):
+                if use_ref and _finite3(r0, r1, r2) and _finite3(m0, m1, m2):
                     hx, hy, _ = _rot(_qmul(qc, qg), m0, m1, m2)
                     hn = math.sqrt(hx * hx + hy * hy)
                     rn = math.sqrt(r0 * r0 + r1 * r1)
@@ -358,9 +364,10 @@ def _run(s, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t):
 
 @njit(cache=True, error_model="numpy", fastmath=FMA)
 def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
-    """One sample of every sensor: ``state`` (B, STATE_SIZE), inputs (B, 3), ``ref_w`` in the caller's frame;
-    ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public convention), so a
-    streaming call needs no numpy work around it."""
+    """One sample of every sensor: ``state`` (B, STATE_SIZE), inputs (B, 3), ``ref_w`` in the
+    caller's frame; ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public
+    convention), so a streaming call needs no numpy work around it. The inputs and ``out`` must be
+    C-contiguous (numba reshapes only those; others fail to compile, nothing is computed)."""
     nb = state.shape[0]
     _run(state, gyr.reshape(1, nb, 3), acc.reshape(1, nb, 3), c, ref_w.reshape(1, nb, 3),
          ref_s.reshape(1, nb, 3), use_ref, to_world, out.reshape(1, nb, 4), np.zeros(TMP_SIZE))
