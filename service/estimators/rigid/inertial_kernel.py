@@ -41,13 +41,13 @@ C_W_MOTION, C_W_VERTICAL, C_W_REST = 17, 18, 19
 C_CLIP_BIAS, C_CLIP_SCALE, C_REST_MIN_T, C_REST_TH_GYR, C_REST_TH_ACC = 20, 21, 22, 23, 24
 C_K_REF, C_REF_MIN = 25, 26
 C_SIZE = 27
-TMP_SIZE = 128
+TMP_SIZE = 26
 # the only fast-math licence the kernel takes: fused multiply-add (rounding differs by an ulp; no
 # reassociation, and NaN/inf keep their meaning, which the missing-sample checks rely on)
 FMA = {"contract"}
 
-# scratch offsets
-T_X, T_OUT, T_H, T_HX, T_E, T_W, T_PHT, T_S, T_SI, T_K = 0, 3, 6, 24, 26, 29, 32, 50, 59, 68
+# scratch offsets: a 3-vector in and out of the low-passes' start-up phase, H (3x6), (H x̂)_xy
+T_X, T_OUT, T_H, T_HX = 0, 3, 6, 24
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FMA)
