@@ -220,13 +220,13 @@ def run(data_dir: str | Path, out_dir: str | Path, quick: bool = False, progress
             w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
     methods = [j[0] for j in jobs]
     hand = {k: _streaming_us(k, False, trials[0], rate, sensors=10) for k in ("inertial", "madgwick")}
-    t0 = trials[0]
-    alone = {k: 1e6 * _ours(k, False, t0["gyr"], t0["acc"], t0["quat"], 1.0 / rate)[1] / len(t0["gyr"])
+    first = trials[0]
+    alone = {k: 1e6 * _ours(k, False, first["gyr"], first["acc"], first["quat"], 1.0 / rate)[1] / len(first["gyr"])
              for k in ("inertial", "madgwick")}
-    vqf_alone = _peer("vqf", t0["gyr"], t0["acc"], rate)[1]
+    vqf_alone = _peer("vqf", first["gyr"], first["acc"], rate)[1]
     text = _summary(rows, methods, quick) + "\nStreaming one hand (10 IMUs) per `update` call: " + ", ".join(
         f"fingertrack-{k} {us:.2f} µs" for k, us in hand.items()) + " per call.\n" + \
-        f"\nBatch on one record alone (trial {t0['name']}, a single sensor, no stack to interleave): " + ", ".join(
+        f"\nBatch on one record alone (trial {first['name']}, a single sensor, no stack to interleave): " + ", ".join(
         f"fingertrack-{k} {us:.3f} µs" for k, us in alone.items()) + f", vqf {vqf_alone:.3f} µs per sample.\n"
     (out / "summary.md").write_text(text)
     _plot(rows, methods, out / "peers.png")
