@@ -9,6 +9,8 @@
   or ``?format=msgpack``).
 * Tokens with roles (``source``, ``viewer``, ``admin``; admin may do everything) as a bearer header
   or ``?token=``. Without one no session data is served and no configuration changes.
+* ``GET /viewer/``: the web viewer (``clients/web``), static files that hold no session data; the
+  page asks for a session and a viewer token and subscribes like any client.
 """
 from __future__ import annotations
 
@@ -16,10 +18,12 @@ import asyncio
 import json
 import time
 from contextlib import asynccontextmanager
+from pathlib import Path
 
 import msgpack
 from fastapi import Body, FastAPI, HTTPException, Request, WebSocket, WebSocketDisconnect
 from fastapi.responses import Response
+from fastapi.staticfiles import StaticFiles
 from pydantic import ValidationError
 
 from ..protocol import PROTOCOL_VERSION, Hello, ProtocolError, parse_message
@@ -28,6 +32,8 @@ from .metrics import Metrics
 from .sessions import LiveSession, Subscriber
 
 MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
+WEB_VIEWER = Path(__file__).resolve().parents[2] / "clients" / "web"
+"""The web viewer's files (installed with the ``clients`` package)."""
 CAN = {"ingest": ("source", "admin"), "stream": ("viewer", "admin"), "read": ("viewer", "admin"),
        "configure": ("admin",), "metrics": ("source", "viewer", "admin")}
 SESSION_NAME_MAX = 64
@@ -292,6 +298,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
             live.subscribers.discard(sub)
             metrics.subscribers.dec()
 
+    if WEB_VIEWER.is_dir():
+        app.mount("/viewer", StaticFiles(directory=WEB_VIEWER, html=True), name="viewer")
     return app
 
 
