@@ -158,6 +158,29 @@ def test_unsupported_protocol_is_refused_with_a_reason(server):
     assert code == 1008 and "unsupported protocol 2" in reason
 
 
+def test_a_full_service_says_try_again_later_and_a_bad_session_name_is_refused(tmp_path):
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    max_sessions=1)
+
+    async def close_of(url):
+        async with connect(url) as ws:
+            try:
+                await ws.recv()                         # the hello of an accepted stream
+                await ws.recv()
+            except Exception:
+                pass
+            return ws.close_code, ws.close_reason
+    with ServerThread(settings) as srv:
+        async def full():
+            async with connect(f"{srv.ws_url}/v1/stream/one?token={VIEWER}"):   # holds session "one"
+                return await close_of(f"{srv.ws_url}/v1/stream/two?token={VIEWER}")
+        code, reason = asyncio.run(full())
+        # temporary: 1013, so clients retry (1008 would tell them they are refused for good)
+        assert code == 1013 and "session limit 1 reached" in reason
+        code, reason = asyncio.run(close_of(f"{srv.ws_url}/v1/stream/{'x' * 200}?token={VIEWER}"))
+        assert code == 1008 and reason
+
+
 def _raw_stalled_subscriber(port: int, session: str) -> socket.socket:
     """A WebSocket subscriber that completes the handshake and then never reads (tiny receive buffer)."""
     sock = socket.socket()

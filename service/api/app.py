@@ -184,7 +184,9 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         try:
             return get_session(session, create=True)
         except (HTTPException, ValueError) as err:
-            await ws.close(code=1008, reason=str(getattr(err, "detail", err))[:120])
+            # a full service may take the session later (1013 "try again later"); a bad name will not
+            busy = isinstance(err, HTTPException) and err.status_code == 503
+            await ws.close(code=1013 if busy else 1008, reason=str(getattr(err, "detail", err))[:120])
             return None
 
     async def send(ws: WebSocket, message: dict) -> None:
@@ -284,7 +286,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                     waiter.cancel()
                 if state["closing"] or (sub.closed and not sub.queue):
                     reason = "server shutting down" if state["closing"] else "subscriber too slow: gesture events would be lost"
-                    await ws.close(code=1001 if state["closing"] else 1008, reason=reason)
+                    # 1013 "try again later": a client that fell behind may reconnect (1008 means refused)
+                    await ws.close(code=1001 if state["closing"] else 1013, reason=reason)
                     break
                 while sub.queue:
                     msg, t0 = sub.pop()
