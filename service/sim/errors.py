@@ -24,8 +24,10 @@ from ..model.frames import GRAVITY_M_S2
 DEG = np.pi / 180.0
 MG = 1e-3 * GRAVITY_M_S2
 
-NoiseKind = Literal["none", "white", "offset", "both"]
-NOISE_KINDS: tuple[str, ...] = ("none", "white", "offset", "both")
+NoiseKind = Literal["none", "white", "offset", "both", "realistic"]
+PAPER_NOISE_KINDS: tuple[str, ...] = ("none", "white", "offset", "both")
+NOISE_KINDS: tuple[str, ...] = PAPER_NOISE_KINDS + ("realistic",)
+"""``realistic`` is the datasheet-and-body profile of ``realistic.py``; the others are the paper's series."""
 
 
 @dataclass(frozen=True)
@@ -51,8 +53,8 @@ class ImuErrorModel:
     @staticmethod
     def named(kind: str) -> "ImuErrorModel":
         """``none``, ``white``, ``offset`` or ``both`` (the paper's three series plus error-free)."""
-        if kind not in NOISE_KINDS:
-            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {kind!r}")
+        if kind not in PAPER_NOISE_KINDS:
+            raise ValueError(f"noise must be one of {PAPER_NOISE_KINDS}, got {kind!r}")
         return ImuErrorModel(white_noise=kind in ("white", "both"), zero_offset=kind in ("offset", "both"))
 
     def gyro_sigma(self, rate_hz: float) -> float:

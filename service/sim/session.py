@@ -21,6 +21,7 @@ from ..model.hand import HandCalibration, calibration_message, default_calibrati
 from ..model.kinematics import BaseMotion, ideal_imu
 from ..protocol.messages import PROTOCOL_VERSION
 from .errors import ImuErrorModel, OpticalModel
+from .realistic import RealisticProfile, SubjectDraw, draw_subject, measure, soft_tissue
 from .motions import FingerMotion, HandTrajectory, make_finger_motion, make_hand_motion
 
 
@@ -34,7 +35,10 @@ class SimConfig:
         t_m_s: movement duration, s (None: the motion's default).
         hand: ``right`` or ``left``.
         hand_motion: metacarpus trajectory name (``motions.HAND_MOTIONS``).
-        noise: IMU errors, ``none``/``white``/``offset``/``both``.
+        noise: IMU errors, ``none``/``white``/``offset``/``both`` (the paper's series) or ``realistic``
+            (``realistic.py``: per-run draws of every datasheet and body error; the optical latency and
+            jitter are drawn too, the optical rate and occlusions come from ``optical``).
+        profile: bounds of the realistic draws (None: ``RealisticProfile()``).
         seed: seed of every random draw.
         rate_hz: IMU sample rate, Hz.
         optical: optical tracker model; None: perfect when ``noise == 'none'``, else the default model.
@@ -58,6 +62,7 @@ class SimConfig:
     t0_s: float = 0.0
     fingers: tuple[str, ...] | None = None
     duration_s: float | None = None
+    profile: RealisticProfile | None = None
     finger_motion: FingerMotion | None = field(default=None, compare=False)
     hand_trajectory: HandTrajectory | None = field(default=None, compare=False)
 
@@ -91,6 +96,13 @@ class SimulatedSession:
     pose_orientation: np.ndarray
     pose_valid: np.ndarray
     optical: OpticalModel
+    subject: SubjectDraw | None = None
+    """The realistic profile's draws (true geometry, coupling, sensor errors); None for the paper's series."""
+
+    @property
+    def true_calibration(self) -> HandCalibration:
+        """The geometry the readings were made with (``calibration`` is what the glove sends)."""
+        return self.calibration if self.subject is None else self.subject.true_calibration
 
     def phalanx_angles(self, finger: str) -> np.ndarray:
         """True phalanx angles ``θ`` of ``finger`` relative to the metacarpus, (N, n) rad."""
@@ -138,36 +150,60 @@ def simulate(config: SimConfig) -> SimulatedSession:
     if not np.isfinite(config.rate_hz) or config.rate_hz <= 0:
         raise ValueError(f"IMU rate must be a positive number of Hz, got {config.rate_hz}")
     calib = config.calibration or default_calibration(config.hand)  # type: ignore[arg-type]
-    coupling = calib.finger("index").coupling
+    realistic = config.noise == "realistic"
+    optical = config.optical or (OpticalModel.perfect() if config.noise == "none" else OpticalModel())
+    rng = np.random.default_rng(config.seed)
+    subject = None
+    if realistic:
+        profile = config.profile or RealisticProfile()
+        subject = draw_subject(rng, profile, calib, optical)
+        optical = subject.optical
+        coupling = subject.coupling
+    else:
+        errors = ImuErrorModel.named(config.noise)
+        coupling = calib.finger("index").coupling
     motion = config.finger_motion or make_finger_motion(config.motion, config.t_m_s, seed=config.seed, coupling=coupling)
     hand_traj = config.hand_trajectory or make_hand_motion(config.hand_motion, seed=config.seed)
-    errors = ImuErrorModel.named(config.noise)
-    optical = config.optical or (OpticalModel.perfect() if config.noise == "none" else OpticalModel())
     gravity = np.asarray(config.gravity_world, dtype=float)
-    rng = np.random.default_rng(config.seed)
 
     duration = motion.duration_s if config.duration_s is None else config.duration_s
     n = int(np.floor(duration * config.rate_hz + 1e-9)) + 1
     t_rel = np.arange(n) / config.rate_hz
     base = hand_traj.base_motion(t_rel)
 
+    true_calib = calib if subject is None else subject.true_calibration
     sensor_ids, gyr_i, acc_i = [], [], []
     angles, rates = {}, {}
-    for fname, geom in calib.fingers.items():
+    for fname, geom in true_calib.fingers.items():
         if config.fingers is not None and fname not in config.fingers:
             continue
         phi, dphi, ddphi = motion.joint_angles(fname, t_rel)
         angles[fname], rates[fname] = phi, dphi
         theta, dtheta, ddtheta = (joint_to_phalanx_angles(x) for x in (phi, dphi, ddphi))
         for sensor in geom.sensors:
-            r = ideal_imu(geom, sensor, base, theta, dtheta, ddtheta, gravity)
+            th, dth, ddth = theta, dtheta, ddtheta
+            if subject is not None:             # the sensor wobbles on the skin about the hinge axis
+                d = subject.sensors[sensor.id]
+                wobble = soft_tissue(t_rel, ddtheta[:, sensor.phalanx], d.tissue_hz, d.tissue_damping)
+                th, dth, ddth = (x.copy() for x in (theta, dtheta, ddtheta))
+                for x, w in zip((th, dth, ddth), wobble):
+                    x[:, sensor.phalanx] += w
+            r = ideal_imu(geom, sensor, base, th, dth, ddth, gravity)
             sensor_ids.append(sensor.id)
             gyr_i.append(r.gyr)
             acc_i.append(r.acc)
     gyr_ideal = np.stack(gyr_i, axis=1)
     acc_ideal = np.stack(acc_i, axis=1)
-    offsets = errors.draw_offsets(rng, len(sensor_ids))
-    gyr, acc = errors.corrupt(rng, gyr_ideal, acc_ideal, config.rate_hz, offsets)
+    if subject is None:
+        offsets = errors.draw_offsets(rng, len(sensor_ids))
+        gyr, acc = errors.corrupt(rng, gyr_ideal, acc_ideal, config.rate_hz, offsets)
+    else:
+        measured = [measure(rng, profile, subject.sensors[sid], t_rel, gyr_ideal[:, k], acc_ideal[:, k])
+                    for k, sid in enumerate(sensor_ids)]
+        gyr = np.stack([g for g, _ in measured], axis=1)
+        acc = np.stack([a for _, a in measured], axis=1)
+        offsets = (np.array([subject.sensors[s].gyr_offset for s in sensor_ids]).reshape(-1, 3),
+                   np.array([subject.sensors[s].acc_offset for s in sensor_ids]).reshape(-1, 3))
 
     m = int(np.floor(duration * optical.rate_hz + 1e-9)) + 1
     pose_t_rel = np.arange(m) / optical.rate_hz
@@ -181,7 +217,7 @@ def simulate(config: SimConfig) -> SimulatedSession:
         gyr_ideal=gyr_ideal, acc_ideal=acc_ideal, gyr_offset=offsets[0], acc_offset=offsets[1],
         joint_angles=angles, joint_rates=rates, base=base,
         pose_t=config.t0_s + pose_t_rel, pose_position=pos, pose_orientation=quat,
-        pose_valid=optical.valid_mask(pose_t_rel), optical=optical,
+        pose_valid=optical.valid_mask(pose_t_rel), optical=optical, subject=subject,
     )
 
 
