@@ -74,6 +74,8 @@ class Publisher:
         self._ws = None
         self._reader: asyncio.Task | None = None
         self.reconnects = 0
+        self._sync_id = 0
+        self._synced: dict[int, asyncio.Future] = {}
 
     async def connect(self) -> None:
         self._ws = await connect(self.url, max_size=None)
@@ -92,8 +94,17 @@ class Publisher:
                 msg = _decode(data)
                 if msg.get("type") == "error":
                     self.errors.append(msg)
+                elif msg.get("type") == "sync":
+                    waiter = self._synced.pop(msg.get("id"), None)
+                    if waiter is not None and not waiter.done():
+                        waiter.set_result(None)
         except ConnectionClosed:
             pass
+        finally:
+            for waiter in self._synced.values():
+                if not waiter.done():
+                    waiter.set_exception(ConnectionError("the connection closed before the service answered sync"))
+            self._synced.clear()
 
     async def send(self, message) -> None:
         """Send one source message (a dict or a ``service.protocol`` model), reconnecting (with
@@ -119,8 +130,26 @@ class Publisher:
                 self.reconnects += 1
                 await asyncio.sleep(self.backoff.next())
 
-    async def close(self) -> None:
+    async def sync(self, timeout_s: float = 120.0) -> None:
+        """Return once the service has handled every message sent so far (protocol ``sync``), so its
+        frames and error replies for them exist. Raises ``ConnectionError`` if the connection closes
+        first and ``TimeoutError`` after ``timeout_s``."""
+        if self._ws is None:
+            return
+        self._sync_id += 1
+        waiter = asyncio.get_running_loop().create_future()
+        self._synced[self._sync_id] = waiter
+        await self._ws.send(_encode({"type": "sync", "id": self._sync_id}, self.binary))
+        await asyncio.wait_for(waiter, timeout_s)
+
+    async def close(self, sync_timeout_s: float = 120.0) -> None:
+        """Close after the service has handled everything sent (``sync``; skipped if the connection is
+        already gone), so that its replies to the last messages are in ``errors``."""
         if self._ws is not None:
+            try:
+                await self.sync(sync_timeout_s)
+            except (ConnectionClosed, ConnectionError, asyncio.TimeoutError):
+                pass
             await self._ws.close()
         if self._reader is not None:
             await asyncio.gather(self._reader, return_exceptions=True)

@@ -34,6 +34,29 @@ def _config(seed=0, noise="white"):
     return SimConfig(motion="sequence", noise=noise, seed=seed, finger_motion=sequence_motion(steps=STEPS))
 
 
+async def _wait_for(condition, what: str, timeout_s: float = 120.0, interval_s: float = 0.02) -> None:
+    """Wait for an event (``condition()`` true); the timeout only bounds a failure, it is no window."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
+        await asyncio.sleep(interval_s)
+
+
+async def _session_summary(server, session: str) -> dict:
+    _, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", ADMIN)
+    return next(s for s in sessions if s["session"] == session)
+
+
+async def _wait_for_last_frame(server, session: str, received: list) -> None:
+    """Wait until a subscriber that joined a fresh session before its first frame holds the session's
+    last frame (``seq`` counts the session's frames from 1; a slow subscriber loses its oldest frames,
+    never the newest). Call it after the source closed: the service has then handled all it was sent."""
+    last = (await _session_summary(server, session))["frames_out"]
+    await _wait_for(lambda: last == 0 or any(m.get("type") == "frame" and m["seq"] >= last for _, m in received[::-1]),
+                    f"frame {last} of session {session!r}")
+
+
 async def _stream_and_collect(server, session, config, speed=4.0, extra=None):
     received = []
     sub = Subscription(server.ws_url, session, VIEWER)
@@ -43,12 +66,12 @@ async def _stream_and_collect(server, session, config, speed=4.0, extra=None):
             received.append((time.perf_counter(), m))
 
     task = asyncio.create_task(collect())
-    await asyncio.sleep(0.3)
+    await _wait_for(lambda: sub.server_hello is not None, "the subscription's hello")   # subscribed before any data
     pub = await stream_glove(server.url, session, SOURCE, config, speed=speed)
     if extra is not None:
         await extra
-    await asyncio.sleep(0.4)
-    await pub.close()
+    await pub.close()                   # returns once the service has read (and handled) everything sent
+    await _wait_for_last_frame(server, session, received)
     await sub.close()
     task.cancel()
     await asyncio.gather(task, return_exceptions=True)
@@ -158,6 +181,19 @@ def test_unsupported_protocol_is_refused_with_a_reason(server):
     assert code == 1008 and "unsupported protocol 2" in reason
 
 
+def test_sync_returns_after_the_service_has_handled_everything_sent_before_it(server):
+    async def go():
+        pub = Publisher(server.url, "sync1", SOURCE)
+        for k in range(50):                  # each is answered with an error, in order, before the sync
+            await pub.send({"type": "pose", "t": 1.0 + k, "position": [0, 0, 0], "orientation": [0, 0, 0, 2]})
+        await pub.sync()
+        seen = len(pub.errors)
+        await pub.close()
+        return seen, [e["code"] for e in pub.errors]
+    seen, codes = asyncio.run(go())
+    assert seen == 50 and codes == ["non_unit_quaternion"] * 50
+
+
 def test_a_full_service_says_try_again_later_and_a_bad_session_name_is_refused(tmp_path):
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
                                     max_sessions=1)
@@ -195,38 +231,31 @@ def _raw_stalled_subscriber(port: int, session: str) -> socket.socket:
     return sock
 
 
-def _lags(received):
-    frames = [(w, m) for w, m in received if m["type"] == "frame"]
-    arrival = np.array([w for w, _ in frames])
-    source = np.array([m["t"] for _, m in frames])
-    lag = (arrival - arrival[0]) - (source - source[0])
-    return lag - np.median(lag)
-
-
 @pytest.fixture(scope="module")
 def small_buffer_server():
-    """A server whose connections have a 32 KiB kernel send buffer (no autotuning to megabytes), with
-    the garbage-collector policy of ``fingertrack serve``: this process holds the whole test run's
-    heap (~260k objects), and a full collection of it during the comparison below took 134 ms,
-    landing at random in either half."""
+    """A server whose connections have a 32 KiB kernel send buffer (no autotuning to megabytes), so
+    that a subscriber that never reads fills it within a few hundred frames."""
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
     with serving_gc(), ServerThread(settings, send_buffer_bytes=32768) as srv:
         yield srv
 
 
-def test_a_subscriber_that_never_reads_does_not_delay_another(small_buffer_server):
+def test_a_subscriber_that_never_reads_does_not_hold_up_another(small_buffer_server):
     server = small_buffer_server
-    baseline = _lags(asyncio.run(_stream_and_collect(server, "alone", _config(seed=4), speed=1.0))[0])
     stalled = _raw_stalled_subscriber(server.settings.port, "slow")
     try:
-        with_slow = _lags(asyncio.run(_stream_and_collect(server, "slow", _config(seed=4), speed=1.0))[0])
+        received, pub = asyncio.run(_stream_and_collect(server, "slow", _config(seed=4), speed=1.0))
+        _, sessions = rest(server.url, "GET", "/v1/sessions", ADMIN)
     finally:
         stalled.close()
-    # the other subscriber's frames keep their pace: the spread of their lag is not worse than without
-    assert np.percentile(with_slow, 90) < np.percentile(baseline, 90) + 0.005
-    _, sessions = rest(server.url, "GET", "/v1/sessions", ADMIN)
     slow = next(s for s in sessions if s["session"] == "slow")
+    seqs = [m["seq"] for _, m in received if m["type"] == "frame"]
+    # the stalled subscriber's socket and queue filled up and its oldest frames were dropped (counted)...
     assert slow["dropped_subscriber_frames"] > 0
+    # ...while the source was read to the end and the reading subscriber got every frame, in order
+    # (a send blocked on the stalled socket would have held up ingest or this subscriber's queue)
+    assert not pub.errors
+    assert seqs == list(range(1, slow["frames_out"] + 1)) and len(seqs) > 100
     status, text = rest(server.url, "GET", "/metrics", ADMIN)
     assert 'fingertrack_dropped_frames_total{session="slow"}' in text
 
@@ -238,25 +267,27 @@ def test_config_change_over_rest_switches_the_estimator_live(server):
 
         async def collect():
             async for m in sub:
-                received.append(m)
+                received.append((time.perf_counter(), m))
 
         task = asyncio.create_task(collect())
-        await asyncio.sleep(0.2)
-
-        async def switch():
-            await asyncio.sleep(0.5)
-            status, body = await asyncio.to_thread(rest, server.url, "PUT", "/v1/sessions/cfg/config", ADMIN,
-                                                   {"estimator": "madgwick", "estimator_params": {"beta": 0.05}})
-            assert status == 200 and body["estimator"] == "madgwick"
-        pub_task = asyncio.create_task(stream_glove(server.url, "cfg", SOURCE, _config(seed=5), speed=3.0))
-        await switch()
-        pub = await pub_task
-        await asyncio.sleep(0.3)
+        await _wait_for(lambda: sub.server_hello is not None, "the subscription's hello")
+        messages = [m for _, m in source_messages(_config(seed=5))]
+        half = len(messages) // 2
+        pub = Publisher(server.url, "cfg", SOURCE)
+        for m in messages[:half]:
+            await pub.send(m)
+        await pub.sync()                                # the first half is handled before the switch
+        status, body = await asyncio.to_thread(rest, server.url, "PUT", "/v1/sessions/cfg/config", ADMIN,
+                                               {"estimator": "madgwick", "estimator_params": {"beta": 0.05}})
+        assert status == 200 and body["estimator"] == "madgwick"
+        for m in messages[half:]:
+            await pub.send(m)
         await pub.close()
+        await _wait_for_last_frame(server, "cfg", received)
         await sub.close()
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
-        return received
+        return [m for _, m in received]
     received = asyncio.run(go())
     estimators = [m["status"]["estimator"] for m in received if m["type"] == "frame"]
     assert estimators[0] == "chain" and estimators[-1] == "madgwick"
@@ -299,14 +330,15 @@ def test_typed_client_messages(server):
             async for m in sub:
                 got.append(m)
         task = asyncio.create_task(collect())
-        await asyncio.sleep(0.2)
+        await _wait_for(lambda: sub.server_hello is not None, "the subscription's hello")
         pub = Publisher(server.url, "typed", SOURCE)
         await pub.send(Hello(type="hello", protocol=1, hand="right", source="typed-test"))
         for _, m in source_messages(_config(seed=10)):
             if m["type"] != "hello":
                 await pub.send(parse_line(json.dumps(m)))
-        await asyncio.sleep(0.3)
         await pub.close()
+        last = (await _session_summary(server, "typed"))["frames_out"]
+        await _wait_for(lambda: any(isinstance(m, Frame) and m.seq >= last for m in got), f"frame {last}")
         await sub.close()
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
@@ -347,20 +379,22 @@ def test_subscription_survives_a_server_restart(tmp_path):
 
         async def collect():
             async for m in sub:
-                got.append(m)
+                got.append((time.perf_counter(), m))
 
         first = ServerThread(settings).__enter__()
         task = asyncio.create_task(collect())
-        await asyncio.sleep(0.3)
+        await _wait_for(lambda: sub.server_hello is not None, "the first server's hello")
         pub = await stream_glove(first.url, "re", SOURCE, _config(seed=8), speed=4.0)
         await pub.close()
+        await _wait_for_last_frame(first, "re", got)
         before = len(got)
         await asyncio.to_thread(first.__exit__, None, None, None)
+        sub.server_hello = None
         second = ServerThread(settings).__enter__()
-        await asyncio.sleep(1.0)                       # the client's back-off brings it back
+        await _wait_for(lambda: sub.server_hello is not None, "the client's back-off bringing it back")
         pub = await stream_glove(second.url, "re", SOURCE, _config(seed=9), speed=4.0)
         await pub.close()
-        await asyncio.sleep(0.3)
+        await _wait_for_last_frame(second, "re", got)
         await sub.close()
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
@@ -368,7 +402,7 @@ def test_subscription_survives_a_server_restart(tmp_path):
         return before, got, sub.reconnects
     before, got, reconnects = asyncio.run(go())
     assert before > 50 and len(got) > before + 50 and reconnects >= 1
-    assert all(m["type"] in ("frame", "gesture") for m in got)
+    assert all(m["type"] in ("frame", "gesture") for _, m in got)
 
 
 def test_limits_and_graceful_shutdown(tmp_path):

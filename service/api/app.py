@@ -26,7 +26,7 @@ from fastapi.responses import Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import ValidationError
 
-from ..protocol import PROTOCOL_VERSION, Hello, ProtocolError, parse_message
+from ..protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, parse_message
 from .config import ServiceSettings
 from .metrics import Metrics
 from .sessions import LiveSession, Subscriber
@@ -240,6 +240,9 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                     await send(ws, {"type": "hello", "protocol": PROTOCOL_VERSION, "server": "fingertrack", "session": session})
                 elif not greeted:
                     await send_error(ws, "expected_hello", f"the first message must be hello, got {msg.type}")
+                    continue
+                elif isinstance(msg, Sync):           # everything before it is handled: say so
+                    await send(ws, {"type": "sync", "id": msg.id})
                     continue
                 counters = live.hand.session.counters
                 late, dup = counters.late, counters.duplicate

@@ -14,7 +14,7 @@ level it reports:
 - integrity: every subscriber's frame ``seq`` strictly increasing and every frame's ``hand`` that of
   its own session (no cross-talk between sessions), and ``error`` messages the gloves received;
 - backlog: how long after the last message the service still needed to process what it had been
-  sent (0.5 s of it is a fixed wait for the last frames);
+  sent and deliver its last frames (the run waits for every frame to be received or counted as dropped);
 - CPU: the service process's CPU time during the streaming window as a share of one core (Linux
   ``/proc``), and this load generator's own share, so that a saturated generator is visible: on a
   2-core machine the gloves, the subscribers and the service compete for the same cores.
@@ -34,7 +34,7 @@ from .process import service_process
 FRAME_FIELDS = ("t", "seq", "hand")
 
 
-async def _level(url: str, source: str, viewer: str, hands: int, subscribers: int, seconds: float,
+async def _level(url: str, source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
                  binary: bool, service_cpu) -> dict:
     """``service_cpu()``: the service process's CPU seconds so far (None where it cannot be read)."""
     from clients.client import Subscription
@@ -74,9 +74,9 @@ async def _level(url: str, source: str, viewer: str, hands: int, subscribers: in
                                   for n, c, m in zip(names, configs, msgs)))
     service1, wall = service_cpu(), time.perf_counter() - wall0
     generator_cpu = time.process_time() - cpu0
-    await asyncio.sleep(0.5)                                  # the last frames reach the subscribers
     for p in pubs:
-        await p.close()                                       # returns once the service has read everything sent
+        await p.close()                                       # returns once the service has handled everything sent (sync)
+    await _until_delivered(url, names, received, subscribers, admin)
     drain = time.perf_counter() - wall0 - wall
     errors = sum(len(p.errors) for p in pubs)                 # after closing: replies to the last messages included
     for s in subs.values():
@@ -96,6 +96,23 @@ async def _level(url: str, source: str, viewer: str, hands: int, subscribers: in
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
 
+async def _until_delivered(url: str, names: list[str], received: dict, subscribers: int, admin: str,
+                           timeout_s: float = 120.0) -> None:
+    """Wait until every frame the service produced was received or counted as dropped, for every
+    subscriber (the service has handled all it was sent once the gloves are closed). Bounded: after
+    ``timeout_s`` the accounting shows what is missing."""
+    from clients.client import rest
+
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        _, sessions = await asyncio.to_thread(rest, url, "GET", "/v1/sessions", admin)
+        by_name = {s["session"]: s for s in sessions}
+        if all(n in by_name and sum(len(received[(n, k)]) for k in range(subscribers))
+               + by_name[n]["dropped_subscriber_frames"] >= by_name[n]["frames_out"] * subscribers for n in names):
+            return
+        await asyncio.sleep(0.05)
+
+
 def _integrity(received: dict, hands_of: dict) -> int:
     """Frames out of order (seq not strictly increasing) or of another session's hand, over all subscribers."""
     bad = 0
@@ -111,7 +128,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
     from clients.client import rest
 
     with service_process() as svc:
-        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, hands, subscribers, seconds, binary, svc.cpu_seconds))
+        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary, svc.cpu_seconds))
         _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     by_name = {s["session"]: s for s in sessions}
     produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)

@@ -128,6 +128,14 @@ class ImuBatch(_Message):
     samples: Annotated[list[ImuSample], Field(min_length=1, max_length=MAX_BATCH_SAMPLES)]
 
 
+class Sync(_Message):
+    """A barrier: the service answers ``{"type": "sync", "id": <same id>}`` once it has handled every
+    message received before it on that connection. Never recorded, never seen by the pipeline."""
+
+    type: Literal["sync"]
+    id: Annotated[int, Field(ge=0, le=2**53)]
+
+
 class Truth(_Message):
     """Simulator ground truth; the pipeline ignores it."""
 
@@ -196,9 +204,9 @@ def parse_output(obj: object) -> Frame | Gesture | ErrorMessage:
         raise ProtocolError("invalid_message", _describe(err)) from None
 
 
-SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, Truth], Field(discriminator="type")]
+SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, Truth, Sync], Field(discriminator="type")]
 _ADAPTER: TypeAdapter = TypeAdapter(SourceMessage)
-SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "truth")
+SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "truth", "sync")
 
 
 def _describe(err: ValidationError) -> str:
@@ -212,7 +220,7 @@ def _describe(err: ValidationError) -> str:
     return "; ".join(parts) + (f"; and {more} more" if more > 0 else "")
 
 
-def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | Truth:
+def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | Truth | Sync:
     """Validate a decoded JSON value as a source message; raises ``ProtocolError``."""
     if not isinstance(obj, dict):
         raise ProtocolError("invalid_message", f"a message must be a JSON object, got {type(obj).__name__}")
