@@ -31,12 +31,14 @@ origin at the index fingertip, direction from the index MCP joint to the fingert
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 GESTURES = ("grasp", "point", "pinch", "open")   # priority order
 LONG = ("index", "middle", "ring", "little")
+OTHERS = ("middle", "ring", "little")
 
 
 class GestureSettings(BaseModel):
@@ -75,9 +77,78 @@ def _band(value: float, inside: float, outside: float) -> float:
 
 @dataclass
 class Features:
+    """What the rules look at, per frame: curl per finger in [0, 1], thumb-index tip distance (m),
+    grab strength (mean long-finger curl)."""
+
     curl: dict[str, float]
     pinch_distance_m: float
     grab_strength: float
+
+
+QUANTITIES: dict[str, Callable[[Features], float]] = {
+    "long_curl_min": lambda x: min(x.curl[f] for f in LONG),
+    "long_curl_max": lambda x: max(x.curl[f] for f in LONG),
+    "index_curl": lambda x: x.curl["index"],
+    "thumb_curl": lambda x: x.curl["thumb"],
+    "others_curl_min": lambda x: min(x.curl[f] for f in OTHERS),
+    "others_curl_mean": lambda x: float(np.mean([x.curl[f] for f in OTHERS])),
+    "pinch_distance_m": lambda x: x.pinch_distance_m,
+}
+"""The scalar quantities the rules threshold, by name (curls dimensionless, distances in metres)."""
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One thresholded quantity of a rule: it holds while ``quantity`` is on the gesture's side of
+    the threshold named ``enter`` (to start) or ``exit`` (to stay; no ``exit``: not checked once
+    started). ``ideal`` is the value of a perfectly formed gesture (score 1)."""
+
+    quantity: str
+    above: bool                 # True: holds for quantity >= threshold; False: for <=
+    enter: str                  # GestureSettings field
+    exit: str | None
+    ideal: float
+
+    def value(self, x: Features) -> float:
+        return QUANTITIES[self.quantity](x)
+
+    def holds(self, x: Features, threshold: float) -> bool:
+        v = self.value(x)
+        return v >= threshold if self.above else v <= threshold
+
+    def score(self, x: Features, s: "GestureSettings") -> float:
+        """How far past the enter threshold toward the ideal, in [0, 1]."""
+        return _band(self.value(x), self.ideal, getattr(s, self.enter))
+
+
+@dataclass(frozen=True)
+class GestureRule:
+    """A gesture: every condition's enter threshold to start, every stay threshold to stay."""
+
+    name: str
+    conditions: tuple[Condition, ...]
+
+    def enters(self, x: Features, s: "GestureSettings") -> bool:
+        return all(c.holds(x, getattr(s, c.enter)) for c in self.conditions)
+
+    def stays(self, x: Features, s: "GestureSettings") -> bool:
+        return all(c.holds(x, getattr(s, c.exit)) for c in self.conditions if c.exit is not None)
+
+    def score(self, x: Features, s: "GestureSettings") -> float:
+        """Raw strength of the gesture in [0, 1]: the weakest condition's :meth:`Condition.score`."""
+        return min(c.score(x, s) for c in self.conditions)
+
+
+RULES: dict[str, GestureRule] = {
+    "grasp": GestureRule("grasp", (Condition("long_curl_min", True, "grasp_curl_enter", "grasp_curl_exit", 1.0),)),
+    "point": GestureRule("point", (Condition("index_curl", False, "point_index_enter", "point_index_exit", 0.0),
+                                   Condition("others_curl_min", True, "point_others_enter", "point_others_exit", 1.0))),
+    "pinch": GestureRule("pinch", (Condition("pinch_distance_m", False, "pinch_enter_m", "pinch_exit_m", 0.0),
+                                   Condition("others_curl_mean", False, "pinch_others_curl_max", None, 0.0))),
+    "open": GestureRule("open", (Condition("long_curl_max", False, "open_curl_enter", "open_curl_exit", 0.0),
+                                 Condition("thumb_curl", False, "open_thumb_enter", "open_thumb_exit", 0.0))),
+}
+"""One rule per gesture, in priority order (``GESTURES``)."""
 
 
 @dataclass
@@ -101,48 +172,6 @@ class GestureRecognizer:
         tip_i = frame.joints["index_tip"][0]
         return Features(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])))
 
-    def _enter(self, g: str, x: Features) -> float | None:
-        """Confidence if ``g``'s enter condition holds, else None."""
-        s, c = self.settings, x.curl
-        if g == "grasp":
-            m = min(c[f] for f in LONG)
-            return _band(m, 1.0, s.grasp_curl_enter) if m >= s.grasp_curl_enter else None
-        if g == "point":
-            others = min(c[f] for f in ("middle", "ring", "little"))
-            if c["index"] <= s.point_index_enter and others >= s.point_others_enter:
-                return min(_band(c["index"], 0.0, s.point_index_enter), _band(others, 1.0, s.point_others_enter))
-            return None
-        if g == "pinch":
-            d = x.pinch_distance_m
-            others = float(np.mean([c[f] for f in ("middle", "ring", "little")]))
-            return _band(d, 0.0, s.pinch_enter_m) if d <= s.pinch_enter_m and others <= s.pinch_others_curl_max else None
-        m = max(c[f] for f in LONG)
-        if m <= s.open_curl_enter and c["thumb"] <= s.open_thumb_enter:
-            return min(_band(m, 0.0, s.open_curl_enter), _band(c["thumb"], 0.0, s.open_thumb_enter))
-        return None
-
-    def _stays(self, g: str, x: Features) -> bool:
-        s, c = self.settings, x.curl
-        if g == "grasp":
-            return min(c[f] for f in LONG) >= s.grasp_curl_exit
-        if g == "point":
-            return c["index"] <= s.point_index_exit and min(c[f] for f in ("middle", "ring", "little")) >= s.point_others_exit
-        if g == "pinch":
-            return x.pinch_distance_m <= s.pinch_exit_m
-        return max(c[f] for f in LONG) <= s.open_curl_exit and c["thumb"] <= s.open_thumb_exit
-
-    def _confidence(self, g: str, x: Features) -> float:
-        s, c = self.settings, x.curl
-        if g == "grasp":
-            return _band(min(c[f] for f in LONG), s.grasp_curl_enter, s.grasp_curl_exit)
-        if g == "point":
-            return min(_band(c["index"], s.point_index_enter, s.point_index_exit),
-                       _band(min(c[f] for f in ("middle", "ring", "little")), s.point_others_enter, s.point_others_exit))
-        if g == "pinch":
-            return _band(x.pinch_distance_m, s.pinch_enter_m, s.pinch_exit_m)
-        return min(_band(max(c[f] for f in LONG), s.open_curl_enter, s.open_curl_exit),
-                   _band(c["thumb"], s.open_thumb_enter, s.open_thumb_exit))
-
     @staticmethod
     def ray(frame) -> dict:
         tip = frame.joints["index_tip"][0]
@@ -162,7 +191,7 @@ class GestureRecognizer:
         t = frame.t
         events: list[dict] = []
         # candidates for starting: the highest-priority enter condition that holds
-        candidates = [(g, conf) for g in GESTURES if (conf := self._enter(g, x)) is not None]
+        candidates = [(g, RULES[g].score(x, s)) for g in GESTURES if RULES[g].enters(x, s)]
         best = candidates[0] if candidates else None
         higher = best is not None and self.active is not None and GESTURES.index(best[0]) < GESTURES.index(self.active)
         if best is not None and (self.active is None or higher):
@@ -172,13 +201,13 @@ class GestureRecognizer:
             self._candidate, self._candidate_since = None, None
         # end the active gesture: its stay condition failed long enough, or a higher one takes over
         if self.active is not None:
-            if self._stays(self.active, x):
+            if RULES[self.active].stays(x, s):
                 self._failing_since = None
             elif self._failing_since is None:
                 self._failing_since = t
             takeover = higher and self._candidate_since is not None and t - self._candidate_since >= s.start_dwell_s - 1e-9
             if takeover or (self._failing_since is not None and t - self._failing_since >= s.end_dwell_s - 1e-9):
-                events.append(self._event(frame, self.active, "end", self._confidence(self.active, x)))
+                events.append(self._event(frame, self.active, "end", RULES[self.active].score(x, s)))
                 self.active, self._failing_since = None, None
         # start the candidate once it has held long enough
         if self.active is None and self._candidate is not None and self._candidate_since is not None \
