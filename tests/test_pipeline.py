@@ -177,3 +177,48 @@ def test_bad_pipeline_settings_are_rejected():
         PipelineSettings(output_rate_hz=-1)
     with pytest.raises(ValidationError):
         PipelineSettings(reorder_windw_s=0.1)
+
+
+def test_joints_carry_radius_and_tracked_flags_that_follow_sensors_and_optics():
+    optical = OpticalModel(occlusions_s=((4.0, 5.0),))
+    sess = simulate(SimConfig(motion="sequence", noise="white", seed=4, optical=optical))
+    ring = ("ring.1", "ring.2")
+    msgs = [m for m in sess.messages() if not (m["type"] == "imu" and m["id"] in ring and m["t"] > 2.0)]
+    frames = _frames(_run(msgs))
+    ring_joints = {f"ring_{b}" for b in ("proximal", "intermediate", "distal", "tip")}
+    early = [f for f in frames if 0.5 < f["t"] < 2.0]
+    assert early and all(all(j["tracked"] for j in f["joints"].values()) for f in early)
+    silent = [f for f in frames if 2.2 < f["t"] < 3.8]
+    assert silent
+    for f in silent:
+        untracked = {n for n, j in f["joints"].items() if not j["tracked"]}
+        assert untracked == ring_joints                       # the ring's metacarpal stays with the optics
+    occluded = [f for f in frames if 4.15 < f["t"] < 4.95]
+    assert occluded and all(not any(j["tracked"] for j in f["joints"].values()) for f in occluded)
+    radii = {n: j["radius"] for n, j in frames[-1]["joints"].items()}
+    assert len(radii) == 26 and all(0.005 < r < 0.02 for r in radii.values())
+    for finger in ("index", "middle", "ring", "little"):
+        assert radii[f"{finger}_tip"] < radii[f"{finger}_proximal"] < radii["palm"]
+    assert radii["little_proximal"] < radii["ring_proximal"] < radii["middle_proximal"]
+
+
+def test_joint_radii_scale_with_the_calibrated_finger():
+    from service.model.hand import default_calibration
+    from service.model.openxr import joint_radii
+    calib = default_calibration("right")
+    index = calib.finger("index").lengths_m
+    # a little finger calibrated to the index's phalanx lengths is as broad as the index
+    same = calib.with_overrides({"little": {"lengths": list(index)}})
+    r, r_same = joint_radii(calib), joint_radii(same)
+    for bone in ("proximal", "intermediate", "distal", "tip"):
+        assert r_same[f"little_{bone}"] == pytest.approx(r[f"index_{bone}"], rel=1e-12)
+        assert r[f"little_{bone}"] < r[f"index_{bone}"]
+
+
+def test_frames_without_radius_or_tracked_still_parse():
+    from service.protocol import parse_output
+    joint = {"position": [0, 0, 0], "orientation": [0, 0, 0, 1]}
+    frame = {"type": "frame", "t": 0.0, "seq": 1, "hand": "right", "fingers": {}, "joints": {"palm": joint},
+             "status": {}}
+    parsed = parse_output(frame)
+    assert parsed.joints["palm"].radius is None and parsed.joints["palm"].tracked is True

@@ -13,6 +13,8 @@ length) behind its MCP joint along the thumb's base direction.
 """
 from __future__ import annotations
 
+from typing import Mapping
+
 import numpy as np
 
 from .frames import FINGER_TO_OPENXR, matrix_to_quat, rot_x
@@ -26,6 +28,20 @@ JOINT_NAMES: tuple[str, ...] = (
 assert len(JOINT_NAMES) == 26
 
 THUMB_METACARPAL_M = 0.251 * HAND_LENGTH_M
+
+# Joint radii (OpenXR ``XrHandJointLocationEXT.radius``: distance from the joint centre to the skin),
+# taken as half the breadth of the finger across the joint. Breadths are 50th-percentile British
+# adults, the mean of men and women, from Pheasant & Haslegrave, "Bodyspace: Anthropometry,
+# Ergonomics and the Design of Work", 3rd ed. (2006), table 10.1 (hand dimensions): index finger
+# breadth proximal (at the PIP joint) 20 mm, distal (at the DIP joint) 17 mm, thumb breadth (at the
+# IP joint) 21.5 mm, hand thickness at the metacarpals 30.5 mm. The table gives the index only: the
+# other long fingers scale the index's breadths by their proximal phalanx length relative to the
+# index's (from the calibration). MCP joints take the PIP breadth and tips the DIP breadth (no table
+# row; the fingertip narrows further, so the tip radius is an upper bound).
+_INDEX_PIP_RADIUS_M = 0.5 * 0.020
+_INDEX_DIP_RADIUS_M = 0.5 * 0.017
+_THUMB_RADIUS_M = 0.5 * 0.0215
+_PALM_RADIUS_M = 0.5 * 0.0305
 
 
 def joint_poses(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
@@ -64,3 +80,31 @@ def joint_poses(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
                 point = point + geom.lengths_m[i] * r[:, 1]
     quats = matrix_to_quat(np.stack([rotations[n] for n in JOINT_NAMES]))
     return {n: (positions[n], quats[k]) for k, n in enumerate(JOINT_NAMES)}
+
+
+def joint_radii(calib: HandCalibration) -> dict[str, float]:
+    """``name -> radius`` (m) of each OpenXR joint, from the anthropometric breadths above and the
+    calibrated phalanx lengths."""
+    radii = {"palm": _PALM_RADIUS_M, "wrist": _PALM_RADIUS_M}
+    radii.update({"thumb_metacarpal": _PALM_RADIUS_M, "thumb_proximal": _THUMB_RADIUS_M,
+                  "thumb_distal": _THUMB_RADIUS_M, "thumb_tip": _THUMB_RADIUS_M})
+    index_proximal_m = calib.finger("index").lengths_m[0]
+    for finger in LONG_FINGERS:
+        scale = calib.finger(finger).lengths_m[0] / index_proximal_m
+        radii[f"{finger}_metacarpal"] = _PALM_RADIUS_M
+        for joint, r in (("proximal", _INDEX_PIP_RADIUS_M), ("intermediate", _INDEX_PIP_RADIUS_M),
+                         ("distal", _INDEX_DIP_RADIUS_M), ("tip", _INDEX_DIP_RADIUS_M)):
+            radii[f"{finger}_{joint}"] = scale * r
+    return {n: radii[n] for n in JOINT_NAMES}
+
+
+def joint_tracked(optics_tracking: bool, fingers_measured: Mapping[str, bool]) -> dict[str, bool]:
+    """``name -> tracked`` per OpenXR joint: the palm, wrist and metacarpals while the optics track the
+    metacarpus; a finger's joints while the optics track and the finger has a live sensor (a finger
+    with no live sensor only holds its last or coupled estimate)."""
+    tracked = {}
+    for name in JOINT_NAMES:
+        finger, _, bone = name.partition("_")
+        measured = bone == "metacarpal" or fingers_measured.get(finger, True)
+        tracked[name] = bool(optics_tracking and measured)
+    return tracked

@@ -25,7 +25,7 @@ frames, which is what ``fingertrack replay`` relies on.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Iterator
 
 import numpy as np
@@ -35,7 +35,7 @@ from ..estimators.base import FingerEstimator, finger_mode
 from ..estimators.registry import estimator_class
 from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
-from ..model.openxr import joint_poses
+from ..model.openxr import joint_poses, joint_radii, joint_tracked
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, Truth
 from .optical import OpticalTrack
 
@@ -89,16 +89,19 @@ class HandFrame:
     hand_position: np.ndarray
     joints: dict[str, tuple[np.ndarray, np.ndarray]]
     status: dict
+    tracked: dict[str, bool] = field(default_factory=dict)   # per joint; a joint not listed is tracked
 
     def to_message(self, calib: HandCalibration) -> dict:
         fingers = {}
         for f, phi in self.joint_angles.items():
             names = calib.finger(f).joint_names
             fingers[f] = {**{n: float(v) for n, v in zip(names, phi)}, "mode": self.modes[f]}
+        radii = joint_radii(calib)
+        joints = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
+                      "tracked": self.tracked.get(n, True)} for n, (p, q) in self.joints.items()}
         return {
             "type": "frame", "t": self.t, "seq": self.seq, "hand": self.hand, "fingers": fingers,
-            "joints": {n: {"position": p.tolist(), "orientation": q.tolist()} for n, (p, q) in self.joints.items()},
-            "status": self.status,
+            "joints": joints, "status": self.status,
         }
 
 
@@ -308,9 +311,10 @@ class HandSession:
         angles = {n: fs.phi.copy() for n, fs in self._fingers.items()}
         modes = {n: fs.mode for n, fs in self._fingers.items()}
         joints = joint_poses(self.calibration, angles, hand.rotation, hand.position)
+        tracked = joint_tracked(self._tracking, {n: bool(fs.active_sensors) for n, fs in self._fingers.items()})
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
-                         joints, self.status(t))
+                         joints, self.status(t), tracked)
 
     def status(self, t: float | None = None) -> dict:
         now = t if t is not None else (self._processed_t or 0.0)

@@ -155,6 +155,8 @@ class ErrorMessage(_Message):
 class JointPose(_Message):
     position: Vec3
     orientation: Quat
+    radius: Annotated[float, Field(ge=0.0, description="joint centre to skin, m")] | None = None
+    tracked: bool = Field(True, description="false: the pose is held or inferred, not measured now")
 
 
 class Ray(_Message):
