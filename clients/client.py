@@ -21,7 +21,7 @@ import msgpack
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from service.protocol import parse_output
+from service.protocol import parse_message, parse_output
 
 MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
 
@@ -129,6 +129,14 @@ class Publisher:
                 self._ws = None
                 self.reconnects += 1
                 await asyncio.sleep(self.backoff.next())
+
+    async def send_reference_pose(self, t0: float, t1: float, pose: str | dict = "flat") -> None:
+        """Tell the service that the hand held a known configuration from ``t0`` to ``t1`` (source
+        clock, s): ``"flat"`` or joint angles in radians per finger (protocol ``reference_pose``).
+        Send it when the hold is over; raises ``ProtocolError`` for a malformed pose."""
+        message = {"type": "reference_pose", "t0": float(t0), "t1": float(t1), "pose": pose}
+        parse_message(message)
+        await self.send(message)
 
     async def sync(self, timeout_s: float = 120.0) -> None:
         """Return once the service has handled every message sent so far (protocol ``sync``), so its

@@ -29,7 +29,7 @@ def source_messages(config: SimConfig) -> list[tuple[float, dict]]:
         if batch:
             out.append((batch_t, {"type": "imu_batch", "samples": batch}))
             batch = []
-        arrival = m["t"] + latency if m["type"] == "pose" else m.get("t", sess.t[0])
+        arrival = m["t"] + latency if m["type"] == "pose" else m.get("t", m.get("t1", sess.t[0]))
         out.append((arrival, m))
     if batch:
         out.append((batch_t, {"type": "imu_batch", "samples": batch}))

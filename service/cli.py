@@ -72,7 +72,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                                position_jitter_m=base.position_jitter_m, orientation_jitter_rad=base.orientation_jitter_rad,
                                occlusions_s=tuple(args.occlusion))
     config = SimConfig(motion=args.motion, t_m_s=args.tm, hand=args.hand, hand_motion=args.hand_motion,
-                       noise=args.noise, seed=args.seed, rate_hz=args.rate, optical=optical)
+                       noise=args.noise, seed=args.seed, rate_hz=args.rate, optical=optical,
+                       reference_hold_s=args.reference_pose or 0.0)
     session = simulate(config)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
@@ -131,7 +132,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 
     from .model.hand import joint_to_phalanx_angles
     from .estimators.base import finger_mode
-    from .pipeline.offline import load_recording
+    from .pipeline.hand import PipelineSettings
+    from .pipeline.offline import load_recording, run_with_references
 
     cls = estimator_class(args.estimator)
     try:
@@ -149,7 +151,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             if truth is None:
                 raise ValueError("--init-from-truth: the recording has no truth for every sample")
             initial = joint_to_phalanx_angles(truth[0])
-        track = cls(geom, settings=settings, initial_theta=initial).run(samples)
+        track = run_with_references(cls(geom, settings=settings, initial_theta=initial), samples, finger,
+                                    rec.references, PipelineSettings().reference_pose_std_rad)
         for k in range(len(track.t)):
             phi = track.phi[k]
             cells = [f"{v:.9g}" for v in phi] + [""] * (3 - len(phi))
@@ -245,7 +248,7 @@ def _cmd_glove(args: argparse.Namespace) -> int:
     from .sim.session import SimConfig
 
     config = SimConfig(motion=args.motion, t_m_s=args.tm, hand=args.hand, noise=args.noise, seed=args.seed,
-                       rate_hz=args.rate, hand_motion=args.hand_motion)
+                       rate_hz=args.rate, hand_motion=args.hand_motion, reference_hold_s=args.reference_pose or 0.0)
 
     async def run():
         pub = await stream_glove(args.url, args.session, args.token, config)
@@ -338,6 +341,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--occlusion", type=_interval, action="append", default=[], metavar="START:END",
                      help="optics occluded (valid: false) from START to END seconds; repeatable")
     sim.add_argument("--no-truth", action="store_true", help="leave out the truth messages")
+    sim.add_argument("--reference-pose", type=_positive_float, default=None, metavar="SECONDS",
+                     help="hold the hand flat this long first and record a reference_pose message")
     sim.add_argument("--out", required=True, help="output recording, JSON Lines")
     sim.set_defaults(func=_cmd_simulate)
 
@@ -378,6 +383,8 @@ def build_parser() -> argparse.ArgumentParser:
     glv.add_argument("--noise", choices=NOISE_KINDS, default="both")
     glv.add_argument("--hand-motion", choices=sorted(HAND_MOTIONS), default="still")
     glv.add_argument("--seed", type=int, default=0)
+    glv.add_argument("--reference-pose", type=_positive_float, default=None, metavar="SECONDS",
+                     help="hold the hand flat this long first and send a reference_pose message when done")
     glv.set_defaults(func=_cmd_glove)
 
     wat = sub.add_parser("watch", help="subscribe and print gesture events and live joint angles")

@@ -209,6 +209,14 @@ class FingerEstimator:
         self._t_last = value["t_last"]
         self._state = value["filter"]
 
+    def known_configuration(self, theta: np.ndarray, std_rad: float) -> None:
+        """The finger is known to be at phalanx angles ``theta`` (*B, n) rad, each joint to within
+        ``std_rad`` (a ``reference_pose``, at the time of the last processed sample). The default, for
+        estimators without an explicit uncertainty, restarts from it at the next sample as from a known
+        initial configuration (paper 2.2.3); filters that carry a covariance override this with a
+        measurement update that keeps what they have learned."""
+        self.reset(initial_theta=theta)
+
     def reference_lost(self, duration_s: float) -> None:
         """The metacarpus pose was unavailable (held) for ``duration_s``: whatever the filter believes
         about its angles is less certain than it thinks. Filters with an explicit uncertainty widen

@@ -71,11 +71,34 @@ class Chain(FingerEstimator):
         s = self.settings
         theta = initial_sensor_theta(self, acc, hand, theta0)
         P = np.zeros(theta.shape + (N_STATE, N_STATE))
-        P[..., 0, 0] = (s.initial_angle_std_rad if theta0 is not None else s.unknown_angle_std_rad) ** 2
+        known_std = getattr(self, "_known_std_rad", None) or s.initial_angle_std_rad
+        P[..., 0, 0] = (known_std if theta0 is not None else s.unknown_angle_std_rad) ** 2
         P[..., 1, 1] = s.initial_gyro_bias_std_rad_s**2
         P[..., 2:, 2:] = s.initial_acc_bias_std_m_s2**2 * np.eye(3)
         return {"x": np.concatenate([theta[..., None], np.zeros(theta.shape + (4,))], axis=-1),
                 "P": P, "rate": self.obs.relative_rate(gyr, hand)}
+
+    def known_configuration(self, theta: np.ndarray, std_rad: float) -> None:
+        """A measurement ``θ_{i_k} = theta[i_k]`` of every sensor's phalanx angle (a phalanx angle sums
+        ``i_k + 1`` joints, each known to ``std_rad``): it corrects the angle and, through the
+        covariance the filter has built up between angle and offsets, the offsets too. Before the first
+        sample it becomes the initial configuration."""
+        if self._state is None:
+            self.reset(initial_theta=theta)
+            self._known_std_rad = std_rad
+            return
+        theta = np.broadcast_to(np.asarray(theta, dtype=float), self.batch_shape + (self.geom.n_phalanges,))
+        phalanges = [sp.phalanx for sp in self.geom.sensors]
+        measured = theta[..., phalanges]
+        x, P = self._state["x"], self._state["P"]
+        H = np.zeros(measured.shape + (1, N_STATE))
+        H[..., 0, 0] = 1.0
+        R = (np.array([(p + 1) * std_rad**2 for p in phalanges])[..., None, None]
+             * np.ones(measured.shape + (1, 1)))
+        # the innovation on the angle's own 2π branch
+        y = (np.mod(measured - x[..., 0] + np.pi, 2.0 * np.pi) - np.pi)[..., None]
+        dx, P = kalman.update(P, H, R, y)
+        self._state = {**self._state, "x": x + dx, "P": P}
 
     def reference_lost(self, duration_s: float) -> None:
         if self._state is not None:

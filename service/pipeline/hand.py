@@ -36,7 +36,7 @@ from ..estimators.registry import estimator_class
 from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
 from ..model.openxr import joint_poses, joint_radii, joint_tracked
-from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, Truth
+from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from .optical import OpticalTrack
 
 
@@ -55,6 +55,9 @@ class PipelineSettings(BaseModel):
     clock_step_s: float = Field(0.5, gt=0.0, description="an IMU time jump larger than this is a clock step, s")
     max_pending_ticks: int = Field(512, ge=8, le=100_000, description="bound of the pending-tick table (oldest dropped)")
     fallback_coupling: float = Field(1.0, ge=0.0, le=2.0, description="PIP = this x MCP when a sensor of the finger is silent")
+    reference_pose_std_rad: float = Field(0.05, gt=0.0, le=1.0, description="how well a hand holds a reference_pose, per joint, rad (about 3 deg)")
+    reference_pose_max_age_s: float = Field(0.5, ge=0.0, le=10.0, description="a reference_pose whose t1 is further than this behind the processed time is stale and ignored, s")
+    max_pending_references: int = Field(8, ge=1, le=1000, description="bound of the reference_pose messages waiting for their t1 (oldest dropped)")
 
 
 @dataclass
@@ -65,6 +68,8 @@ class Counters:
     clock_steps: int = 0
     estimator_errors: int = 0
     unknown_sensor: int = 0
+    references_applied: int = 0
+    references_stale: int = 0
 
 
 @dataclass
@@ -125,6 +130,7 @@ class HandSession:
         self._tracking = False
         self._lost_since: float | None = None
         self._fingers: dict[str, FingerState] = {}
+        self._references: list[ReferencePose] = []
         self.estimator_name = self.settings.estimator
         self._estimator_params = dict(self.settings.estimator_params)
         self._check_estimator(self.estimator_name, self._estimator_params)
@@ -192,8 +198,36 @@ class HandSession:
                 self.hand = msg.hand
                 self.calibration = default_calibration(msg.hand)
                 self._build_fingers()
+        elif isinstance(msg, ReferencePose):
+            self._add_reference(msg)
         elif isinstance(msg, Truth):
             return
+
+    def _add_reference(self, msg: ReferencePose) -> None:
+        """Keep a ``reference_pose`` until the tick at or after its ``t1`` is processed (it may arrive
+        before the reorder window has let that tick through)."""
+        if self._processed_t is not None and self._processed_t - msg.t1 > self.settings.reference_pose_max_age_s:
+            self.counters.references_stale += 1
+            return
+        self._references.append(msg)
+        self._references.sort(key=lambda r: r.t1)
+        if len(self._references) > self.settings.max_pending_references:
+            self._references.pop(0)
+            self.counters.references_stale += 1
+
+    def _apply_references(self, t: float) -> None:
+        """Every pending reference whose ``t1`` is at or before ``t``: a known configuration now."""
+        while self._references and self._references[0].t1 <= t + 1e-9:
+            ref = self._references.pop(0)
+            if t - ref.t1 > self.settings.reference_pose_max_age_s:
+                self.counters.references_stale += 1
+                continue
+            for finger, phi in ref.joint_angles(self._fingers).items():
+                fs = self._fingers[finger]
+                fs.estimator.known_configuration(joint_to_phalanx_angles(np.asarray(phi)), self.settings.reference_pose_std_rad)
+                if not fs.estimator.started:
+                    fs.phi = np.asarray(phi, dtype=float)
+            self.counters.references_applied += 1
 
     def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
         if sid not in self.calibration.sensor_ids:
@@ -259,6 +293,7 @@ class HandSession:
         self._hand_motion, self._tracking = hand, tracking
         for name, fs in self._fingers.items():
             self._update_finger(name, fs, t, hand)
+        self._apply_references(t)
         return self._emit_frames(t)
 
     def _live_sensors(self, geom: FingerGeometry, t: float) -> tuple[str, ...]:
@@ -331,4 +366,5 @@ class HandSession:
             "dropped": {"duplicate": self.counters.duplicate, "late": self.counters.late,
                         "overflow": self.counters.overflow, "unknown_sensor": self.counters.unknown_sensor},
             "clock_steps": self.counters.clock_steps,
+            "reference_poses": {"applied": self.counters.references_applied, "stale": self.counters.references_stale},
         }

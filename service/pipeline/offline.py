@@ -11,10 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..estimators.base import FingerSamples
-from ..model.hand import HandCalibration, default_calibration
+from ..estimators.base import FingerEstimator, FingerSamples, FingerTrack
+from ..model.hand import HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
-from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, Truth, read_recording
+from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth, read_recording
 from .optical import hand_kinematics_offline
 
 
@@ -27,6 +27,7 @@ class Recording:
     pose_orientation: list[list[float]] = field(default_factory=list)
     pose_valid: list[bool] = field(default_factory=list)
     truth: dict[float, dict[str, dict[str, float]]] = field(default_factory=dict)
+    references: list[ReferencePose] = field(default_factory=list)
 
     def finger_samples(self, finger: str) -> tuple[FingerSamples, int]:
         """``(samples, dropped_ticks)`` of ``finger``; hand kinematics from the optical poses."""
@@ -81,8 +82,40 @@ def load_recording(path: str | Path) -> Recording:
             rec.pose_valid.append(msg.valid)
             rec.pose_position.append(msg.position or [0.0, 0.0, 0.0])
             rec.pose_orientation.append(msg.orientation or [0.0, 0.0, 0.0, 1.0])
+        elif isinstance(msg, ReferencePose):
+            rec.references.append(msg)
         elif isinstance(msg, Truth):
             rec.truth[msg.t] = msg.fingers
     if rec is None:
         raise ValueError(f"{path}: no messages after hello")
     return rec
+
+
+def run_with_references(estimator: FingerEstimator, samples: FingerSamples, finger: str,
+                        references: list[ReferencePose], std_rad: float) -> FingerTrack:
+    """Batch ``estimator.run`` that applies each ``reference_pose`` naming ``finger`` right after the
+    last sample at or before its ``t1`` (as the live pipeline does at the first tick at or after it)."""
+    t = np.asarray(samples.t, dtype=float)
+    cuts = []
+    for ref in sorted(references, key=lambda r: r.t1):
+        angles = ref.joint_angles([finger]).get(finger)
+        if angles is not None:
+            cuts.append((int(np.searchsorted(t, ref.t1 - 1e-9)) + 1, angles))
+    parts, start = [], 0
+    for stop, angles in cuts + [(len(t), None)]:
+        stop = min(stop, len(t))
+        if stop > start:
+            parts.append(estimator.run(_slice(samples, start, stop)))
+            start = stop
+        if angles is not None:
+            estimator.known_configuration(joint_to_phalanx_angles(np.asarray(angles, dtype=float)), std_rad)
+    if not parts:
+        return estimator.run(samples)
+    return FingerTrack(t, *(np.concatenate([getattr(p, k) for p in parts]) for k in ("theta", "phi", "mode")))
+
+
+def _slice(samples: FingerSamples, start: int, stop: int) -> FingerSamples:
+    h = samples.hand
+    return FingerSamples(samples.t[start:stop], samples.gyr[start:stop], samples.acc[start:stop],
+                         BaseMotion(*(getattr(h, k)[start:stop] for k in (
+                             "rotation", "position", "velocity", "acceleration", "angular_velocity", "angular_acceleration"))))

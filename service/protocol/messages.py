@@ -136,6 +136,47 @@ class Sync(_Message):
     id: Annotated[int, Field(ge=0, le=2**53)]
 
 
+FINGER_JOINTS = {"thumb": ("mcp", "ip"), "index": ("mcp", "pip", "dip"), "middle": ("mcp", "pip", "dip"),
+                 "ring": ("mcp", "pip", "dip"), "little": ("mcp", "pip", "dip")}
+"""Joint names per finger, as in ``frame`` messages."""
+
+
+class ReferencePose(_Message):
+    """The hand held a known configuration from ``t0`` to ``t1`` (source clock, s): ``"flat"`` (every
+    joint at 0: fingers straight, e.g. the hand laid flat on a table) or joint angles in radians per
+    finger (``{"index": {"mcp": 0.1, "pip": 0.2, "dip": 0.2}}``; every joint of a named finger, fingers
+    not named are not constrained). Sent by the glove app once the hold is over (at or after ``t1``);
+    the estimators take it as a measurement of the configuration at ``t1``."""
+
+    type: Literal["reference_pose"]
+    t0: float
+    t1: float
+    pose: Union[Literal["flat"], dict[Literal["thumb", "index", "middle", "ring", "little"], dict[str, float]]]
+
+    @model_validator(mode="after")
+    def _consistent(self):
+        if self.t1 < self.t0:
+            raise ValueError(f"t1 ({self.t1}) must not be before t0 ({self.t0})")
+        if isinstance(self.pose, dict):
+            if not self.pose:
+                raise ValueError("pose: name at least one finger, or use \"flat\"")
+            for finger, joints in self.pose.items():
+                expected = FINGER_JOINTS[finger]
+                if set(joints) != set(expected):
+                    raise ValueError(f"pose.{finger}: expected the joints {list(expected)}, got {sorted(joints)}")
+                for name, angle in joints.items():
+                    if abs(angle) > math.pi:
+                        raise ValueError(f"pose.{finger}.{name}: an angle in radians within ±pi, got {angle}")
+        return self
+
+    def joint_angles(self, fingers) -> dict[str, list[float]]:
+        """Joint angles (rad) per finger in joint order, for the fingers the pose constrains among
+        ``fingers`` (names)."""
+        if self.pose == "flat":
+            return {f: [0.0] * len(FINGER_JOINTS[f]) for f in fingers}
+        return {f: [j[n] for n in FINGER_JOINTS[f]] for f, j in self.pose.items() if f in fingers}
+
+
 class Truth(_Message):
     """Simulator ground truth; the pipeline ignores it."""
 
@@ -206,9 +247,9 @@ def parse_output(obj: object) -> Frame | Gesture | ErrorMessage:
         raise ProtocolError("invalid_message", _describe(err)) from None
 
 
-SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, Truth, Sync], Field(discriminator="type")]
+SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, ReferencePose, Truth, Sync], Field(discriminator="type")]
 _ADAPTER: TypeAdapter = TypeAdapter(SourceMessage)
-SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "truth", "sync")
+SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "reference_pose", "truth", "sync")
 
 
 def _describe(err: ValidationError) -> str:
@@ -222,7 +263,7 @@ def _describe(err: ValidationError) -> str:
     return "; ".join(parts) + (f"; and {more} more" if more > 0 else "")
 
 
-def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | Truth | Sync:
+def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | ReferencePose | Truth | Sync:
     """Validate a decoded JSON value as a source message; raises ``ProtocolError``."""
     if not isinstance(obj, dict):
         raise ProtocolError("invalid_message", f"a message must be a JSON object, got {type(obj).__name__}")

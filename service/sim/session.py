@@ -22,6 +22,7 @@ from ..model.kinematics import BaseMotion, ideal_imu
 from ..protocol.messages import PROTOCOL_VERSION
 from .errors import ImuErrorModel, OpticalModel
 from .realistic import RealisticProfile, SubjectDraw, draw_subject, measure, soft_tissue
+from .reference import with_reference_hold
 from .motions import FingerMotion, HandTrajectory, make_finger_motion, make_hand_motion
 
 
@@ -39,6 +40,8 @@ class SimConfig:
             (``realistic.py``: per-run draws of every datasheet and body error; the optical latency and
             jitter are drawn too, the optical rate and occlusions come from ``optical``).
         profile: bounds of the realistic draws (None: ``RealisticProfile()``).
+        reference_hold_s: > 0: the hand is held flat this long first and the recording announces it
+            with a ``reference_pose`` message (``reference.py``), s.
         seed: seed of every random draw.
         rate_hz: IMU sample rate, Hz.
         optical: optical tracker model; None: perfect when ``noise == 'none'``, else the default model.
@@ -63,6 +66,7 @@ class SimConfig:
     fingers: tuple[str, ...] | None = None
     duration_s: float | None = None
     profile: RealisticProfile | None = None
+    reference_hold_s: float = 0.0
     finger_motion: FingerMotion | None = field(default=None, compare=False)
     hand_trajectory: HandTrajectory | None = field(default=None, compare=False)
 
@@ -119,6 +123,7 @@ class SimulatedSession:
         t_pose_arrival = self.pose_t + self.optical.latency_s
         truth_q = matrix_to_quat(self.base.rotation) if include_truth else None
         i_pose, n_pose = 0, len(self.pose_t)
+        hold_end = float(self.t[0] + self.config.reference_hold_s) if self.config.reference_hold_s > 0 else None
         for n, t in enumerate(self.t):
             while i_pose < n_pose and t_pose_arrival[i_pose] <= t:
                 yield self._pose_message(i_pose)
@@ -126,6 +131,9 @@ class SimulatedSession:
             tf = float(t)
             for s, sid in enumerate(self.sensor_ids):
                 yield {"type": "imu", "t": tf, "id": sid, "gyr": self.gyr[n, s].tolist(), "acc": self.acc[n, s].tolist()}
+            if hold_end is not None and tf >= hold_end:
+                yield {"type": "reference_pose", "t0": float(self.t[0]), "t1": hold_end, "pose": "flat"}
+                hold_end = None
             if include_truth:
                 yield {
                     "type": "truth", "t": tf,
@@ -163,6 +171,8 @@ def simulate(config: SimConfig) -> SimulatedSession:
         errors = ImuErrorModel.named(config.noise)
         coupling = calib.finger("index").coupling
     motion = config.finger_motion or make_finger_motion(config.motion, config.t_m_s, seed=config.seed, coupling=coupling)
+    if config.reference_hold_s > 0:
+        motion = with_reference_hold(motion, config.reference_hold_s, np.random.default_rng([config.seed, 2]), coupling)
     hand_traj = config.hand_trajectory or make_hand_motion(config.hand_motion, seed=config.seed)
     gravity = np.asarray(config.gravity_world, dtype=float)
 
