@@ -319,6 +319,32 @@ def test_recording_then_replaying_gives_the_frames_streamed_live(server):
         [json.dumps(m, sort_keys=True) for m in live]
 
 
+def test_reference_pose_round_trip_client_service_recording_replay(server):
+    """The glove holds the hand flat and sends a reference_pose through the Python client; the live
+    frames equal the frames of replaying the service's recording, and the reference was applied."""
+    config = SimConfig(motion="sequence", noise="both", seed=7, reference_hold_s=1.0,
+                       finger_motion=sequence_motion(steps=STEPS[:2]))
+    assert rest(server.url, "PUT", "/v1/sessions/ref/config", ADMIN, {"record": True})[0] == 200
+    received, pub = asyncio.run(_stream_and_collect(server, "ref", config))
+    assert not pub.errors
+    live = [m for _, m in received if m["type"] in ("frame", "gesture")]
+    path = next(s for s in rest(server.url, "GET", "/v1/sessions", ADMIN)[1] if s["session"] == "ref")["recording"]
+    assert rest(server.url, "PUT", "/v1/sessions/ref/config", ADMIN, {"record": False})[0] == 200
+    with open(path) as fh:
+        lines = fh.read().splitlines()
+    assert sum(json.loads(line)["type"] == "reference_pose" for line in lines) == 1
+    replayed = list(replay(parse_line(line) for line in lines))
+    frames = [m for m in live if m["type"] == "frame"]
+    for m in frames:
+        del m["status"]["dropped"]["subscriber_frames"]
+    start = next(i for i, m in enumerate(replayed) if m["type"] == "frame" and m["seq"] == frames[0]["seq"])
+    assert len(live) > 100
+    assert [json.dumps(m, sort_keys=True) for m in replayed[start:start + len(live)]] == \
+        [json.dumps(m, sort_keys=True) for m in live]
+    assert frames[0]["status"]["reference_poses"]["applied"] == 0
+    assert frames[-1]["status"]["reference_poses"] == {"applied": 1, "stale": 0}
+
+
 def test_typed_client_messages(server):
     from service.protocol import Frame, Gesture, Hello
 
