@@ -4,7 +4,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from service.estimators import kalman
-from service.estimators.rigid import quaternion as quat
+from service.model import quaternion as quat
 from service.estimators.rigid.ekf import BatchedKalman, FilterpyKalman
 from service.estimators.rigid.madgwick import madgwick_step
 

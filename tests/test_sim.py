@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from service.model.hand import default_calibration
-from service.sim.errors import DEG, ImuErrorModel, MG
+from service.model.units import DEG, MG
+from service.sim.errors import ImuErrorModel
 from service.sim.motions import FINGER_MOTIONS, grasp_motion, joint_limits, make_finger_motion
 from service.sim.session import SimConfig, simulate, write_recording
 

@@ -30,8 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..estimators.rigid import quaternion as quat
-from ..estimators.rigid.filters import EkfImu, InertialImu, MadgwickImu, tilt_from_accelerometer
+from ..estimators.rigid.filters import EkfImu, InertialImu, MadgwickImu
+from ..model import quaternion as quat
+from ..model.quaternion import tilt_from_accelerometer
 
 UP_ENU = np.array([0.0, 0.0, 1.0])
 EAST_ENU = np.array([1.0, 0.0, 0.0])

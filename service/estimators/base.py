@@ -32,6 +32,11 @@ MODE_SLOW, MODE_FAST, MODE_FUSED, MODE_NO_INFO = 0, 1, 2, 3
 OBSERVE_BLOCK_SENSOR_SAMPLES = 200_000
 """Batch mode evaluates vectorised observations in blocks of at most this many sensor-samples, so a
 long batch (a 1000 s replay of many runs) needs bounded memory."""
+LOST_RATE_RAD_S = 1.0
+"""While the optics are lost, an estimator's angle uncertainty grows at this rate (a hand turning
+unseen at 1 rad/s), rad/s: the shared lost-optics policy behind ``reference_lost``."""
+LOST_MAX_STD_RAD = np.pi / 3
+"""The growth of the angle std while the optics are lost stops here, rad."""
 MODE_NAMES = ("slow", "fast", "fused", "none")
 """Per-sensor modes: ``slow`` (vector observation), ``fast`` (gyro integration), ``fused`` (a filter
 that uses both), ``none`` (no information: the estimate is held)."""
@@ -138,6 +143,12 @@ class ChainClosure:
     @staticmethod
     def phalanx_angles(phi: np.ndarray) -> np.ndarray:
         return np.cumsum(phi, axis=-1)
+
+
+def lost_optics_variance(duration_s: float) -> float:
+    """Variance, rad², to add to an angle estimate after the optics were lost for ``duration_s``:
+    ``min(LOST_RATE_RAD_S · duration, LOST_MAX_STD_RAD)²``."""
+    return min(LOST_RATE_RAD_S * duration_s, LOST_MAX_STD_RAD) ** 2
 
 
 def _check_array(name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:

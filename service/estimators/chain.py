@@ -40,23 +40,20 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..sim.errors import DEG, MG
+from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
 from . import kalman
-from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimator
+from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimator, lost_optics_variance
 from .integration import initial_sensor_theta
 
 N_STATE = 5
-LOST_RATE_RAD_S = 1.0
-"""While the optics are lost the angle's std grows by this rate (a hand turning at 1 rad/s), rad/s."""
-LOST_MAX_STD_RAD = np.pi / 3
 
 
 class ChainSettings(EstimatorSettings):
-    gyro_noise_density_rad_s_rthz: float = Field(0.01 * DEG, gt=0.0, description="gyro white noise, rad/s/√Hz")
+    gyro_noise_density_rad_s_rthz: float = Field(MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, gt=0.0, description="gyro white noise, rad/s/√Hz")
     gyro_bias_walk_rad_s_rts: float = Field(1e-5, ge=0.0, description="gyro offset random walk, rad/s/√s")
     acc_bias_walk_m_s2_rts: float = Field(1e-4, ge=0.0, description="accelerometer offset random walk, m/s²/√s")
-    initial_gyro_bias_std_rad_s: float = Field(5.0 * DEG / np.sqrt(3.0), gt=0.0, description="prior std of the gyro offset (MPU-9250 ±5 deg/s), rad/s")
-    initial_acc_bias_std_m_s2: float = Field(70.0 * MG / np.sqrt(3.0), gt=0.0, description="prior std of the accelerometer offset (MPU-9250 ±60-80 mg), m/s²")
+    initial_gyro_bias_std_rad_s: float = Field(MPU9250_GYRO_OFFSET_STD_RAD_S, gt=0.0, description="prior std of the gyro offset (MPU-9250 ±5 deg/s), rad/s")
+    initial_acc_bias_std_m_s2: float = Field(MPU9250_ACC_OFFSET_STD_M_S2, gt=0.0, description="prior std of the accelerometer offset (MPU-9250 ±60-80 mg), m/s²")
     initial_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="prior std of a given initial configuration, rad")
     unknown_angle_std_rad: float = Field(10.0 * DEG, gt=0.0, description="prior std when starting from a vector observation, rad")
     acc_noise_m_s2: float = Field(0.03, gt=0.0, description="accelerometer white noise per sample, m/s² (MPU-9250 at 200 Hz)")
@@ -102,8 +99,7 @@ class Chain(FingerEstimator):
 
     def reference_lost(self, duration_s: float) -> None:
         if self._state is not None:
-            extra = min(LOST_RATE_RAD_S * duration_s, LOST_MAX_STD_RAD) ** 2
-            self._state["P"][..., 0, 0] += extra
+            self._state["P"][..., 0, 0] += lost_optics_variance(duration_s)
 
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings

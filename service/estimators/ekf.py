@@ -19,20 +19,20 @@ import contextlib
 import numpy as np
 from pydantic import Field
 
-from ..sim.errors import DEG, MG
-from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from ..model import quaternion as quat
+from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
+from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack, lost_optics_variance
 from .integration import initial_sensor_theta
-from .rigid import quaternion as quat
 from .rigid.ekf import BatchedKalman, FilterpyKalman, inject, measurement_model, process_model
 
 
 class EkfSettings(EstimatorSettings):
-    gyro_noise_density_rad_s_rthz: float = Field(0.01 * DEG, gt=0.0, description="gyro white noise, rad/s/√Hz (MPU-9250)")
+    gyro_noise_density_rad_s_rthz: float = Field(MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, gt=0.0, description="gyro white noise, rad/s/√Hz (MPU-9250)")
     gyro_bias_walk_rad_s_rts: float = Field(1e-5, ge=0.0, description="gyro bias random walk, rad/s/√s")
-    initial_bias_std_rad_s: float = Field(5.0 * DEG / np.sqrt(3.0), gt=0.0, description="prior std of the gyro bias, rad/s")
+    initial_bias_std_rad_s: float = Field(MPU9250_GYRO_OFFSET_STD_RAD_S, gt=0.0, description="prior std of the gyro bias, rad/s")
     initial_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="prior std of the attitude when the initial configuration is given, rad")
     unknown_angle_std_rad: float = Field(10.0 * DEG, gt=0.0, description="prior std of the attitude from a first vector observation, rad")
-    acc_noise_m_s2: float = Field(70.0 * MG / np.sqrt(3.0), gt=0.0, description="accelerometer error std incl. unmodelled offset, m/s²")
+    acc_noise_m_s2: float = Field(MPU9250_ACC_OFFSET_STD_M_S2, gt=0.0, description="accelerometer error std incl. unmodelled offset, m/s²")
     kinematic_uncertainty: float = Field(0.2, ge=0.0, description="added accelerometer std per m/s² of the eq. 6 acceleration bound")
     hinge_noise: float = Field(0.02, gt=0.0, description="std of the hinge-axis (unit vector) measurement, dimensionless")
     second_reference: bool = Field(True, description="measure the flexion-plane normal (replaces the magnetometer)")
@@ -59,10 +59,8 @@ class Ekf(FingerEstimator):
                 "rate": self.obs.relative_rate(gyr, hand)}
 
     def reference_lost(self, duration_s: float) -> None:
-        from .chain import LOST_MAX_STD_RAD, LOST_RATE_RAD_S
         if self._state is not None:
-            extra = min(LOST_RATE_RAD_S * duration_s, LOST_MAX_STD_RAD) ** 2
-            self._state["P"][..., :3, :3] += extra * np.eye(3)
+            self._state["P"][..., :3, :3] += lost_optics_variance(duration_s) * np.eye(3)
 
     def _step(self, state, dt, gyr, acc, hand):
         s = self.settings

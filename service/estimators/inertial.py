@@ -21,11 +21,11 @@ from functools import lru_cache
 import numpy as np
 from pydantic import Field
 
+from ..model import quaternion as quat
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator
 from .integration import initial_sensor_theta
 from .rigid import inertial as rigid_inertial
 from .rigid import inertial_kernel as K
-from .rigid import quaternion as quat
 
 
 class InertialFingerSettings(EstimatorSettings):

@@ -16,9 +16,9 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from ..model import quaternion as quat
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator
 from .integration import initial_sensor_theta
-from .rigid import quaternion as quat
 from .rigid.madgwick import madgwick_step
 
 

@@ -23,16 +23,16 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
-from ..sim.errors import DEG, MG
-from .base import MODE_FAST, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from ..model.units import MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_OFFSET_STD_RAD_S
+from .base import LOST_RATE_RAD_S, MODE_FAST, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import rk4_step_linear_rate
 from .vector import VectorObservation
 
 
 class SwitchingSettings(EstimatorSettings):
-    gyro_error_rad_s: float = Field(5.0 * DEG / np.sqrt(3.0), gt=0.0,
+    gyro_error_rad_s: float = Field(MPU9250_GYRO_OFFSET_STD_RAD_S, gt=0.0,
                                     description="|Δω|, average gyro error, rad/s (MPU-9250 ZRO ±5 deg/s, as its std)")
-    acc_error_m_s2: float = Field(70.0 * MG / np.sqrt(3.0), ge=0.0,
+    acc_error_m_s2: float = Field(MPU9250_ACC_OFFSET_STD_M_S2, ge=0.0,
                                   description="accelerometer error magnitude, m/s² (MPU-9250 zero-g ±60-80 mg, as its std)")
     min_inplane_m_s2: float = Field(1e-6, gt=0.0, description="in-plane reference below which Δθ_g = ∞, m/s²")
 
@@ -65,9 +65,9 @@ class Switching(FingerEstimator):
         return {"theta": theta, "rate": rate, "error": err, "mode": mode}
 
     def reference_lost(self, duration_s: float) -> None:
-        # the integration bound grows as if the hand had turned at 1 rad/s unseen (eq. 8)
+        # the integration bound grows as if the hand had turned unseen at the lost-optics rate (eq. 8)
         if self._state is not None:
-            self._state["error"] = self._state["error"] + duration_s
+            self._state["error"] = self._state["error"] + LOST_RATE_RAD_S * duration_s
 
     def _observe(self, gyr, acc, hand, prev_rate, dt):
         """Steps 1-2 for samples (..., S): rates, vector observation and its error bound. Depends on

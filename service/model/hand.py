@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .frames import MIRROR_X, matrix_to_quat, quat_to_matrix
+from .units import DEG
 
 Hand = Literal["right", "left"]
 FINGERS: tuple[str, ...] = ("thumb", "index", "middle", "ring", "little")
@@ -54,11 +55,10 @@ _MCP_X_RIGHT_M = {"index": 0.030, "middle": 0.010, "ring": -0.010, "little": -0.
 _THUMB_BASE_ROTATION = Rotation.from_euler("ZY", [-45.0, -40.0], degrees=True)
 _THUMB_BASE_POSITION_RIGHT_M = (0.030, 0.050, 0.025)
 
-_DEG = np.pi / 180.0
 JOINT_LIMITS_RAD: dict[str, tuple[tuple[float, float], ...]] = {
     # (min, max) per joint; after Hume et al. (1990) and common clinical active ranges of motion.
-    "long": ((-30 * _DEG, 90 * _DEG), (-5 * _DEG, 110 * _DEG), (-10 * _DEG, 90 * _DEG)),
-    "thumb": ((-10 * _DEG, 60 * _DEG), (-20 * _DEG, 85 * _DEG)),
+    "long": ((-30 * DEG, 90 * DEG), (-5 * DEG, 110 * DEG), (-10 * DEG, 90 * DEG)),
+    "thumb": ((-10 * DEG, 60 * DEG), (-20 * DEG, 85 * DEG)),
 }
 """Anatomical joint limits, rad: long fingers (MCP, PIP, DIP), thumb (MCP, IP)."""
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
 
-from ..estimators.rigid import quaternion as quat
+from ..model import quaternion as quat
 from ..model.kinematics import BaseMotion
 
 MIN_POSES = 5

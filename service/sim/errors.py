@@ -1,11 +1,5 @@
-"""Sensor error models: IMU white noise and zero offset (MPU-9250 figures), optical tracker errors.
-
-MPU-9250 Product Specification, revision 1.1 (InvenSense, 2014; paper ref. [34]):
-
-* gyroscope rate noise spectral density 0.01 deg/s/√Hz (section 3.1, "Rate Noise Spectral Density");
-* gyroscope initial zero-rate-output (ZRO) tolerance ±5 deg/s (section 3.1, "Initial ZRO Tolerance");
-* accelerometer noise power spectral density 300 µg/√Hz (section 3.2);
-* accelerometer initial zero-g output tolerance ±60 mg on X and Y, ±80 mg on Z (section 3.2).
+"""Sensor error models: IMU white noise and zero offset (MPU-9250 figures, quoted with their source
+in ``model.units``), optical tracker errors.
 
 White noise of density ``D`` sampled at ``f_s`` (bandwidth ``f_s/2``) has a standard deviation of
 ``D · √(f_s / 2)`` per sample. The zero offset is a constant per sensor and axis, drawn uniformly
@@ -19,10 +13,13 @@ from typing import Literal
 
 import numpy as np
 
-from ..model.frames import GRAVITY_M_S2
-
-DEG = np.pi / 180.0
-MG = 1e-3 * GRAVITY_M_S2
+from ..model.units import (
+    DEG,
+    MPU9250_ACC_NOISE_DENSITY_M_S2_RTHZ,
+    MPU9250_ACC_ZERO_G_TOLERANCE_M_S2,
+    MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ,
+    MPU9250_GYRO_ZRO_TOLERANCE_RAD_S,
+)
 
 NoiseKind = Literal["none", "white", "offset", "both", "realistic"]
 PAPER_NOISE_KINDS: tuple[str, ...] = ("none", "white", "offset", "both")
@@ -45,10 +42,10 @@ class ImuErrorModel:
 
     white_noise: bool = False
     zero_offset: bool = False
-    gyro_noise_density_rad_s_rthz: float = 0.01 * DEG
-    acc_noise_density_m_s2_rthz: float = 300e-6 * GRAVITY_M_S2
-    gyro_offset_bound_rad_s: float = 5.0 * DEG
-    acc_offset_bound_m_s2: tuple[float, float, float] = (60 * MG, 60 * MG, 80 * MG)
+    gyro_noise_density_rad_s_rthz: float = MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ
+    acc_noise_density_m_s2_rthz: float = MPU9250_ACC_NOISE_DENSITY_M_S2_RTHZ
+    gyro_offset_bound_rad_s: float = MPU9250_GYRO_ZRO_TOLERANCE_RAD_S
+    acc_offset_bound_m_s2: tuple[float, float, float] = MPU9250_ACC_ZERO_G_TOLERANCE_M_S2
 
     @staticmethod
     def named(kind: str) -> "ImuErrorModel":

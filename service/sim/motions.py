@@ -35,9 +35,9 @@ from scipy.spatial.transform import Rotation
 
 from ..model.hand import FINGERS, JOINT_LIMITS_RAD, LONG_FINGERS, joint_limits  # noqa: F401 (re-exported)
 from ..model.kinematics import BaseMotion
+from ..model.units import DEG
 from .signals import Modulated, QuinticStep, Signal, Sinusoid, SmoothSignal, keyframes
 
-DEG = np.pi / 180.0
 
 @dataclass(frozen=True)
 class FingerMotion:

@@ -24,7 +24,7 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from .. import kalman
-from . import quaternion as quat
+from ...model import quaternion as quat
 from ...model.frames import skew
 
 

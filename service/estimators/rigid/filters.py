@@ -14,9 +14,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import quaternion as quat
+from ...model import quaternion as quat
+from ...model.units import MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ
+from . import inertial
 from .ekf import BatchedKalman, FilterpyKalman, inject, measurement_model, process_model
+from .inertial_kernel import N_X, P, X, run_batch, run_sample
 from .madgwick import madgwick_step
+from .madgwick_kernel import madgwick_batch, madgwick_sample
 
 
 class _RigidFilter:
@@ -54,22 +58,6 @@ class _RigidFilter:
         return out
 
 
-def tilt_from_accelerometer(acc: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """``[w,x,y,z]`` quaternions (..., 4) of the smallest rotation taking the measured specific force
-    direction (sensor frame) onto ``up`` (world): an initial attitude with an arbitrary heading."""
-    a = np.asarray(acc, dtype=float)
-    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
-    u = np.broadcast_to(np.asarray(up, dtype=float), a.shape)
-    c = np.sum(a * u, axis=-1, keepdims=True)
-    q = np.concatenate([1.0 + c, np.cross(a, u)], axis=-1)
-    # opposite vectors: any axis perpendicular to a
-    flip = (1.0 + c[..., 0]) < 1e-9
-    if np.any(flip):
-        perp = np.cross(a, np.eye(3)[np.argmin(np.abs(a), axis=-1)])
-        q = np.where(flip[..., None], np.concatenate([np.zeros_like(c), perp], axis=-1), q)
-    return quat.normalize(q)
-
-
 _XYZW = [1, 2, 3, 0]
 
 
@@ -93,7 +81,6 @@ class MadgwickImu(_RigidFilter):
     def update(self, gyr: np.ndarray, acc: np.ndarray, dt: float,
                ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
         if self.engine == "numba":
-            from .madgwick_kernel import madgwick_sample
             q = self.q.reshape(-1, 4)
             use = ref_world is not None
             rw = self._flat(ref_world) if use else self._up.reshape(1, 3)
@@ -112,7 +99,6 @@ class MadgwickImu(_RigidFilter):
             ref_world: np.ndarray | None = None, ref_sensor: np.ndarray | None = None) -> np.ndarray:
         if self.engine != "numba":
             return super().run(gyr, acc, dt, ref_world, ref_sensor)
-        from .madgwick_kernel import madgwick_batch
         n = len(gyr)
         q = np.ascontiguousarray(self.q.reshape(-1, 4))
         use = ref_world is not None
@@ -129,7 +115,7 @@ class EkfImu(_RigidFilter):
     """Error-state EKF (quaternion + gyro bias, ``ekf`` module) on one rigid IMU. Noise figures: gyro
     density rad/s/√Hz, bias walk rad/s/√s, accelerometer std m/s², second reference std."""
 
-    gyro_noise_density: float = 0.01 * np.pi / 180.0
+    gyro_noise_density: float = MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ
     bias_walk: float = 1e-5
     acc_noise: float = 0.5
     ref_noise: float = 0.05
@@ -173,7 +159,6 @@ class InertialImu(_RigidFilter):
 
     def __init__(self, dt: float, settings=None, up=(0.0, 1.0, 0.0), batch_shape: tuple[int, ...] = (),
                  engine: str = "numba") -> None:
-        from . import inertial
         if engine not in ("numba", "numpy"):
             raise ValueError(f"engine must be 'numba' or 'numpy', got {engine!r}")
         self.settings = settings if settings is not None else inertial.InertialSettings()
@@ -188,15 +173,12 @@ class InertialImu(_RigidFilter):
     # the world frame of the public API is the caller's (``up``); the core's is z up
     @property
     def q(self) -> np.ndarray:
-        from . import inertial
         return quat.multiply(self._to_world, inertial.output(self.state)).reshape(self.batch_shape + (4,))
 
     @q.setter
     def q(self, q_wxyz: np.ndarray) -> None:
         """Sets the attitude (``[w,x,y,z]`` sensor -> world): the strapdown part takes it, the
         correction is reset, the low-passes restart; the gyro error estimates are kept."""
-        from . import inertial
-        from .inertial_kernel import N_X, P, X
         q = np.broadcast_to(np.asarray(q_wxyz, dtype=float), self.batch_shape + (4,)).reshape(-1, 4)
         fresh = inertial.initial_state(self.settings, self.state.shape[0], q, self._to_world)
         keep = slice(X, P + N_X * N_X)
@@ -206,7 +188,6 @@ class InertialImu(_RigidFilter):
     @property
     def gyro_errors(self) -> tuple[np.ndarray, np.ndarray]:
         """(bias rad/s, scale-factor error) estimates, each (*batch, 3)."""
-        from .inertial_kernel import X
         return (self.state[:, X:X + 3].reshape(self.batch_shape + (3,)),
                 self.state[:, X + 3:X + 6].reshape(self.batch_shape + (3,)))
 
@@ -223,12 +204,10 @@ class InertialImu(_RigidFilter):
         rs = self._flat(ref_sensor) if use else g
         out = np.empty((self.state.shape[0], 4))
         if self.engine == "numba":
-            from .inertial_kernel import run_sample
             run_sample(self.state, g, a, self.c, rw, rs, use, self._to_world, out)
             return out.reshape(self.batch_shape + (4,))
-        from .inertial import reference_step
         for j in range(self.state.shape[0]):
-            reference_step(self.state[j], g[j], a[j], self.c, self._world_to_core(rw[j]) if use else None,
+            inertial.reference_step(self.state[j], g[j], a[j], self.c, self._world_to_core(rw[j]) if use else None,
                            rs[j] if use else None)
         return self.quaternion
 
@@ -237,7 +216,6 @@ class InertialImu(_RigidFilter):
         if self.engine != "numba":
             return super().run(gyr, acc, dt, ref_world, ref_sensor)
         self._check_dt(dt)
-        from .inertial_kernel import run_batch
         n = len(gyr)
         use = ref_world is not None
         g, a = self._flat(gyr, n), self._flat(acc, n)

@@ -41,9 +41,9 @@ import math
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from ...model.quaternion import multiply, normalize, tilt_from_accelerometer, to_matrix
+from ...model.units import DEG
 from . import inertial_kernel as K
-
-DEG = math.pi / 180.0
 
 
 class InertialSettings(BaseModel):
@@ -118,7 +118,6 @@ def coefficients(settings: InertialSettings, dt: float) -> np.ndarray:
 def world_rotation(up) -> np.ndarray:
     """``[w,x,y,z]`` rotation taking the core's world frame (z up) into a caller's frame whose "up"
     (specific force at rest) is ``up``."""
-    from .filters import tilt_from_accelerometer
     return tilt_from_accelerometer(np.array([0.0, 0.0, 1.0]), np.asarray(up, dtype=float))
 
 
@@ -127,7 +126,6 @@ def initial_state(settings: InertialSettings, batch: int, attitude: np.ndarray |
     """(batch, STATE_SIZE): zero gyro errors with their prior covariance, low-passes in their
     start-up (averaging) phase; the strapdown quaternion is ``attitude`` ((batch, 4) ``[w,x,y,z]``
     sensor -> the caller's world, ``to_world`` from :func:`world_rotation`) or the identity."""
-    from .quaternion import multiply, normalize
     st = np.zeros((batch, K.STATE_SIZE))
     st[:, K.QG] = 1.0
     st[:, K.QC] = 1.0
@@ -142,7 +140,6 @@ def initial_state(settings: InertialSettings, batch: int, attitude: np.ndarray |
 
 def output(state: np.ndarray) -> np.ndarray:
     """(..., 4) ``[w,x,y,z]`` sensor -> world (z up) of (..., STATE_SIZE) states."""
-    from .quaternion import multiply
     return multiply(state[..., K.QC:K.QC + 4], state[..., K.QG:K.QG + 4])
 
 
@@ -150,15 +147,7 @@ def output(state: np.ndarray) -> np.ndarray:
 # numpy reference: one sensor, matrix form
 
 
-def _quat_mul(p, q):
-    return np.array([p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3],
-                     p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2],
-                     p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1],
-                     p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0]])
-
-
 def _rot(q):
-    from .quaternion import to_matrix
     return to_matrix(np.asarray(q, dtype=float))
 
 
@@ -195,7 +184,7 @@ def reference_step(s: np.ndarray, gyr: np.ndarray, acc: np.ndarray, c: np.ndarra
         wn = np.linalg.norm(w)
         if wn > 1e-15:
             dq = np.concatenate([[math.cos(0.5 * wn * dt)], math.sin(0.5 * wn * dt) * w / wn])
-            q = _quat_mul(s[K.QG:K.QG + 4], dq)
+            q = multiply(s[K.QG:K.QG + 4], dq)
             s[K.QG:K.QG + 4] = q / np.linalg.norm(q)
     if not (np.all(np.isfinite(acc)) and np.any(acc != 0.0)):
         return
@@ -212,7 +201,7 @@ def reference_step(s: np.ndarray, gyr: np.ndarray, acc: np.ndarray, c: np.ndarra
     e_w = e_w / np.linalg.norm(e_w)
     qw = math.sqrt(max(0.5 * (e_w[2] + 1.0), 0.0))                      # step 3
     corr = np.array([qw, 0.5 * e_w[1] / qw, -0.5 * e_w[0] / qw, 0.0]) if qw > 1e-6 else np.array([0.0, 1, 0, 0])
-    qc = _quat_mul(corr, s[K.QC:K.QC + 4])
+    qc = multiply(corr, s[K.QC:K.QC + 4])
     s[K.QC:K.QC + 4] = qc / np.linalg.norm(qc)
     if ref_w is not None and np.all(np.isfinite(ref_w)) and np.all(np.isfinite(ref_s)):
         h = _rot(output(s)) @ ref_s
@@ -220,7 +209,7 @@ def reference_step(s: np.ndarray, gyr: np.ndarray, acc: np.ndarray, c: np.ndarra
                 np.hypot(ref_w[0], ref_w[1]) > c[K.C_REF_MIN] * np.linalg.norm(ref_w):
             ang = math.atan2(h[0] * ref_w[1] - h[1] * ref_w[0], h[0] * ref_w[0] + h[1] * ref_w[1])
             half = 0.5 * c[K.C_K_REF] * ang
-            qc = _quat_mul(np.array([math.cos(half), 0.0, 0.0, math.sin(half)]), s[K.QC:K.QC + 4])
+            qc = multiply(np.array([math.cos(half), 0.0, 0.0, math.sin(half)]), s[K.QC:K.QC + 4])
             s[K.QC:K.QC + 4] = qc / np.linalg.norm(qc)
     R = _rot(output(s))
     g_h = gyr if np.all(np.isfinite(gyr)) else np.zeros(3)                # a missing gyro: no rotation

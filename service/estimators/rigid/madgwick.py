@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .quaternion import multiply_vector, normalize
+from ...model.quaternion import multiply_vector, normalize
 
 
 def objective_and_jacobian(q: np.ndarray, d: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,13 @@
-"""Vectorised quaternion algebra for the filter cores (``[w, x, y, z]`` internally, because the
-Madgwick equations are written that way; public APIs convert to ``[x, y, z, w]`` with
-``to_xyzw``/``from_xyzw``). A quaternion ``q`` maps sensor to world: ``v_E = q ⊗ v_S ⊗ q*``.
+"""Vectorised quaternion algebra for the filter cores and the pipeline's optics.
+
+Two orders, one rule (``frames`` states the public one):
+
+* public APIs, the wire and recordings: ``[x, y, z, w]`` (OpenXR, scipy), ``model.frames``;
+* inside the filter cores and this module: ``[w, x, y, z]``, because the Madgwick and VQF equations
+  are written that way. Convert at the boundary with ``to_xyzw``/``from_xyzw``, nowhere else.
+
+A quaternion ``q`` maps sensor to world: ``v_E = q ⊗ v_S ⊗ q*``. All functions broadcast over
+leading dimensions ``(..., 4)``.
 
 scipy's ``Rotation`` is the reference these are tested against; it is not used in the per-sample
 loops because constructing ``Rotation`` objects costs more than the arithmetic itself.
@@ -8,6 +15,7 @@ loops because constructing ``Rotation`` objects costs more than the arithmetic i
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def to_xyzw(q: np.ndarray) -> np.ndarray:
@@ -65,7 +73,6 @@ def to_matrix(q: np.ndarray) -> np.ndarray:
 
 def from_matrix(m: np.ndarray) -> np.ndarray:
     """Unit quaternions ``[w, x, y, z]`` with ``w >= 0`` from rotation matrices (..., 3, 3)."""
-    from scipy.spatial.transform import Rotation
     m = np.asarray(m, dtype=float)
     q = Rotation.from_matrix(m.reshape(-1, 3, 3)).as_quat(canonical=True)
     return from_xyzw(q.reshape(m.shape[:-2] + (4,)))
@@ -83,3 +90,19 @@ def exp_rotvec(v: np.ndarray) -> np.ndarray:
 def rotate_into_sensor(q: np.ndarray, v_world: np.ndarray) -> np.ndarray:
     """``q* ⊗ v_E ⊗ q``: a world vector (..., 3) in sensor coordinates."""
     return np.einsum("...ji,...j->...i", to_matrix(q), v_world)
+
+
+def tilt_from_accelerometer(acc: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """``[w,x,y,z]`` quaternions (..., 4) of the smallest rotation taking the measured specific force
+    direction (sensor frame) onto ``up`` (world): an initial attitude with an arbitrary heading."""
+    a = np.asarray(acc, dtype=float)
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    u = np.broadcast_to(np.asarray(up, dtype=float), a.shape)
+    c = np.sum(a * u, axis=-1, keepdims=True)
+    q = np.concatenate([1.0 + c, np.cross(a, u)], axis=-1)
+    # opposite vectors: any axis perpendicular to a
+    flip = (1.0 + c[..., 0]) < 1e-9
+    if np.any(flip):
+        perp = np.cross(a, np.eye(3)[np.argmin(np.abs(a), axis=-1)])
+        q = np.where(flip[..., None], np.concatenate([np.zeros_like(c), perp], axis=-1), q)
+    return normalize(q)
