@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from service.model.kinematics import ideal_imu
 from service.model.hand import joint_to_phalanx_angles
-from service.sim.errors import DEG, MG
+from service.model.units import DEG, MG
 from service.sim.realistic import RealisticProfile, saturated, soft_tissue
 from service.sim.session import SimConfig, simulate
 

@@ -57,7 +57,8 @@ from scipy.spatial.transform import Rotation
 
 from ..model.frames import GRAVITY_M_S2, matrix_to_quat
 from ..model.hand import FingerGeometry, HandCalibration
-from .errors import DEG, MG, OpticalModel
+from ..model.units import DEG, MG
+from .errors import OpticalModel
 
 
 @dataclass(frozen=True)
