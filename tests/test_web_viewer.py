@@ -94,27 +94,79 @@ def test_the_viewer_module_on_the_pipelines_frames(node, tmp_path):
 
 
 def test_the_viewer_subscribes_to_a_live_session_beside_a_python_client(node, server):
-    cmd = [*node, str(CHECK), "subscribe", server.url, "web1", VIEWER, "8"]
-    js = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    cmd = [*node, str(CHECK), "subscribe", server.url, "web1", VIEWER, "stdin"]
+    js = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert json.loads(js.stdout.readline()) == {"type": "connected"}
     config = SimConfig(motion="sequence", noise="white", seed=6,
                        finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("relaxed", 0.6))))
     received, _ = asyncio.run(_stream_and_collect(server, "web1", config, speed=2.0))
-    out, err = js.communicate(timeout=30)
-    got = [json.loads(line) for line in out.splitlines() if line.strip()]
     py_frames = {m["seq"]: m for _, m in received if m["type"] == "frame"}
-    js_frames = {g["seq"]: g for g in got if g["type"] == "frame"}
+    # the module stops after the last frame the Python subscriber got (which stops on a clock)
+    out, err = js.communicate(f"{max(py_frames)}\n", timeout=120)
+    got = [json.loads(line) for line in out.splitlines() if line.strip()]
+    js_frames = {g["seq"]: g for g in got if g["type"] == "frame" and g["seq"] <= max(py_frames)}
     assert len(py_frames) > 100 and js_frames.keys() == py_frames.keys(), err
     for seq in list(py_frames)[::50]:
         assert js_frames[seq]["tip"] == py_frames[seq]["joints"]["index_tip"]["position"]
     py_events = [(m["gesture"], m["event"]) for _, m in received if m["type"] == "gesture"]
     assert py_events and [(g["gesture"], g["event"]) for g in got if g["type"] == "gesture"] == py_events
-    assert got[-1] == {"type": "summary", "frames": len(js_frames)}
+    assert got[-1] == {"type": "summary", "frames": sum(g["type"] == "frame" for g in got)}
 
 
 @pytest.mark.parametrize("token, reason", [("wrong-token", "HTTP 401"), (SOURCE, "HTTP 403: role 'source' may not read")])
 def test_a_refused_token_is_reported_and_not_retried(node, server, token, reason):
-    got = _node(node, "subscribe", server.url, "web2", token, "2")
+    got = _node(node, "subscribe", server.url, "web2", token, "refused")
     refusals = [g for g in got if g["type"] == "refused"]
     assert len(refusals) == 1 and reason in refusals[0]["why"]
     assert got[-1] == {"type": "summary", "frames": 0}
+
+
+def test_the_angle_plot_on_the_pipelines_frames(node, tmp_path):
+    sess = simulate(SimConfig(motion="sequence", noise="white", seed=8,
+                              finger_motion=sequence_motion(steps=(("grasp", 0.5), ("point", 0.5)))))
+    frames = [m for m in replay(parse_message(m) for m in sess.messages(include_truth=False)) if m["type"] == "frame"]
+    frames = frames[::3]
+    del frames[-5]["fingers"]["thumb"]                        # a frame without the thumb breaks its lines
+    (tmp_path / "frames.json").write_text(json.dumps(frames))
+    for window_s, max_points in ((1.0, 60), (1.0, 8)):      # the window binds, then the point limit
+        _check_plot(node, tmp_path, frames, window_s, max_points)
+
+
+def _check_plot(node, tmp_path, frames, window_s, max_points):
+    plot, restarted = _node(node, "plot", str(tmp_path / "frames.json"), str(window_s), str(max_points))
+    t_end = frames[-1]["t"]
+    in_window = [f for f in frames if f["t"] >= t_end - window_s]
+    assert 8 < len(in_window) < 60 < len(frames)
+    kept = in_window[-max_points:]
+    assert plot["t"] == [f["t"] for f in kept] and plot["tEnd"] == t_end
+    keys = [f"thumb.{j}" for j in ("mcp", "ip")] + [f"{f}.{j}" for f in ("index", "middle", "ring", "little") for j in ("mcp", "pip", "dip")]
+    assert [line["key"] for line in plot["lines"]] == keys
+    angles = {k: [math.degrees(f["fingers"][k.split(".")[0]][k.split(".")[1]]) if k.split(".")[0] in f["fingers"] else None
+                  for f in kept] for k in keys}
+    present = [a for values in angles.values() for a in values if a is not None]
+    lo, hi = min(-10, 10 * math.floor(min(present) / 10)), max(100, 10 * math.ceil(max(present) / 10))
+    assert (plot["lo"], plot["hi"]) == (lo, hi) and hi - lo >= 110
+    for line in plot["lines"]:
+        for f, a, point in zip(kept, angles[line["key"]], line["points"]):
+            if a is None:
+                assert point is None
+                continue
+            # the right edge is the newest frame, the left edge window_s before it; lo at the bottom
+            np.testing.assert_allclose(point, [40 + 900 * (f["t"] - (t_end - window_s)) / window_s, 8 + 200 * (hi - a) / (hi - lo)],
+                                       atol=1e-9)
+    assert sum(p is None for line in plot["lines"] for p in line["points"]) == 2
+    assert restarted == {"restarted": [frames[0]["t"] - 1]}
+
+
+def test_the_pages_address_status_and_session_list(node, tmp_path):
+    hashes, states, items = _node(node, "page")
+    assert hashes["hashes"] == [{"session": "lab 1", "token": "a&b"}, {"session": "x", "token": None},
+                                {"session": None, "token": "t"}, {"session": None, "token": None}, {"session": None, "token": None}]
+    assert hashes["hashFor"] == "#session=lab%201" and hashes["back"] == {"session": "lab 1", "token": None}
+    assert [s["state"] for s in states["states"]] == ["offline", "refused", "connected", "waiting", "starting", "live",
+                                                       "live", "waiting", "stalled", "offline"]
+    texts = [s["text"] for s in states["states"]]
+    assert "waiting for a source" in texts[3] and "the source has left" in texts[7] and texts[8] == "connected; no frame for 3 s"
+    assert texts[1] == "refused: HTTP 401: no" and texts[9].startswith("disconnected")
+    assert items["items"] == [{"name": "a", "current": False, "text": "left hand, 1 source, 2 viewers, 1 frame sent"},
+                              {"name": "b", "current": True, "text": "right hand, 0 sources, 0 viewers, 0 frames sent"}]

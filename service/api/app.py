@@ -10,7 +10,8 @@
 * Tokens with roles (``source``, ``viewer``, ``admin``; admin may do everything) as a bearer header
   or ``?token=``. Without one no session data is served and no configuration changes.
 * ``GET /viewer/``: the web viewer (``clients/web``), static files that hold no session data; the
-  page asks for a session and a viewer token and subscribes like any client.
+  page asks for a session and a viewer token and subscribes like any client. ``GET /``: a page that
+  leads to the viewer and the API docs.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import msgpack
 from fastapi import Body, FastAPI, HTTPException, Request, WebSocket, WebSocketDisconnect
-from fastapi.responses import Response
+from fastapi.responses import HTMLResponse, Response
 from fastapi.staticfiles import StaticFiles
 from pydantic import ValidationError
 
@@ -37,6 +38,11 @@ WEB_VIEWER = Path(__file__).resolve().parents[2] / "clients" / "web"
 CAN = {"ingest": ("source", "admin"), "stream": ("viewer", "admin"), "read": ("viewer", "admin"),
        "configure": ("admin",), "metrics": ("source", "viewer", "admin")}
 SESSION_NAME_MAX = 64
+INDEX_PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8"><title>fingertrack</title>
+<link rel="icon" href="data:,"></head><body style="font: 15px system-ui, sans-serif; margin: 2em">
+<h1>fingertrack</h1><ul><li><a href="/viewer/">viewer</a>: a live hand, its joint angles and gesture events</li>
+<li><a href="/docs">API docs</a> (<a href="/openapi.json">OpenAPI</a>)</li><li><a href="/health">health</a></li></ul>
+</body></html>"""
 
 
 def _token(headers, query) -> str | None:
@@ -303,6 +309,10 @@ def create_app(settings: ServiceSettings) -> FastAPI:
             closer.cancel()
             live.subscribers.discard(sub)
             metrics.subscribers.dec()
+
+    @app.get("/", include_in_schema=False)
+    def index():
+        return HTMLResponse(INDEX_PAGE)
 
     if WEB_VIEWER.is_dir():
         app.mount("/viewer", StaticFiles(directory=WEB_VIEWER, html=True), name="viewer")
