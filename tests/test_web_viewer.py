@@ -21,7 +21,7 @@ from service.protocol import parse_message
 from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig, simulate
 
-from test_service import SOURCE, VIEWER, _stream_and_collect
+from test_service import ADMIN, SOURCE, VIEWER, _stream_and_collect
 
 CHECK = Path(__file__).resolve().parent / "web_viewer_check.mjs"
 OPENXR_JOINTS = {"palm", "wrist"} | {f"thumb_{j}" for j in ("metacarpal", "proximal", "distal", "tip")} | {
@@ -30,7 +30,7 @@ OPENXR_JOINTS = {"palm", "wrist"} | {f"thumb_{j}" for j in ("metacarpal", "proxi
 
 @pytest.fixture(scope="module")
 def server():
-    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token="web-admin")
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
     with ServerThread(settings) as srv:
         yield srv
 

@@ -20,7 +20,7 @@ from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig
 
 from cdp import Browser, find_chromium
-from test_service import SOURCE, VIEWER
+from test_service import ADMIN, SOURCE, VIEWER
 
 # Counts each canvas's redraws (every draw starts with clearRect) and finished /v1/sessions requests.
 INSTRUMENT = """
@@ -65,7 +65,7 @@ def chromium():
 
 @pytest.fixture(scope="module")
 def server():
-    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token="web-admin")
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
     with ServerThread(settings) as srv:
         yield srv
 
