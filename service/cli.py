@@ -316,6 +316,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                        binary=args.binary))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
+    if args.which == "robustness":
+        from .bench import robustness
+        print(robustness.run(args.out, quick=args.quick, messages=args.messages, soak_seconds=args.soak_seconds))
+        print(f"wrote {args.out}/summary.md, results.csv, results.json, fuzz.csv, extremes.csv, soak.csv, logs/")
+        return 0
     if args.which == "gestures":
         from .bench import gestures
         print(gestures.run(args.out, quick=args.quick, workers=args.workers))
@@ -400,7 +405,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, real data and peers, "
                                          "service latency, service load")
-    bench.add_argument("which", choices=("paper", "gestures", "latency", "peers", "load"), help="which benchmark")
+    bench.add_argument("which", choices=("paper", "gestures", "latency", "peers", "load", "robustness"), help="which benchmark")
     bench.add_argument("--data", default=None, help="peers: folder of BROAD .mat trials")
     bench.add_argument("--seconds", type=_positive_float, default=20.0,
                        help="latency, load: streaming time (per load level), s (default 20)")
@@ -408,6 +413,10 @@ def build_parser() -> argparse.ArgumentParser:
                        help="load: comma-separated numbers of hands streamed at once, one level each (default 1,2,4)")
     bench.add_argument("--subscribers", type=_positive_int, default=2, help="load: subscribers per hand (default 2)")
     bench.add_argument("--binary", action="store_true", help="load: MessagePack instead of JSON")
+    bench.add_argument("--messages", type=_positive_int, default=None,
+                       help="robustness: hostile messages in the fuzz (default 100000; 1500 with --quick)")
+    bench.add_argument("--soak-seconds", type=_positive_float, default=None,
+                       help="robustness: length of the soak, s (default 600; 6 with --quick)")
     bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
     bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")
     bench.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")

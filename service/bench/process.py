@@ -31,12 +31,38 @@ class ServiceProcess:
             return None
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime
 
+    def alive(self) -> bool:
+        """The process exists and has not exited (a zombie, killed but not yet reaped, is not alive)."""
+        try:
+            return Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+        except OSError:
+            return False
+
+    def rss_kib(self) -> int | None:
+        """Resident memory, KiB (Linux ``/proc``; None elsewhere or once the process is gone)."""
+        try:
+            for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+        except OSError:
+            pass
+        return None
+
+    def fds(self) -> int | None:
+        """Open file descriptors (Linux ``/proc``; None elsewhere or once the process is gone)."""
+        try:
+            return len(os.listdir(f"/proc/{self.pid}/fd"))
+        except OSError:
+            return None
+
 
 @contextlib.contextmanager
-def service_process(start_timeout_s: float = 20.0, extra_settings: dict | None = None):
+def service_process(start_timeout_s: float = 20.0, extra_settings: dict | None = None,
+                    log_path: str | Path | None = None):
     """Start ``fingertrack serve`` with fresh source/viewer/admin tokens; yields a
     :class:`ServiceProcess`, terminates the service on exit. A service that does not become healthy
-    raises ``RuntimeError`` with its log."""
+    raises ``RuntimeError`` with its log. ``log_path``: keep the service's stderr there (else it goes
+    with the temporary folder)."""
     from clients.client import wait_healthy
 
     port = free_port()
@@ -45,7 +71,7 @@ def service_process(start_timeout_s: float = 20.0, extra_settings: dict | None =
         cfg = Path(tmp) / "service.json"
         cfg.write_text(json.dumps({"tokens": {source: "source", viewer: "viewer"}, "admin_token": admin,
                                    **(extra_settings or {})}))
-        log = open(Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
+        log = open(log_path or Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
                                 stdout=subprocess.DEVNULL, stderr=log)
         url = f"http://127.0.0.1:{port}"

@@ -1,0 +1,152 @@
+"""The robustness campaign (``fingertrack bench robustness``): its hostile messages are what they
+claim to be, its attribution of replies holds against a real server, a service that stops answering
+is reported as hung, and the quick campaign runs end to end and accounts for every message."""
+import asyncio
+import csv
+import json
+import os
+import random
+import socket
+import threading
+
+import msgpack
+import pytest
+
+from service.api.config import ServiceSettings
+from service.api.server import ServerThread
+from service.bench import robustness as rb
+from service.bench.process import ServiceProcess
+from service.cli import main
+from service.protocol import ProtocolError, parse_line
+
+SOURCE, VIEWER, ADMIN = "src-token-r", "view-token-r", "admin-token-r"
+
+
+def _strict_json(text):
+    def reject(name):
+        raise ValueError(name)
+    return json.loads(text, parse_constant=reject)
+
+
+@pytest.mark.parametrize("category", sorted(rb.JSON_CATEGORIES))
+def test_json_messages_are_deterministic_and_hostile(category):
+    for i in range(40):
+        payload = rb._json_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        assert payload == rb._json_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        if category in ("truncated_json", "nan_infinity", "random_text", "wrong_shapes", "missing_fields",
+                        "non_unit_quaternion"):
+            # by the protocol's own definition none of these is a valid source message
+            with pytest.raises(ProtocolError):
+                parse_line(payload)
+        if category == "nan_infinity":
+            with pytest.raises(ValueError):
+                _strict_json(payload)
+            assert json.loads(payload)                      # a lenient parser takes it: the literal is there
+        if category == "oversized":
+            assert len(payload.encode() if isinstance(payload, str) else payload) > 1 << 20
+        if category == "depth_bomb":
+            assert payload.count("[") >= 10 or payload.count("{") >= 10
+        if category == "random_bytes":
+            assert isinstance(payload, bytes)
+
+
+@pytest.mark.parametrize("category", sorted(rb.MSGPACK_CATEGORIES))
+def test_msgpack_messages_are_deterministic_and_hostile(category):
+    for i in range(40):
+        payload = rb._msgpack_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        assert isinstance(payload, bytes)
+        assert payload == rb._msgpack_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        if category in ("mp_truncated", "mp_extra_data", "mp_huge_container"):
+            with pytest.raises((ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError)):
+                msgpack.unpackb(payload)
+        if category == "mp_non_map":
+            assert not isinstance(msgpack.unpackb(payload), dict)
+
+
+def test_campaign_messages_cover_every_category():
+    seen = {rb.hostile_message(3, i, binary)[0] for binary in (False, True) for i in range(3000)}
+    rare = {"oversized", "mp_oversized"}                     # weighted low: each is megabytes
+    assert seen >= (set(rb.JSON_CATEGORIES) | set(rb.MSGPACK_CATEGORIES)) - rare
+
+
+def test_replies_are_attributed_to_the_message_that_caused_them():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
+    with ServerThread(settings) as srv:
+        svc = ServiceProcess(srv.url, os.getpid(), SOURCE, VIEWER, ADMIN)
+        imu = {"type": "imu", "t": 0.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 0, 9.81]}
+
+        async def go():
+            attacker = rb.Attacker(svc, "attrib", binary=False, reply_timeout_s=60)
+            first = await attacker.probe(["{not json", json.dumps(imu), '{"type":"wave"}',
+                                          json.dumps({"type": "hello", "protocol": 2, "hand": "right"}),
+                                          "never answered: the connection is closed before it"])
+            second = await attacker.probe(["{still not json"])          # a new connection
+            await attacker.close()
+            return first, second
+
+        first, second = asyncio.run(go())
+    assert [outcome for outcome, _ in first] == ["replied", "replied", "replied", "closed_by_design"]
+    assert [[m["code"] for m in replies] for _, replies in first] == [
+        ["invalid_json"], [], ["unknown_type"], ["unsupported_protocol"]]
+    assert second == [("replied", [{"type": "error", "code": "invalid_json", "detail": second[0][1][0]["detail"]}])]
+
+
+def test_a_service_that_stops_answering_is_reported_as_hung():
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen()
+    held = []
+    stop = threading.Event()
+
+    def accept_and_ignore():                                  # accepts, never answers a byte
+        listener.settimeout(0.2)
+        while not stop.is_set():
+            try:
+                held.append(listener.accept()[0])
+            except OSError:
+                pass
+
+    thread = threading.Thread(target=accept_and_ignore, daemon=True)
+    thread.start()
+    svc = ServiceProcess(f"http://127.0.0.1:{listener.getsockname()[1]}", os.getpid(), SOURCE, VIEWER, ADMIN)
+    try:
+        with pytest.raises(rb.ServiceDown) as err:
+            asyncio.run(rb.Attacker(svc, "silent", False, reply_timeout_s=1.0).probe(["{}"]))
+        assert err.value.kind == "hang"
+    finally:
+        stop.set()
+        thread.join()
+        for s in held + [listener]:
+            s.close()
+
+
+def test_tracebacks_are_counted_in_a_service_log(tmp_path):
+    log = tmp_path / "service.log"
+    try:
+        json.loads("[" * 100_000 + "]" * 100_000)
+    except RecursionError:
+        import traceback
+        log.write_text("INFO: started\n" + traceback.format_exc() * 2 + "INFO: stopped\n")
+    assert rb._tracebacks(log) == 2
+    assert rb._tracebacks(tmp_path / "missing.log") == 0
+
+
+def test_quick_campaign_runs_end_to_end_and_accounts_for_every_message(tmp_path):
+    out = tmp_path / "rob"
+    assert main(["bench", "robustness", "--quick", "--messages", "240", "--soak-seconds", "3", "--out", str(out)]) == 0
+    rows = list(csv.DictReader((out / "results.csv").open()))
+    assert {r["part"] for r in rows} == {"fuzz", "extremes", "never-readers", "storm", "kill -9", "soak"}
+    assert all(r["met"] in ("True", "False") for r in rows)
+    categories = list(csv.DictReader((out / "fuzz.csv").open()))
+    outcomes = ("error_reply", "other_reply", "silent", "closed_by_design", "closed_abnormally", "hangs", "crashes")
+    for c in categories:                                      # every message has exactly one outcome
+        assert int(c["sent"]) == sum(int(c[k]) for k in outcomes), c
+    results = json.loads((out / "results.json").read_text())
+    assert sum(int(c["sent"]) for c in categories) == results["fuzz"]["sent"] == 240
+    good = results["fuzz"]["good"]
+    assert good and good[0]["produced"] > 0 and good[0]["received"] <= good[0]["produced"]
+    assert len(results["extremes"]) == len(rb.QUICK["probes"])
+    assert results["storm"]["connects"] == rb.QUICK["connects"] == sum(results["storm"]["outcomes"].values())
+    kill = results["kill9"][0]
+    assert kill["files"] == 1 and kill["lines"] > 0
+    assert "| part | check | goal | measured | met |" in (out / "summary.md").read_text()
