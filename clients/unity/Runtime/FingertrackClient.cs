@@ -3,8 +3,13 @@
 // thread drains them in Update), and reconnects with exponential back-off after a lost
 // connection, resubscribing to the same session (the state a VR client must not lose).
 // A refusal (bad token, wrong role, unsupported protocol: close code 1008) is not retried.
+// MessagePack (subprotocol "fingertrack.msgpack") by default: read straight from the received bytes
+// with little allocation (FingertrackMsgPack.cs); JSON text when UseMessagePack is false.
+// Dispose never blocks: it cancels, aborts the socket and returns; the loop ends on its own
+// (State becomes Stopped).
 using System;
 using System.Collections.Concurrent;
+using System.Diagnostics;
 using System.IO;
 using System.Net;
 using System.Net.WebSockets;
@@ -14,8 +19,26 @@ using System.Threading.Tasks;
 
 namespace Fingertrack
 {
+    /// <summary>Where a client is: Connecting (first attempt), Connected (subscribed), Waiting (lost
+    /// the connection, reconnecting after a back-off), Refused (the service said no: see Refused; not
+    /// retried) or Stopped (disposed).</summary>
+    public enum ConnectionState { Idle, Connecting, Connected, Waiting, Refused, Stopped }
+
     public sealed class FingertrackClient : IDisposable
     {
+        public const string MsgPackSubprotocol = "fingertrack.msgpack";
+        static readonly Stopwatch clock = Stopwatch.StartNew();
+
+        /// <summary>The client's monotonic clock, s (what Frame.ReceivedAtS is measured on).</summary>
+        public static double Now { get { return clock.Elapsed.TotalSeconds; } }
+
+        /// <summary>Ask for MessagePack (allocation-light); set before Start.</summary>
+        public bool UseMessagePack = true;
+
+        /// <summary>The connection state (header comment). Changes are also reported by StateChanged,
+        /// called on the receive task: a Unity component forwards them to the main thread.</summary>
+        public ConnectionState State { get { return (ConnectionState)state; } }
+        public event Action<ConnectionState> StateChanged;
         /// <summary>Parsed frames and gesture events (and error messages), in arrival order.</summary>
         public readonly ConcurrentQueue<ServiceMessage> Messages = new ConcurrentQueue<ServiceMessage>();
         /// <summary>The service's hello of the current connection (protocol version, session).</summary>
@@ -38,7 +61,8 @@ namespace Fingertrack
         readonly string restBase, token;
         readonly CancellationTokenSource stop = new CancellationTokenSource();
         Task loop;
-        int reconnects, badMessages;
+        volatile ClientWebSocket socket;
+        int reconnects, badMessages, state;
 
         /// <param name="baseUrl">the service, e.g. "http://127.0.0.1:8765" (ws:// and wss:// work too)</param>
         public FingertrackClient(string baseUrl, string session, string token)
@@ -56,23 +80,43 @@ namespace Fingertrack
             if (loop == null) loop = Task.Run(() => Run(stop.Token));
         }
 
+        /// <summary>The receive loop (completes after Dispose, a refusal or a fatal error).</summary>
+        public Task Completion { get { return loop ?? Task.FromResult(0); } }
+
+        void SetState(ConnectionState s)
+        {
+            if (Interlocked.Exchange(ref state, (int)s) == (int)s) return;
+            var h = StateChanged;
+            if (h != null) h(s);
+        }
+
         /// <summary>Takes the next message, if any (non-blocking).</summary>
         public bool TryDequeue(out ServiceMessage message) { return Messages.TryDequeue(out message); }
 
         async Task Run(CancellationToken ct)
         {
+            try { await Loop(ct).ConfigureAwait(false); }
+            finally { SetState(Refused != null ? ConnectionState.Refused : ConnectionState.Stopped); }
+        }
+
+        async Task Loop(CancellationToken ct)
+        {
             var delay = BackoffInitialS;
             var first = true;
+            SetState(ConnectionState.Connecting);
             while (!ct.IsCancellationRequested && Refused == null)
             {
                 using (var ws = new ClientWebSocket())
                 {
+                    socket = ws;
                     try
                     {
+                        if (UseMessagePack) ws.Options.AddSubProtocol(MsgPackSubprotocol);
                         await ws.ConnectAsync(uri, ct).ConfigureAwait(false);
                         if (!first) Interlocked.Increment(ref reconnects);
                         first = false;
                         delay = BackoffInitialS;
+                        SetState(ConnectionState.Connected);
                         await Receive(ws, ct).ConfigureAwait(false);
                         if (ws.CloseStatus == WebSocketCloseStatus.PolicyViolation)
                         {
@@ -84,6 +128,7 @@ namespace Fingertrack
                     catch (OperationCanceledException) { return; }
                     catch (Exception e)
                     {
+                        if (ct.IsCancellationRequested) return;
                         var reason = RefusalReason();
                         if (reason != null)
                         {
@@ -93,8 +138,10 @@ namespace Fingertrack
                         }
                         Problem("connection: " + e.Message);
                     }
+                    finally { socket = null; }
                 }
                 if (ct.IsCancellationRequested) return;
+                SetState(ConnectionState.Waiting);
                 try { await Task.Delay(TimeSpan.FromSeconds(delay), ct).ConfigureAwait(false); }
                 catch (OperationCanceledException) { return; }
                 delay = Math.Min(delay * 2.0, BackoffMaxS);
@@ -134,25 +181,48 @@ namespace Fingertrack
             catch (Exception) { return null; }
         }
 
+        /// <summary>Largest message accepted, bytes (the service's own limit is 1 MiB).</summary>
+        public int MaxMessageBytes = 1 << 20;
+
         async Task Receive(ClientWebSocket ws, CancellationToken ct)
         {
-            var buffer = new ArraySegment<byte>(new byte[64 * 1024]);
-            var text = new MemoryStream();
+            // one growing buffer per connection: a message is read into it whole, then parsed in place
+            var data = new byte[64 * 1024];
+            var used = 0;
             while (ws.State == WebSocketState.Open)
             {
-                var r = await ws.ReceiveAsync(buffer, ct).ConfigureAwait(false);
+                if (used == data.Length)
+                {
+                    if (data.Length >= MaxMessageBytes) throw new ProtocolException("a message exceeds " + MaxMessageBytes + " bytes");
+                    Array.Resize(ref data, Math.Min(2 * data.Length, MaxMessageBytes));
+                }
+                var r = await ws.ReceiveAsync(new ArraySegment<byte>(data, used, data.Length - used), ct).ConfigureAwait(false);
                 if (r.MessageType == WebSocketMessageType.Close)
                 {
                     try { await ws.CloseOutputAsync(WebSocketCloseStatus.NormalClosure, "", CancellationToken.None).ConfigureAwait(false); }
                     catch (Exception) { }
                     return;
                 }
-                text.Write(buffer.Array, buffer.Offset, r.Count);
+                used += r.Count;
                 if (!r.EndOfMessage) continue;
-                var json = Encoding.UTF8.GetString(text.GetBuffer(), 0, (int)text.Length);
-                text.SetLength(0);
-                Handle(json);
+                if (r.MessageType == WebSocketMessageType.Binary) HandleBinary(data, 0, used, Now);
+                else Handle(Encoding.UTF8.GetString(data, 0, used));
+                used = 0;
             }
+        }
+
+        /// <summary>One received MessagePack message (internal: the test harness feeds it).</summary>
+        internal void HandleBinary(byte[] data, int offset, int count, double arrivalS)
+        {
+            ServiceMessage m;
+            try { m = MsgPackProtocol.Parse(data, offset, count); }
+            catch (ProtocolException e)
+            {
+                Interlocked.Increment(ref badMessages);
+                Problem("unreadable message: " + e.Message);
+                return;
+            }
+            Accept(m, arrivalS);
         }
 
         /// <summary>One received text message: parsed and queued (internal: the test harness feeds it).</summary>
@@ -166,6 +236,13 @@ namespace Fingertrack
                 Problem("unreadable message: " + e.Message);
                 return;
             }
+            Accept(m, Now);
+        }
+
+        void Accept(ServiceMessage m, double arrivalS)
+        {
+            var frame = m as Frame;
+            if (frame != null) frame.ReceivedAtS = arrivalS;
             var hello = m as ServerHello;
             if (hello != null) { Hello = hello; return; }
             Messages.Enqueue(m);
@@ -192,13 +269,19 @@ namespace Fingertrack
             if (h != null) h(text);
         }
 
-        /// <summary>Stops receiving and closes the connection.</summary>
+        /// <summary>Stops receiving and drops the connection without waiting (safe on Unity's main
+        /// thread); the receive loop then ends by itself (Completion, State Stopped).</summary>
         public void Dispose()
         {
+            if (stop.IsCancellationRequested) return;
             stop.Cancel();
-            try { if (loop != null) loop.Wait(2000); }
-            catch (AggregateException) { }
-            stop.Dispose();
+            var ws = socket;
+            if (ws != null)
+            {
+                try { ws.Abort(); }
+                catch (Exception) { }
+            }
+            if (loop == null) SetState(ConnectionState.Stopped);
         }
     }
 }

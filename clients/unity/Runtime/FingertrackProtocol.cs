@@ -30,17 +30,24 @@ namespace Fingertrack
         public Quat ToUnity() { return new Quat(-X, -Y, Z, W); }
     }
 
+    /// <summary>One OpenXR joint: pose in the service's stage space, radius and whether it is
+    /// measured now. Radius is NaN and Tracked true when the service does not send them (older
+    /// services: the fields are optional in protocol v1).</summary>
     public struct JointPose
     {
         public Vec3 Position;
         public Quat Orientation;
+        /// <summary>Joint centre to skin, metres (NaN: not sent).</summary>
+        public double Radius;
+        /// <summary>False while the pose is held or inferred (optics occluded, finger without a live sensor).</summary>
+        public bool Tracked;
     }
 
     /// <summary>Joint angles of one finger, radians (flexion positive); the thumb has Mcp and Ip.</summary>
     public sealed class FingerAngles
     {
         public double Mcp, Pip, Dip, Ip;
-        /// <summary>Estimator mode: "fused", "fast", "gyro", "vector", "none", ...</summary>
+        /// <summary>Estimator mode: "slow", "fast", "fused" or "none".</summary>
         public string Mode;
     }
 
@@ -53,16 +60,44 @@ namespace Fingertrack
     {
         public long Seq;
         public string Hand;
-        public Dictionary<string, FingerAngles> Fingers = new Dictionary<string, FingerAngles>();
-        /// <summary>The 26 OpenXR XR_EXT_hand_tracking joints by name ("palm", "wrist", "index_tip", ...).</summary>
-        public Dictionary<string, JointPose> Joints = new Dictionary<string, JointPose>();
+        /// <summary>Angles per finger in Protocol.FingerNames order (thumb, index, middle, ring, little); null where not sent.</summary>
+        public readonly FingerAngles[] Fingers = new FingerAngles[Protocol.FingerCount];
+        /// <summary>The 26 XR_EXT_hand_tracking joints in XrHandJointEXT order (Protocol.JointNames:
+        /// palm, wrist, thumb_metacarpal, ..., little_tip); JointPresent says which were sent.</summary>
+        public readonly JointPose[] Joints = new JointPose[Protocol.JointCount];
+        /// <summary>Bit i set: Joints[i] was sent.</summary>
+        public int JointPresent;
         /// <summary>The gesture layer's continuous values: active gesture (or null), grab and pinch strength.</summary>
         public string ActiveGesture;
         public double GrabStrength, PinchStrength;
         /// <summary>The pointing ray while pointing (null otherwise).</summary>
         public Ray PointingRay;
-        /// <summary>The service's status object, unparsed (optics, estimator, sensors, drops).</summary>
+        /// <summary>status.optics: "tracking", "occluded" or "waiting" (null if not sent).</summary>
+        public string Optics;
+        /// <summary>The service's whole status object (JSON messages only; null for MessagePack,
+        /// whose reader keeps only Optics to stay allocation-light).</summary>
         public JObject Status;
+        /// <summary>When the client received it, seconds on the client's monotonic clock
+        /// (FingertrackClient.Now); NaN if not received by a client.</summary>
+        public double ReceivedAtS = double.NaN;
+
+        public bool HasJoint(int index) { return (JointPresent & (1 << index)) != 0; }
+
+        /// <summary>The joint of that OpenXR name ("index_tip", ...), if it was sent.</summary>
+        public bool TryGetJoint(string name, out JointPose pose)
+        {
+            var i = Array.IndexOf(Protocol.JointNames, name);
+            if (i < 0 || !HasJoint(i)) { pose = default(JointPose); return false; }
+            pose = Joints[i];
+            return true;
+        }
+
+        /// <summary>The angles of that finger ("thumb", "index", ...), or null.</summary>
+        public FingerAngles Finger(string name)
+        {
+            var i = Array.IndexOf(Protocol.FingerNames, name);
+            return i < 0 ? null : Fingers[i];
+        }
     }
 
     public sealed class Ray
@@ -100,6 +135,19 @@ namespace Fingertrack
     public static class Protocol
     {
         public const int Version = 1;
+        public const int JointCount = 26, FingerCount = 5;
+
+        /// <summary>OpenXR XR_EXT_hand_tracking joint names in XrHandJointEXT order.</summary>
+        public static readonly string[] JointNames = {
+            "palm", "wrist",
+            "thumb_metacarpal", "thumb_proximal", "thumb_distal", "thumb_tip",
+            "index_metacarpal", "index_proximal", "index_intermediate", "index_distal", "index_tip",
+            "middle_metacarpal", "middle_proximal", "middle_intermediate", "middle_distal", "middle_tip",
+            "ring_metacarpal", "ring_proximal", "ring_intermediate", "ring_distal", "ring_tip",
+            "little_metacarpal", "little_proximal", "little_intermediate", "little_distal", "little_tip",
+        };
+
+        public static readonly string[] FingerNames = { "thumb", "index", "middle", "ring", "little" };
 
         /// <summary>Parses one message from the service. Unknown fields are ignored; a message
         /// of an unknown type, or with a missing or malformed field, raises ProtocolException.</summary>
@@ -137,7 +185,9 @@ namespace Fingertrack
             {
                 var a = p.Value as JObject;
                 if (a == null) throw new ProtocolException("fingers." + p.Name + " is not an object");
-                f.Fingers[p.Name] = new FingerAngles
+                var i = Array.IndexOf(FingerNames, p.Name);
+                if (i < 0) continue;                                  // unknown names are ignored
+                f.Fingers[i] = new FingerAngles
                 {
                     Mcp = Num(a, "mcp"), Pip = OptNum(a, "pip"), Dip = OptNum(a, "dip"), Ip = OptNum(a, "ip"),
                     Mode = OptStr(a, "mode")
@@ -147,9 +197,20 @@ namespace Fingertrack
             {
                 var j = p.Value as JObject;
                 if (j == null) throw new ProtocolException("joints." + p.Name + " is not an object");
-                f.Joints[p.Name] = new JointPose { Position = V3(j["position"], p.Name), Orientation = Q(j["orientation"], p.Name) };
+                var i = Array.IndexOf(JointNames, p.Name);
+                if (i < 0) continue;
+                var tracked = j["tracked"];
+                if (tracked != null && tracked.Type != JTokenType.Boolean)
+                    throw new ProtocolException(p.Name + ".tracked: expected true or false");
+                f.Joints[i] = new JointPose
+                {
+                    Position = V3(j["position"], p.Name), Orientation = Q(j["orientation"], p.Name),
+                    Radius = OptNum(j, "radius"), Tracked = tracked == null || (bool)tracked
+                };
+                f.JointPresent |= 1 << i;
             }
             f.Status = o["status"] as JObject;
+            if (f.Status != null) f.Optics = OptStr(f.Status, "optics");
             var g = o["gesture"] as JObject;
             if (g != null)
             {
