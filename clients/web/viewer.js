@@ -272,8 +272,12 @@ if (typeof document !== "undefined") {
     $("current").textContent = session;
   }
 
+  let shownSessions = null;
   function showSessions(list, problem) {
     const ul = $("sessions");
+    const key = JSON.stringify([problem, session, sessionItems(list, session)]);
+    if (key === shownSessions) return;                 // unchanged: no new layout
+    shownSessions = key;
     ul.replaceChildren();
     if (problem) { ul.append(Object.assign(document.createElement("li"), { textContent: problem })); return; }
     if (!list.length) ul.append(Object.assign(document.createElement("li"), { textContent: "no session yet" }));
