@@ -3,8 +3,9 @@
 ``mcs``, ``mono`` and a Newtonsoft.Json assembly (Debian: ``mono-mcs mono-runtime
 libnewtonsoft-json5.0-cil``; or ``FINGERTRACK_NEWTONSOFT_DLL``); skipped where they are missing.
 The XR Hands provider is compiled against ``Tests~/XRHandsApiSurface.cs`` (the XR Hands package's
-API surface, for compilation only). The Unity components (``FingertrackHand.cs``,
-``FingertrackXRHands.cs``) need UnityEngine and are not compiled here."""
+API surface, for compilation only) and ``Tests~/UnityEngineApiSurface.cs`` (UnityEngine's); the
+Unity components (``FingertrackHand.cs``, ``FingertrackXRHands.cs``) are only type-checked against
+those surfaces: they have not run in Unity."""
 import asyncio
 import glob
 import json
@@ -41,11 +42,26 @@ def _newtonsoft() -> str | None:
     return found[-1] if found else None
 
 
-@pytest.fixture(scope="module")
-def harness(tmp_path_factory):
+def _mono_or_skip() -> str:
     dll = _newtonsoft()
     if shutil.which("mcs") is None or shutil.which("mono") is None or dll is None:
         pytest.skip("needs Mono (mcs, mono) and Newtonsoft.Json to build the C# client")
+    return dll
+
+
+def test_the_unity_components_type_check_against_the_unity_api_surface(tmp_path):
+    dll = _mono_or_skip()
+    sources = sorted(str(p) for p in (UNITY / "Runtime").rglob("*.cs")) + \
+        [str(UNITY / "Tests~" / "UnityEngineApiSurface.cs"), str(UNITY / "Tests~" / "XRHandsApiSurface.cs")]
+    build = subprocess.run(["mcs", "-warnaserror+", "-target:library", "-define:UNITY_5_3_OR_NEWER",
+                            "-define:FINGERTRACK_XR_HANDS", f"-out:{tmp_path / 'Components.dll'}", f"-r:{dll}", *sources],
+                           capture_output=True, text=True)
+    assert build.returncode == 0, build.stdout + build.stderr
+
+
+@pytest.fixture(scope="module")
+def harness(tmp_path_factory):
+    dll = _mono_or_skip()
     out = tmp_path_factory.mktemp("cs")
     shutil.copy(dll, out / "Newtonsoft.Json.dll")
     sources = sorted(str(p) for p in (UNITY / "Runtime").rglob("*.cs")) + \

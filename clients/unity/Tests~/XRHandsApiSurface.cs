@@ -1,7 +1,7 @@
 // API SURFACE FOR COMPILATION ONLY, NOT AN IMPLEMENTATION OF XR HANDS.
 //
-// The public types and signatures of Unity's XR Hands package (com.unity.xr.hands 1.5.0) and of the
-// UnityEngine types they use, as far as Runtime/XRHands/FingertrackHandProvider.cs needs them, so
+// The public types and signatures of Unity's XR Hands package (com.unity.xr.hands 1.5.0), as far as
+// Runtime/XRHands needs them (UnityEngine's own types: UnityEngineApiSurface.cs), so
 // that the provider compiles under Mono and can be driven by the tests without Unity. Names,
 // namespaces, signatures, enum values and the joint-packing of XRHandProviderUtility.CreateJoint
 // follow the package's source (Runtime/Enums.cs, XRHandJoint.cs, XRHandSubsystem.cs,
@@ -11,46 +11,6 @@
 // Nothing here ships in the package: Tests~ is hidden from Unity.
 using System;
 using System.Collections.Generic;
-
-namespace UnityEngine
-{
-    public struct Vector3
-    {
-        public float x, y, z;
-        public Vector3(float x, float y, float z) { this.x = x; this.y = y; this.z = z; }
-    }
-
-    public struct Quaternion
-    {
-        public float x, y, z, w;
-        public Quaternion(float x, float y, float z, float w) { this.x = x; this.y = y; this.z = z; this.w = w; }
-        public static Quaternion identity { get { return new Quaternion(0f, 0f, 0f, 1f); } }
-    }
-
-    public struct Pose
-    {
-        public Vector3 position;
-        public Quaternion rotation;
-        public Pose(Vector3 position, Quaternion rotation) { this.position = position; this.rotation = rotation; }
-        public static Pose identity { get { return new Pose(new Vector3(), Quaternion.identity); } }
-    }
-
-    public enum RuntimeInitializeLoadType
-    {
-        AfterSceneLoad = 0,
-        BeforeSceneLoad = 1,
-        AfterAssembliesLoaded = 2,
-        BeforeSplashScreen = 3,
-        SubsystemRegistration = 4,
-    }
-
-    [AttributeUsage(AttributeTargets.Method, AllowMultiple = false)]
-    public class RuntimeInitializeOnLoadMethodAttribute : Attribute
-    {
-        public RuntimeInitializeOnLoadMethodAttribute(RuntimeInitializeLoadType loadType) { this.loadType = loadType; }
-        public RuntimeInitializeLoadType loadType { get; private set; }
-    }
-}
 
 namespace Unity.Collections
 {
@@ -78,17 +38,22 @@ namespace UnityEngine.SubsystemsImplementation
 
     public abstract class SubsystemProvider<TSubsystem> : SubsystemProvider { }
 
-    public abstract class SubsystemWithProvider<TSubsystem, TSubsystemDescriptor, TProvider> where TProvider : SubsystemProvider
+    public abstract class SubsystemWithProvider<TSubsystem, TSubsystemDescriptor, TProvider> : ISubsystem where TProvider : SubsystemProvider
     {
         protected internal TProvider provider { get; internal set; }
         public bool running { get; internal set; }
+        public void Start() { running = true; }
+        public void Stop() { running = false; }
+        public void Destroy() { running = false; }
     }
 
-    public abstract class SubsystemDescriptorWithProvider<TSubsystem, TProvider>
+    public abstract class SubsystemDescriptorWithProvider<TSubsystem, TProvider> : ISubsystemDescriptor
     {
         public string id { get; protected set; }
         public Type providerType { get; protected set; }
         public Type subsystemTypeOverride { get; protected set; }
+        /// <summary>Surface only: the package's SubsystemManager creates the subsystem with its provider.</summary>
+        public TSubsystem Create() { throw new NotSupportedException("API surface for compilation only"); }
     }
 }
 
@@ -242,6 +207,14 @@ namespace UnityEngine.XR.Hands.ProviderImplementation
             joint.m_LinearVelocity = linearVelocity;
             joint.m_AngularVelocity = angularVelocity;
             return joint;
+        }
+
+        public class SubsystemUpdater
+        {
+            public SubsystemUpdater(XRHandSubsystem subsystem) { }
+            public void Start() { }
+            public void Stop() { }
+            public void Destroy() { }
         }
     }
 }
