@@ -231,9 +231,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from .api.config import ServiceSettings
     from .api.server import FingertrackServer, serving_gc, uvicorn_config
 
-    settings = ServiceSettings.load(args.config, host=args.host, port=args.port).with_admin_token()
+    loaded = ServiceSettings.load(args.config, host=args.host, port=args.port)
+    settings = loaded.with_admin_token()
     print("fingertrack service settings:", settings.masked())
-    print(f"admin token (shown once): {settings.admin_token}")
+    if loaded.admin_token:
+        print("admin token: the configured one (FINGERTRACK_ADMIN_TOKEN or the settings file), not shown")
+    else:
+        print(f"admin token (generated, shown once; set FINGERTRACK_ADMIN_TOKEN to choose one): {settings.admin_token}")
     print(f"listening on http://{settings.host}:{settings.port} (docs at /docs)")
     app = create_app(settings)
     with serving_gc():
@@ -292,7 +296,23 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return run_demo()
 
 
+def _need_bench_extra() -> None:
+    """The benchmarks that draw figures or progress bars need the 'bench' extra (not in the service image)."""
+    import importlib
+    missing = []
+    for lib in ("matplotlib", "tqdm"):
+        try:
+            importlib.import_module(lib)
+        except ImportError:
+            missing.append(lib)
+    if missing:
+        raise ValueError(f"this benchmark needs the 'bench' extra (pip install 'fingertrack[bench]'); "
+                         f"missing: {', '.join(missing)}")
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
+    if args.which in ("paper", "peers", "gestures", "load"):
+        _need_bench_extra()
     if args.which == "paper":
         from .bench import paper
         print(paper.run(args.out, quick=args.quick, seeds=args.seeds, workers=args.workers))
