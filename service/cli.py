@@ -238,7 +238,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         print("admin token: the configured one (FINGERTRACK_ADMIN_TOKEN or the settings file), not shown")
     else:
         print(f"admin token (generated, shown once; set FINGERTRACK_ADMIN_TOKEN to choose one): {settings.admin_token}")
-    print(f"listening on http://{settings.host}:{settings.port} (docs at /docs)")
+    print(f"listening on http://{settings.host}:{settings.port} (viewer at /viewer/, docs at /docs)")
     app = create_app(settings)
     with serving_gc():
         FingertrackServer(uvicorn_config(settings, app)).run()
