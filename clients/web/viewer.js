@@ -291,7 +291,10 @@ if (typeof document !== "undefined") {
     }
   }
 
+  let asking = false;
   async function poll() {
+    if (asking) return;                                // one request at a time, however slow the service
+    asking = true;
     try {
       const r = await fetch("/v1/sessions", { headers: token ? { Authorization: `Bearer ${token}` } : {} });
       if (!r.ok) {
@@ -305,6 +308,8 @@ if (typeof document !== "undefined") {
       }
     } catch (err) {
       showSessions([], `session list unavailable: ${err.message}`);
+    } finally {
+      asking = false;
     }
     showStatus();
   }
