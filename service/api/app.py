@@ -30,6 +30,7 @@ from pydantic import ValidationError
 from ..protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, parse_message
 from .config import ServiceSettings
 from .metrics import Metrics
+from .outgoing import Outgoing
 from .sessions import LiveSession, Subscriber
 
 MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
@@ -195,8 +196,13 @@ def create_app(settings: ServiceSettings) -> FastAPI:
             await ws.close(code=1013 if busy else 1008, reason=str(getattr(err, "detail", err))[:120])
             return None
 
-    async def send(ws: WebSocket, message: dict) -> None:
-        if ws.state.binary:
+    async def send(ws: WebSocket, message: dict | Outgoing) -> None:
+        if isinstance(message, Outgoing):    # encoded once for all subscribers of its session
+            if ws.state.binary:
+                await ws.send_bytes(message.packed())
+            else:
+                await ws.send_text(message.text())
+        elif ws.state.binary:
             await ws.send_bytes(msgpack.packb(message))
         else:
             await ws.send_text(json.dumps(message, separators=(",", ":")))

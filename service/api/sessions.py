@@ -20,6 +20,7 @@ from gestures.stream import TrackedHand
 from ..pipeline.hand import PipelineSettings
 from .config import ServiceSettings
 from .metrics import Metrics
+from .outgoing import Outgoing
 
 
 class SubscriberTooSlow(Exception):
@@ -31,16 +32,16 @@ class Subscriber:
     frames_max: int
     events_max: int
     binary: bool = False
-    queue: deque = field(default_factory=deque)      # (kind, message, t_ingest) in order
+    queue: deque = field(default_factory=deque)      # (kind, Outgoing, t_ingest) in order
     frames_queued: int = 0
     dropped: int = 0
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     closed: bool = False
 
-    def put(self, message: dict, t_ingest: float) -> int:
+    def put(self, message: Outgoing, t_ingest: float) -> int:
         """Queue a message; returns how many frames were dropped to make room."""
         dropped = 0
-        if message["type"] == "frame":
+        if message.type == "frame":
             if self.frames_queued >= self.frames_max:
                 for i, (kind, _, _) in enumerate(self.queue):
                     if kind == "frame":
@@ -52,7 +53,7 @@ class Subscriber:
         elif sum(1 for k, _, _ in self.queue if k != "frame") >= self.events_max:
             self.closed = True
             raise SubscriberTooSlow()
-        self.queue.append((message["type"], message, t_ingest))
+        self.queue.append((message.type, message, t_ingest))
         self.dropped += dropped
         self.wake.set()
         return dropped
@@ -171,9 +172,10 @@ class LiveSession:
                 self.last_status = out["status"]
                 out["status"]["dropped"]["subscriber_frames"] = self.dropped_frames
                 self.frames_out += 1
+            encoded = Outgoing(out)           # serialised once, on first send, for every subscriber
             for sub in list(self.subscribers):
                 try:
-                    dropped = sub.put(out, t0)
+                    dropped = sub.put(encoded, t0)
                 except SubscriberTooSlow:
                     self.subscribers.discard(sub)
                     continue
