@@ -231,7 +231,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from .api.config import ServiceSettings
     from .api.server import FingertrackServer, serving_gc, uvicorn_config
 
-    loaded = ServiceSettings.load(args.config, host=args.host, port=args.port)
+    if args.bus is not None:
+        _need_nats_extra()
+    loaded = ServiceSettings.load(args.config, host=args.host, port=args.port, bus=args.bus)
     settings = loaded.with_admin_token()
     print("fingertrack service settings:", settings.masked())
     if loaded.admin_token:
@@ -242,6 +244,25 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     app = create_app(settings)
     with serving_gc():
         FingertrackServer(uvicorn_config(settings, app)).run()
+    return 0
+
+
+def _need_nats_extra() -> None:
+    try:
+        import nats  # noqa: F401
+    except ImportError:
+        raise SystemExit("--bus needs the optional extra 'nats': pip install -e '.[nats]'") from None
+
+
+def _cmd_worker(args: argparse.Namespace) -> int:
+    _need_nats_extra()
+    import asyncio
+
+    from .api.config import ServiceSettings
+    from .bus.worker import run_worker
+
+    settings = ServiceSettings.load(args.config, bus=args.bus)
+    asyncio.run(run_worker(args.bus, settings, args.id))
     return 0
 
 
@@ -395,7 +416,15 @@ def build_parser() -> argparse.ArgumentParser:
     srv.add_argument("--host", default=None, help="listen address (default 127.0.0.1)")
     srv.add_argument("--port", type=int, default=None, help="TCP port (default 8765)")
     srv.add_argument("--config", default=None, help="settings file (JSON object); environment FINGERTRACK_* also applies")
+    srv.add_argument("--bus", default=None, help="NATS URL (nats://HOST:PORT): run as a gateway; sessions run in "
+                     "'fingertrack worker' processes (needs the extra 'nats')")
     srv.set_defaults(func=_cmd_serve)
+
+    wrk = sub.add_parser("worker", help="run hand workers that own sessions of gateways on a NATS bus")
+    wrk.add_argument("--bus", required=True, help="NATS URL, nats://HOST:PORT (JetStream enabled)")
+    wrk.add_argument("--id", default=None, help="worker name (default: generated)")
+    wrk.add_argument("--config", default=None, help="settings file (estimator, output rate, record_dir ...); FINGERTRACK_* applies")
+    wrk.set_defaults(func=_cmd_worker)
 
     glv = sub.add_parser("glove", help="stream a simulated glove + optical tracker to a service in real time")
     glv.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")

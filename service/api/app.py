@@ -77,7 +77,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
     settings = settings.with_admin_token()
     metrics = Metrics()
     sessions: dict[str, LiveSession] = {}
-    state = {"closing": False}
+    state = {"closing": False, "bus": None}
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -88,9 +88,14 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                     if s.recorder is not None:
                         s.recorder.flush()
         task = asyncio.create_task(flusher())
+        if settings.bus is not None:                 # a gateway: sessions run in hand workers
+            from ..bus.gateway import GatewayBus
+            state["bus"] = await GatewayBus.connect(settings.bus)
         yield
         task.cancel()
         await drain()
+        if state["bus"] is not None:
+            await state["bus"].close()
 
     async def drain() -> None:
         """Graceful shutdown: subscribers are closed with 1001 and a reason, recordings flushed and
@@ -128,7 +133,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                 raise HTTPException(404, f"no session {name!r}")
             if len(sessions) >= settings.max_sessions:
                 raise HTTPException(503, f"session limit {settings.max_sessions} reached")
-            s = sessions[name] = LiveSession(name, settings, metrics)
+            bus = state["bus"]
+            s = sessions[name] = LiveSession(name, settings, metrics) if bus is None else bus.session(name, settings, metrics)
             metrics.sessions.set(len(sessions))
         return s
 

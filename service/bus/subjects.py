@@ -1,0 +1,99 @@
+"""NATS subjects, the messages on them and the session lease (documented in docs/bus.md).
+
+Every payload is MessagePack. ``<s>`` is the session's subject token (``session_token``).
+
+* ``ft.assign`` (request, queue group ``ft-workers``): ``{"session": name}`` from a gateway that has
+  data for a session; a worker answers ``{"owner": worker_id}`` once some worker owns it (it claims
+  it if nobody does, or if its owner's lease has lapsed).
+* ``ft.src.<s>`` (request, only the owner subscribes): ``{"raw": source message}``, one protocol-v1
+  source message the gateway validated; the reply ``{"late": n, "duplicate": n, "error": str|None}``
+  comes once the worker has handled it (its frames are published before the reply), so ``sync`` keeps
+  its meaning across the bus. No reply within ``REPLY_WAIT_S``: the gateway asks ``ft.assign`` again;
+  if that moved the session (its owner was gone) the message is sent to the new owner, else it counts
+  as unconfirmed.
+* ``ft.worker.<id>`` (request, the worker itself): an empty liveness probe, answered at once. A
+  worker's subscriptions end with its connection, so "no responders" means the process is gone: its
+  sessions are taken over at once instead of after the lease.
+* ``ft.cfg.<s>`` (request, owner): ``{"change": {...}}`` a configuration change; reply
+  ``{"config": {...}}`` or ``{"error": str}``.
+* ``ft.out.<s>`` (publish, owner -> every gateway with subscribers): a ``frame`` or ``gesture``
+  message exactly as the embedded service sends it; ``seq`` increases across a change of owner.
+* Key-value bucket ``ft_sessions`` (JetStream, memory storage), key ``<s>``: the lease and the
+  session's compact state ``{"session", "worker", "seq", "t", "angles", "hello", "calibration",
+  "config"}``, rewritten by the owner every ``RENEW_S`` with a compare-and-set on the revision it
+  last wrote. A worker that saw the same revision for longer than ``LEASE_S`` may take the session
+  over with a compare-and-set on that revision: exactly one succeeds, and a former owner whose
+  renewal fails gives the session up.
+"""
+from __future__ import annotations
+
+import logging
+import re
+
+import msgpack
+import nats
+
+log = logging.getLogger("fingertrack.bus")
+
+ASSIGN = "ft.assign"
+WORKERS_QUEUE = "ft-workers"
+BUCKET = "ft_sessions"
+RENEW_S = 0.15
+"""how often an owner rewrites its sessions' lease and state, s"""
+LEASE_S = 0.6
+"""a lease not renewed for this long (as seen by another worker) may be taken over, s"""
+REPLY_WAIT_S = 0.3
+"""how long a gateway waits for a worker's reply to one source message before it checks the owner, s"""
+PROBE_TIMEOUT_S = 0.2
+"""how long a worker waits for another worker's liveness answer before it relies on the lease, s"""
+_SAFE = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def session_token(name: str) -> str:
+    """A subject token and key for a session name: ``s<name>`` for ASCII letters, digits, ``-``,
+    ``_``; else ``h<hex of UTF-8>`` (dots and other letters would split or break subjects)."""
+    return "s" + name if _SAFE.fullmatch(name) else "h" + name.encode().hex()
+
+
+def source_subject(name: str) -> str:
+    return f"ft.src.{session_token(name)}"
+
+
+def worker_subject(worker_id: str) -> str:
+    return f"ft.worker.{worker_id}"
+
+
+def config_subject(name: str) -> str:
+    return f"ft.cfg.{session_token(name)}"
+
+
+def output_subject(name: str) -> str:
+    return f"ft.out.{session_token(name)}"
+
+
+def pack(obj) -> bytes:
+    return msgpack.packb(obj)
+
+
+def unpack(data: bytes):
+    return msgpack.unpackb(data)
+
+
+async def connect(url: str, name: str):
+    """A NATS connection that reconnects for ever and reports trouble in one log line, not a traceback."""
+    async def on_error(err):
+        log.warning("nats %s: %s", url, err)
+
+    async def on_disconnect():
+        log.warning("nats %s: disconnected; reconnecting", url)
+
+    return await nats.connect(url, name=name, max_reconnect_attempts=-1, reconnect_time_wait=0.2,
+                              error_cb=on_error, disconnected_cb=on_disconnect)
+
+
+async def close(nc) -> None:
+    """Drain (finish what is in flight) if connected, else just close."""
+    try:
+        await nc.drain()
+    except nats.errors.Error:
+        await nc.close()

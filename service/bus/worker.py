@@ -1,0 +1,317 @@
+"""A hand worker: owns sessions through a lease in NATS JetStream key-value and runs their pipelines.
+
+Each owned session is an ordinary ``LiveSession`` (the embedded service's code) whose only
+"subscriber" publishes to ``ft.out.<s>``. Every ``RENEW_S`` the worker rewrites each session's lease
+with its compact state (``subjects.py``). When a worker takes a session over from one that stopped
+renewing, it rebuilds the session from that state: the source's ``hello`` and last ``calibration``,
+the session configuration, and the last published joint angles, applied as a ``reference_pose`` at the
+first sample it handles (so the filters restart from the last estimate, known to
+``reference_pose_std_rad``). What does not survive: the filters' covariances and learned sensor
+offsets, the optical track, the gesture recogniser's state, and whatever the source sent between the
+last renewal and the takeover (those messages are lost and the frames' ``seq`` jumps over them).
+"""
+from __future__ import annotations
+
+import asyncio
+import functools
+import logging
+import math
+import time
+import uuid
+from dataclasses import dataclass, field
+
+from nats.js.api import KeyValueConfig, StorageType
+from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
+
+from ..api.config import ServiceSettings
+from ..api.metrics import Metrics
+from ..api.outgoing import Outgoing
+from ..api.sessions import LiveSession
+from ..protocol import ProtocolError, parse_message
+from nats.errors import NoRespondersError
+from nats.errors import TimeoutError as NatsTimeout
+
+from .subjects import (ASSIGN, BUCKET, LEASE_S, PROBE_TIMEOUT_S, RENEW_S, WORKERS_QUEUE, close, config_subject,
+                       connect, output_subject, pack, session_token, source_subject, unpack, worker_subject)
+
+log = logging.getLogger("fingertrack.bus")
+STATE_MAX_AGE_S = 3600.0
+"""a session nobody has renewed for this long leaves the key-value bucket, s"""
+
+
+def _first_time(raw: dict) -> float | None:
+    """The source time of a message, if it carries one."""
+    if "t" in raw:
+        return float(raw["t"])
+    if raw.get("type") == "imu_batch" and raw.get("samples"):
+        return float(raw["samples"][0]["t"])
+    return None
+
+
+@dataclass(eq=False)
+class OutputSink:
+    """The owned session's subscriber: frames and events leave on ``ft.out.<s>`` with the session's
+    ``seq`` (continued across a change of owner), and the last frame is kept for the lease's state."""
+
+    rate_hz: float
+    resume_after: tuple[int, float] | None = None   # (seq, t) of the previous owner's last state
+    seq_offset: int = 0
+    last_seq: int = 0
+    last_t: float | None = None
+    last_angles: dict = field(default_factory=dict)
+    pending: list = field(default_factory=list)
+    binary: bool = True
+    dropped: int = 0
+
+    def put(self, item: Outgoing, t_ingest: float) -> int:
+        msg = item.message
+        if msg["type"] == "frame":
+            if self.resume_after is not None:
+                seq0, t0 = self.resume_after
+                # the previous owner may have sent frames after its last state: every one of them lies
+                # on its frame grid before this frame's time, so this seq is above all of theirs
+                self.seq_offset = seq0 + max(1, math.ceil((msg["t"] - t0) * self.rate_hz)) + 1 - msg["seq"]
+                self.resume_after = None
+            msg["seq"] += self.seq_offset
+            self.last_seq, self.last_t = msg["seq"], msg["t"]
+            self.last_angles = {f: {j: v for j, v in a.items() if j != "mode"} for f, a in msg["fingers"].items()}
+        self.pending.append(item.packed())
+        return 0
+
+
+class OwnedSession:
+    def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics, revision: int):
+        self.name = name
+        self.live = LiveSession(name, settings, metrics)
+        self.sink = OutputSink(settings.output_rate_hz)
+        self.live.subscribers.add(self.sink)
+        self.revision = revision
+        self.hello: dict | None = None
+        self.calibration: dict | None = None
+        self.resume_angles: dict | None = None      # applied at the first timed message after a takeover
+        self.subscriptions: list = []
+        self.lock = asyncio.Lock()
+
+    def state(self, worker: str | None) -> bytes:
+        seq = self.sink.last_seq
+        t = self.sink.last_t
+        if self.sink.resume_after is not None:       # taken over, no frame yet: keep the previous state
+            seq, t = self.sink.resume_after
+        return pack({"session": self.name, "worker": worker, "seq": seq, "t": t,
+                     "angles": self.sink.last_angles or self.resume_angles, "hello": self.hello,
+                     "calibration": self.calibration, "config": self.live.config.as_dict()})
+
+
+class Worker:
+    def __init__(self, url: str, settings: ServiceSettings, worker_id: str | None = None):
+        self.url = url
+        self.settings = settings
+        self.id = worker_id or f"worker-{uuid.uuid4().hex[:8]}"
+        self.metrics = Metrics()
+        self.owned: dict[str, OwnedSession] = {}
+        self.seen: dict[str, tuple[int, float]] = {}   # key -> (revision, when first seen): lapsed leases
+        self.nc = None
+        self.kv = None
+        self._tasks: list[asyncio.Task] = []
+
+    async def start(self) -> None:
+        self.nc = await connect(self.url, self.id)
+        js = self.nc.jetstream()
+        self.kv = await js.create_key_value(KeyValueConfig(bucket=BUCKET, history=1, ttl=STATE_MAX_AGE_S,
+                                                           storage=StorageType.MEMORY))
+        await self.nc.subscribe(ASSIGN, queue=WORKERS_QUEUE, cb=self._on_assign)
+        await self.nc.subscribe(worker_subject(self.id), cb=self._on_probe)
+        await self.nc.flush()
+        self._tasks.append(asyncio.create_task(self._renew_forever()))
+
+    async def stop(self, release: bool = True) -> None:
+        """Stop; with ``release`` the sessions' leases say 'no owner' so another worker takes them at once."""
+        for task in self._tasks:
+            task.cancel()
+        for owned in list(self.owned.values()):
+            for sub in owned.subscriptions:
+                await sub.unsubscribe()
+            if release:
+                try:
+                    await self.kv.update(session_token(owned.name), owned.state(None), last=owned.revision)
+                except KeyWrongLastSequenceError:
+                    pass
+            owned.live.close()
+        self.owned.clear()
+        if self.nc is not None:
+            await close(self.nc)
+
+    # -- ownership -------------------------------------------------------------------------------
+    async def _on_probe(self, msg) -> None:
+        await msg.respond(b"")
+
+    async def _on_assign(self, msg) -> None:
+        name = unpack(msg.data)["session"]
+        claimed_before = name in self.owned
+        owner = await self.ensure_owner(name)
+        await msg.respond(pack({"owner": owner, "by": self.id, "claimed": owner == self.id and not claimed_before}))
+
+    async def _gone(self, worker_id: str) -> bool:
+        """True when the worker's process is certainly gone (nobody answers its liveness subject)."""
+        try:
+            await self.nc.request(worker_subject(worker_id), b"", timeout=PROBE_TIMEOUT_S)
+            return False
+        except NoRespondersError:
+            return True
+        except NatsTimeout:                          # alive but slow, or cut off: the lease decides
+            return False
+
+    async def ensure_owner(self, name: str) -> str | None:
+        """The session's owner after claiming it if it has none, its owner is gone, or its owner's
+        lease lapsed."""
+        if name in self.owned:
+            return self.id
+        key = session_token(name)
+        try:
+            entry = await self.kv.get(key)
+            state = unpack(entry.value) if entry.value else None
+        except KeyNotFoundError:
+            entry, state = None, None
+        if entry is None or state is None:
+            return self.id if await self._claim(name, None, None) else await self._owner_of(key)
+        if state.get("worker") is None:             # released by a worker that stopped
+            return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
+        if state["worker"] != self.id and await self._gone(state["worker"]):
+            return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
+        now = time.monotonic()
+        seen = self.seen.get(key)
+        if seen is None or seen[0] != entry.revision:
+            self.seen[key] = (entry.revision, now)
+            return state["worker"]
+        if now - seen[1] < LEASE_S:
+            return state["worker"]
+        # the owner has not renewed for longer than the lease: take the session over
+        return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
+
+    async def _owner_of(self, key: str) -> str | None:
+        try:
+            entry = await self.kv.get(key)
+            return unpack(entry.value).get("worker") if entry.value else None
+        except KeyNotFoundError:
+            return None
+
+    async def _claim(self, name: str, revision: int | None, previous: dict | None) -> bool:
+        """Compare-and-set the lease; subscribed before the lease says so, so a gateway that reads the
+        lease always finds the owner listening."""
+        owned = OwnedSession(name, self.settings, self.metrics, revision=0)
+        owned.subscriptions = [
+            await self.nc.subscribe(source_subject(name), cb=functools.partial(self._on_source, owned)),
+            await self.nc.subscribe(config_subject(name), cb=functools.partial(self._on_config, owned)),
+        ]
+        if previous is not None:
+            await self._restore(owned, previous)
+        await self.nc.flush()
+        try:
+            if revision is None:
+                owned.revision = await self.kv.create(session_token(name), owned.state(self.id))
+            else:
+                owned.revision = await self.kv.update(session_token(name), owned.state(self.id), last=revision)
+        except KeyWrongLastSequenceError:           # another worker was quicker
+            for sub in owned.subscriptions:
+                await sub.unsubscribe()
+            owned.live.close()
+            return False
+        self.owned[name] = owned
+        if previous is not None:
+            log.info("worker %s took session %r over from %s (its last state: frame %s)", self.id, name,
+                     previous.get("worker") or "a stopped worker", previous.get("seq"))
+        return True
+
+    async def _restore(self, owned: OwnedSession, state: dict) -> None:
+        """Rebuild a session from the previous owner's last state (module docstring: what survives)."""
+        for raw in (state.get("hello"), state.get("calibration")):
+            if raw is not None:
+                await self._handle(owned, raw)
+        config = dict(state.get("config") or {})
+        if config:
+            if self.settings.record_dir is None:
+                config.pop("record", None)
+            try:
+                owned.live.update_config(config)
+            except ValueError:
+                pass                                # e.g. an estimator this worker does not know: defaults
+        if state.get("seq"):
+            owned.sink.resume_after = (int(state["seq"]), float(state["t"]))
+        owned.resume_angles = state.get("angles") or None
+
+    async def _renew_forever(self) -> None:
+        while True:
+            await asyncio.sleep(RENEW_S)
+            for name, owned in list(self.owned.items()):
+                try:
+                    owned.revision = await self.kv.update(session_token(name), owned.state(self.id), last=owned.revision)
+                except KeyWrongLastSequenceError:   # taken over while we were away: give it up
+                    self.owned.pop(name, None)
+                    for sub in owned.subscriptions:
+                        await sub.unsubscribe()
+                    owned.live.close()
+                except Exception:                   # NATS reconnecting: the next round tries again
+                    pass
+
+    # -- session traffic -------------------------------------------------------------------------
+    async def _handle(self, owned: OwnedSession, raw: dict) -> dict:
+        parsed = parse_message(raw)
+        counters = owned.live.hand.session.counters
+        late, duplicate = counters.late, counters.duplicate
+        error = None
+        try:
+            await owned.live.ingest(raw, parsed)
+        except ValueError as err:
+            error = str(err)
+        if parsed.type == "hello":
+            owned.hello = raw
+        elif parsed.type == "calibration" and error is None:
+            owned.calibration = raw
+        return {"late": counters.late - late, "duplicate": counters.duplicate - duplicate, "error": error}
+
+    async def _on_source(self, owned: OwnedSession, msg) -> None:
+        raw = unpack(msg.data)["raw"]
+        async with owned.lock:
+            try:
+                if owned.resume_angles is not None and (t := _first_time(raw)) is not None:
+                    ref = {"type": "reference_pose", "t0": t, "t1": t, "pose": owned.resume_angles}
+                    owned.resume_angles = None
+                    try:
+                        await self._handle(owned, ref)
+                    except ProtocolError:
+                        pass                        # angles the protocol refuses: start as a new session
+                reply = await self._handle(owned, raw)
+            except ProtocolError as err:            # the gateway validated it; only a version skew gets here
+                reply = {"late": 0, "duplicate": 0, "error": f"{err.code}: {err.detail}"}
+            for data in owned.sink.pending:
+                await self.nc.publish(output_subject(owned.name), data)
+            owned.sink.pending.clear()
+        if msg.reply:
+            await msg.respond(pack(reply))
+
+    async def _on_config(self, owned: OwnedSession, msg) -> None:
+        change = unpack(msg.data)["change"]
+        try:
+            reply = {"config": owned.live.update_config(change)}
+        except ValueError as err:
+            reply = {"error": str(err)}
+        await msg.respond(pack(reply))
+
+
+async def run_worker(url: str, settings: ServiceSettings, worker_id: str | None = None,
+                     started: asyncio.Event | None = None) -> None:
+    """Run one worker until cancelled (SIGINT/SIGTERM): its sessions' leases are released on the way out."""
+    import signal
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    worker = Worker(url, settings, worker_id)
+    await worker.start()
+    log.info("fingertrack worker %s on %s", worker.id, url)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    if started is not None:
+        started.set()
+    await stop.wait()
+    await worker.stop(release=True)
