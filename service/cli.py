@@ -312,6 +312,18 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_schema(args: argparse.Namespace) -> int:
+    from .protocol import PROTOCOL_VERSION
+    from .protocol.schema import documents, dump, write_documents
+
+    if args.out is None:
+        print(dump({"protocol": PROTOCOL_VERSION, "documents": documents()}), end="")
+        return 0
+    written = write_documents(args.out)
+    print(f"wrote {len(written)} documents to {args.out}: " + ", ".join(p.name for p in written))
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from clients.demo import run_demo
     return run_demo()
@@ -448,6 +460,15 @@ def build_parser() -> argparse.ArgumentParser:
     wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines")
     wat.add_argument("--count", type=int, default=0, help="stop after this many messages (0: never)")
     wat.set_defaults(func=_cmd_watch)
+
+    sch = sub.add_parser("schema", help="write the JSON Schema of every protocol-v1 message and the AsyncAPI document",
+                         description="JSON Schema (draft 2020-12) of every protocol-v1 message, one file each plus "
+                                     "the unions source-message and service-message, and asyncapi.json for the two "
+                                     "WebSockets; generated from the protocol models (the copies in docs/schema/ are "
+                                     "the same; the service serves them at /v1/schema).")
+    sch.add_argument("--out", default=None, metavar="DIR",
+                     help="write one file per document into DIR (default: print them all as one JSON object)")
+    sch.set_defaults(func=_cmd_schema)
 
     demo = sub.add_parser("demo", help="the service, a simulated glove and a subscriber, end to end (~10 s)")
     demo.set_defaults(func=_cmd_demo)

@@ -217,8 +217,11 @@ def test_joint_radii_scale_with_the_calibrated_finger():
 
 def test_frames_without_radius_or_tracked_still_parse():
     from service.protocol import parse_output
+    from service.model.openxr import JOINT_NAMES
     joint = {"position": [0, 0, 0], "orientation": [0, 0, 0, 1]}
-    frame = {"type": "frame", "t": 0.0, "seq": 1, "hand": "right", "fingers": {}, "joints": {"palm": joint},
-             "status": {}}
+    status = {"optics": "tracking", "estimator": "chain", "sensors": {},
+              "dropped": {"duplicate": 0, "late": 0, "overflow": 0, "unknown_sensor": 0}, "clock_steps": 0}
+    frame = {"type": "frame", "t": 0.0, "seq": 1, "hand": "right", "fingers": {},
+             "joints": {name: joint for name in JOINT_NAMES}, "status": status}
     parsed = parse_output(frame)
     assert parsed.joints["palm"].radius is None and parsed.joints["palm"].tracked is True

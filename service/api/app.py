@@ -9,6 +9,8 @@
   or ``?format=msgpack``).
 * Tokens with roles (``source``, ``viewer``, ``admin``; admin may do everything) as a bearer header
   or ``?token=``. Without one no session data is served and no configuration changes.
+* ``GET /v1/schema``: the JSON Schema of every message, ``/v1/schema/asyncapi.json`` the AsyncAPI
+  document of both WebSockets (no token needed: they describe the protocol, not a session).
 * ``GET /viewer/``: the web viewer (``clients/web``), static files that hold no session data; the
   page asks for a session and a viewer token and subscribes like any client. ``GET /``: a page that
   leads to the viewer and the API docs.
@@ -28,6 +30,7 @@ from fastapi.staticfiles import StaticFiles
 from pydantic import ValidationError
 
 from ..protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, parse_message
+from ..protocol.schema import documents, message_schemas
 from .config import ServiceSettings
 from .metrics import Metrics
 from .outgoing import Outgoing
@@ -147,6 +150,19 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         if state["closing"]:
             raise HTTPException(503, "shutting down")
         return {"ready": True, "sessions": len(sessions), "protocol": PROTOCOL_VERSION}
+
+    @app.get("/v1/schema", tags=["protocol"])
+    def protocol_schema():
+        """JSON Schema (draft 2020-12) of every protocol-v1 message, by file name (as in ``docs/schema/``)."""
+        return {"protocol": PROTOCOL_VERSION, "schemas": message_schemas()}
+
+    @app.get("/v1/schema/{name}", tags=["protocol"])
+    def protocol_schema_file(name: str):
+        """One of the documents of ``/v1/schema``, or the AsyncAPI document ``asyncapi.json``."""
+        docs = documents()
+        if name not in docs:
+            raise HTTPException(404, f"no schema {name!r}; expected one of {sorted(docs)}")
+        return docs[name]
 
     @app.get("/v1/sessions")
     def list_sessions(request: Request):

@@ -1,5 +1,7 @@
 """Protocol-v1 message models (pydantic) and the single place where raw input is validated.
 
+Source messages (what gloves and trackers send; ``outgoing`` has what the service sends).
+
 Rules (DESIGN.md "Wire protocol v1"): every message is a JSON object with a ``type``; unknown fields
 are ignored; unknown types, missing fields, non-finite numbers, wrong shapes and non-unit
 quaternions raise ``ProtocolError`` with a ``code`` and a ``detail`` naming the field, the value and
@@ -185,66 +187,6 @@ class Truth(_Message):
     fingers: dict[str, dict[str, float]]
     position: Vec3
     orientation: Quat
-
-
-class ErrorMessage(_Message):
-    type: Literal["error"] = "error"
-    code: str
-    detail: str
-
-
-class JointPose(_Message):
-    position: Vec3
-    orientation: Quat
-    radius: Annotated[float, Field(ge=0.0, description="joint centre to skin, m")] | None = None
-    tracked: bool = Field(True, description="false: the pose is held or inferred, not measured now")
-
-
-class Ray(_Message):
-    origin: Vec3
-    direction: Vec3
-
-
-class Frame(_Message):
-    """Service -> VR client: joint angles (rad) per finger with the estimator mode, the 26 OpenXR joint
-    poses (world frame), the status, and the gesture layer's continuous values."""
-
-    type: Literal["frame"]
-    t: float
-    seq: int
-    hand: Literal["right", "left"]
-    fingers: dict[str, dict[str, float | str]]
-    joints: dict[str, JointPose]
-    status: dict
-    gesture: dict = {}
-
-
-class Gesture(_Message):
-    type: Literal["gesture"]
-    t: float
-    gesture: Literal["point", "grasp", "pinch", "open"]
-    event: Literal["start", "end"]
-    confidence: Annotated[float, Field(ge=0.0, le=1.0)]
-    ray: Ray | None = None
-
-
-class ServerHello(_Message):
-    type: Literal["hello"]
-    protocol: int
-    server: str = ""
-    session: str = ""
-
-
-OutputMessage = Annotated[Union[Frame, Gesture, ErrorMessage], Field(discriminator="type")]
-_OUTPUT_ADAPTER: TypeAdapter = TypeAdapter(OutputMessage)
-
-
-def parse_output(obj: object) -> Frame | Gesture | ErrorMessage:
-    """Validate a message from the service (for clients); raises ``ProtocolError``."""
-    try:
-        return _OUTPUT_ADAPTER.validate_python(obj)
-    except ValidationError as err:
-        raise ProtocolError("invalid_message", _describe(err)) from None
 
 
 SourceMessage = Annotated[Union[Hello, Calibration, Pose, Imu, ImuBatch, ReferencePose, Truth, Sync], Field(discriminator="type")]

@@ -1,0 +1,185 @@
+"""Protocol-v1 messages the service sends (DESIGN.md "Wire protocol v1", service -> client).
+
+The service builds these messages and clients read them: the hello reply, the ``sync`` reply,
+``frame``, ``gesture`` and ``error``. The models are the published contract: ``service.protocol.schema`` turns them into
+the JSON Schema documents under ``docs/schema/``, served at ``/v1/schema``. Like every protocol-v1
+reader, they ignore unknown fields, so a field added later (always optional) does not break an
+older client.
+
+Units: SI (seconds, metres, radians); quaternions ``[x, y, z, w]``; positions and directions in the
+world frame (OpenXR stage space, +Y up).
+"""
+from __future__ import annotations
+
+from typing import Annotated, Literal, Optional, Union
+
+from pydantic import Field, TypeAdapter, ValidationError
+
+from .messages import FINGER_JOINTS, PROTOCOL_VERSION, SENSOR_ID_PATTERN, ProtocolError, Quat, Vec3, _describe, _Message
+
+FINGERS = tuple(FINGER_JOINTS)
+JOINT_NAMES: tuple[str, ...] = (
+    "palm", "wrist", "thumb_metacarpal", "thumb_proximal", "thumb_distal", "thumb_tip",
+    *(f"{f}_{j}" for f in FINGERS[1:] for j in ("metacarpal", "proximal", "intermediate", "distal", "tip")),
+)
+"""The 26 joints of OpenXR ``XR_EXT_hand_tracking`` in the enum's order (the protocol's copy of
+``service.model.openxr.JOINT_NAMES``: the protocol is a ground floor and imports no model; a test
+keeps the two equal)."""
+FingerName = Literal[FINGERS]  # type: ignore[valid-type]
+GestureName = Literal["point", "grasp", "pinch", "open"]
+EstimatorMode = Literal["slow", "fast", "fused", "none"]
+Unit = Annotated[float, Field(ge=0.0, le=1.0)]
+
+ERROR_CODES: dict[str, str] = {
+    "invalid_json": "the text is not valid JSON (non-finite literals such as NaN included)",
+    "invalid_msgpack": "the binary message is not valid MessagePack",
+    "invalid_message": "a field is missing, has the wrong type or shape, or is out of range",
+    "unknown_type": "the message's type is not a source message type",
+    "non_unit_quaternion": "a quaternion's norm differs from 1 by more than 1e-3",
+    "message_too_large": "the message exceeds the service's size limit",
+    "rate_limited": "the source sends more messages per second than allowed",
+    "unsupported_protocol": "the hello names a protocol version the service does not speak",
+    "expected_hello": "a source message came before the hello",
+    "time_backwards": "a sample is older than what the session has already processed",
+    "duplicate": "the same sensor and time was already received",
+}
+"""Every error code the service sends, with its meaning."""
+
+
+class ServerHello(_Message):
+    """The service's reply to a source's ``hello`` on ``/v1/ingest``, and the first message on
+    ``/v1/stream``."""
+
+    type: Literal["hello"]
+    protocol: int = Field(description=f"protocol version the service speaks ({PROTOCOL_VERSION})")
+    server: str = Field("", description="server name")
+    session: str = Field("", description="the session this connection belongs to")
+
+
+class SyncReply(_Message):
+    """The answer to a source's ``sync``: every message the source sent before it has been handled."""
+
+    type: Literal["sync"]
+    id: Annotated[int, Field(ge=0, le=2**53)] = Field(description="the id of the source's sync")
+
+
+class ErrorMessage(_Message):
+    """A source message was refused and dropped; the connection and the session go on."""
+
+    type: Literal["error"] = "error"
+    code: str = Field(description="machine-readable reason, one of: " + ", ".join(ERROR_CODES))
+    detail: str = Field(description="human-readable reason naming the field, the value and what was expected")
+
+
+class FingerAngles(_Message):
+    """Joint angles of one finger, rad, flexion positive (DESIGN.md "Conventions")."""
+
+    mcp: float = Field(description="metacarpophalangeal joint angle phi_0, rad")
+    pip: Optional[float] = Field(None, description="proximal interphalangeal joint angle phi_1, rad (long fingers)")
+    dip: Optional[float] = Field(None, description="distal interphalangeal joint angle phi_2, rad (long fingers)")
+    ip: Optional[float] = Field(None, description="interphalangeal joint angle, rad (thumb)")
+    mode: EstimatorMode = Field(description="what the estimator relied on: slow (vector observation), fast (gyro "
+                                            "integration), fused (a filter using both), none (no information, held)")
+
+
+class JointPose(_Message):
+    """One OpenXR hand joint in the world frame: -Z toward the fingertip, +Y out of the back of the hand."""
+
+    position: Vec3 = Field(description="joint position, m")
+    orientation: Quat = Field(description="joint orientation [x, y, z, w], unit norm")
+    radius: Optional[Annotated[float, Field(ge=0.0)]] = Field(None, description="joint centre to skin, m")
+    tracked: bool = Field(True, description="false: the pose is held or inferred, not measured now")
+
+
+JointName = Literal[JOINT_NAMES]  # type: ignore[valid-type]
+Joints = Annotated[dict[JointName, JointPose], Field(  # type: ignore[valid-type]
+    min_length=len(JOINT_NAMES), max_length=len(JOINT_NAMES),
+    description="all 26 joints of OpenXR XR_EXT_hand_tracking by their snake_case names "
+                "(palm, wrist, thumb_metacarpal ... little_tip), world frame")]
+
+
+class SensorStatus(_Message):
+    age_s: Optional[float] = Field(description="time since the sensor's last sample, s (null before the first)")
+    silent: bool = Field(description="true when the sensor has been silent longer than the sensor timeout")
+
+
+class DroppedCounts(_Message):
+    """Source samples dropped so far, by reason."""
+
+    duplicate: int = Field(ge=0, description="samples of a sensor and time already received")
+    late: int = Field(ge=0, description="samples older than what was already processed")
+    overflow: int = Field(ge=0, description="samples pushed out of the bounded pending table")
+    unknown_sensor: int = Field(ge=0, description="samples of a sensor the calibration does not have")
+    subscriber_frames: Optional[int] = Field(None, ge=0, description="frames dropped for subscribers of this "
+                                             "session that fell behind (the live service only)")
+
+
+class ReferencePoseCounts(_Message):
+    applied: int = Field(ge=0, description="reference_pose messages applied as a known configuration")
+    stale: int = Field(ge=0, description="reference_pose messages ignored: too old, or pushed out of the bounded queue")
+
+
+class FrameStatus(_Message):
+    optics: Literal["tracking", "occluded", "waiting"] = Field(
+        description="optical pose: tracking, occluded (pose held), or waiting (none seen yet)")
+    estimator: str = Field(description="the estimator's name")
+    sensors: dict[Annotated[str, Field(pattern=SENSOR_ID_PATTERN)], SensorStatus] = Field(
+        description="per IMU, by sensor id <finger>.<phalanx>")
+    dropped: DroppedCounts
+    clock_steps: int = Field(ge=0, description="jumps of the source clock seen so far")
+    reference_poses: Optional[ReferencePoseCounts] = None
+
+
+class Ray(_Message):
+    origin: Vec3 = Field(description="the index fingertip, m, world frame")
+    direction: Vec3 = Field(description="unit vector from the index MCP joint to the fingertip, world frame")
+
+
+class GestureState(_Message):
+    """The gesture layer's continuous values at this frame (``gestures/recognizer.py``)."""
+
+    active: Optional[GestureName] = Field(description="the gesture in progress, or null")
+    curl: dict[FingerName, Unit] = Field(description="per finger, total flexion over a full curl, 0..1")
+    grab_strength: Unit = Field(description="mean curl of the four long fingers, 0..1")
+    pinch_strength: Unit = Field(description="1 with the thumb and index tips touching, 0 from 7 cm apart; 0 while grasping")
+    ray: Optional[Ray] = Field(None, description="the pointing ray, while pointing")
+
+
+class Frame(_Message):
+    """Service -> client: the hand at one time of the source clock."""
+
+    type: Literal["frame"]
+    t: float = Field(description="time of the estimate, s, on the source's clock")
+    seq: int = Field(ge=1, description="frame number in this session, counting from 1")
+    hand: Literal["right", "left"]
+    fingers: dict[FingerName, FingerAngles] = Field(description="joint angles per finger")
+    joints: Joints
+    status: FrameStatus
+    gesture: Optional[GestureState] = Field(None, description="gesture layer values (absent without the recogniser)")
+
+
+class Gesture(_Message):
+    """A gesture started or ended (sent right after the frame that caused it)."""
+
+    type: Literal["gesture"]
+    t: float = Field(description="time of the frame that caused the event, s, source clock")
+    gesture: GestureName
+    event: Literal["start", "end"]
+    confidence: Unit = Field(description="how far inside its threshold band the decisive quantity is, 0..1")
+    ray: Optional[Ray] = Field(None, description="the pointing ray (point events)")
+
+
+ServiceMessage = Annotated[Union[ServerHello, SyncReply, Frame, Gesture, ErrorMessage], Field(discriminator="type")]
+"""Any message the service sends on ``/v1/ingest`` or ``/v1/stream``."""
+OutputMessage = Annotated[Union[Frame, Gesture, ErrorMessage], Field(discriminator="type")]
+_OUTPUT_ADAPTER: TypeAdapter = TypeAdapter(OutputMessage)
+SERVICE_TYPES = ("hello", "sync", "frame", "gesture", "error")
+
+
+def parse_output(obj: object) -> Frame | Gesture | ErrorMessage:
+    """Validate a ``frame``, ``gesture`` or ``error`` from the service (for clients); raises ``ProtocolError``."""
+    try:
+        return _OUTPUT_ADAPTER.validate_python(obj)
+    except ValidationError as err:
+        raise ProtocolError("invalid_message", _describe(err)) from None
+

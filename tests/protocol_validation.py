@@ -1,0 +1,68 @@
+"""Checks every message the service sends against the published JSON Schema (``docs/schema/``).
+
+The published schemas leave objects open (readers ignore unknown fields); these checks are strict:
+every object with declared properties gets ``additionalProperties: false``, and an error's code must
+be one of ``ERROR_CODES``. So a field the service sends but the schema does not declare fails here.
+"""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import msgpack
+from jsonschema import Draft202012Validator
+
+from service.protocol import ERROR_CODES
+
+SCHEMA_DIR = Path(__file__).resolve().parents[1] / "docs" / "schema"
+
+
+def published(name: str) -> dict:
+    return json.loads((SCHEMA_DIR / name).read_text(encoding="utf-8"))
+
+
+def closed(schema: dict) -> dict:
+    """A copy of ``schema`` in which every object with ``properties`` admits no other property, with
+    the local ``#/$defs/...`` references written out in place (the protocol's schemas have no
+    recursion; resolving references is most of a validator's time otherwise)."""
+    defs = schema.get("$defs", {})
+
+    def walk(node):
+        if isinstance(node, dict):
+            ref = node.get("$ref", "")
+            if ref.startswith("#/$defs/"):
+                rest = {k: v for k, v in node.items() if k != "$ref"}
+                return {**walk(defs[ref[len("#/$defs/"):]]), **walk(rest)}
+            out = {k: walk(v) for k, v in node.items() if k != "$defs"}
+            if "properties" in out and "additionalProperties" not in out:
+                out["additionalProperties"] = False
+            return out
+        if isinstance(node, list):
+            return [walk(v) for v in node]
+        return node
+    return walk(copy.deepcopy(schema))
+
+
+class ServiceMessageCheck:
+    """Validates messages as the service sent them (JSON text or MessagePack bytes): against the
+    union schema, through the branch its ``type`` selects (the union's discriminator mapping; a
+    message of no known type is checked against the whole union)."""
+
+    def __init__(self):
+        union = published("service-message.schema.json")
+        self.union = Draft202012Validator(closed(union))
+        self.by_type = {}
+        for kind, ref in union["discriminator"]["mapping"].items():
+            branch = {"$defs": union["$defs"], **union["$defs"][ref.split("/")[-1]]}
+            self.by_type[kind] = Draft202012Validator(closed(branch))
+
+    def problems(self, data) -> list[str]:
+        message = msgpack.unpackb(data) if isinstance(data, (bytes, bytearray)) else json.loads(data)
+        kind = message.get("type") if isinstance(message, dict) else None
+        validator = self.by_type.get(kind, self.union)
+        found = [f"{'/'.join(map(str, e.absolute_path)) or 'message'}: {e.message}"
+                 for e in validator.iter_errors(message)]
+        if kind == "error" and message.get("code") not in ERROR_CODES:
+            found.append(f"code: {message.get('code')!r} is not one of the documented error codes")
+        return found
