@@ -312,6 +312,46 @@ def _cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
+def _session_hand(text: str) -> tuple[str, str]:
+    """``NAME`` or ``NAME:HAND`` -> (name, hand); the hand defaults to right."""
+    name, _, hand = text.partition(":")
+    hand = hand or "right"
+    if not name or hand not in ("right", "left"):
+        raise argparse.ArgumentTypeError(f"expected NAME or NAME:HAND with HAND right or left, got {text!r}")
+    return name, hand
+
+
+def _cmd_lsl(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from websockets.exceptions import InvalidStatus
+
+    from clients.lsl import LslBridge
+
+    try:
+        bridge = LslBridge(args.url, args.token, args.session, source_clock=args.source_clock, rate_hz=args.rate,
+                           binary=args.binary)
+    except RuntimeError as err:                     # pylsl or liblsl missing
+        raise ValueError(str(err)) from None
+    for name, streams in bridge.streams.items():
+        for hand in streams.hands:
+            print(f"LSL stream 'fingertrack {name} {hand}' (MoCap, 14 joint angles, rad) source_id "
+                  f"{bridge.source_id(name, hand)}")
+        print(f"LSL stream 'fingertrack {name} gestures' (Markers) source_id {bridge.source_id(name, 'gestures')}")
+    print(f"republishing from {args.url} (source clock: {args.source_clock}); Ctrl-C stops")
+    try:
+        asyncio.run(bridge.run())
+    except InvalidStatus as err:
+        reason = err.response.body.decode(errors="replace").strip()
+        raise ValueError(f"the service refused the subscription: HTTP {err.response.status_code}"
+                         + (f" {reason}" if reason else "; --token needs the viewer role")) from None
+    except KeyboardInterrupt:
+        pass
+    for name, streams in bridge.streams.items():
+        print(f"session {name}: {streams.frames} frames, {streams.events} gesture events republished")
+    return 0
+
+
 def _cmd_schema(args: argparse.Namespace) -> int:
     from .protocol import PROTOCOL_VERSION
     from .protocol.schema import documents, dump, write_documents
@@ -460,6 +500,25 @@ def build_parser() -> argparse.ArgumentParser:
     wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines")
     wat.add_argument("--count", type=int, default=0, help="stop after this many messages (0: never)")
     wat.set_defaults(func=_cmd_watch)
+
+    lsl = sub.add_parser("lsl", help="republish sessions as Lab Streaming Layer streams (joint angles, gesture markers)",
+                         description="Subscribe to sessions of a running service and republish each hand as an LSL "
+                                     "stream (type MoCap, one channel per joint angle in radians, stable source_id) "
+                                     "and its gesture events as an LSL marker stream, for LabRecorder and any LSL "
+                                     "inlet. Needs pylsl: pip install 'fingertrack[lsl]'. Runs until Ctrl-C.")
+    lsl.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
+    lsl.add_argument("--token", required=True, help="a token with the viewer role")
+    lsl.add_argument("--session", type=_session_hand, action="append", required=True, metavar="NAME[:HAND]",
+                     help="a session to republish, with the hand its source is (right or left; default right); "
+                          "repeatable")
+    lsl.add_argument("--source-clock", choices=("estimate", "lsl"), default="estimate",
+                     help="how frame times map to the LSL clock: 'lsl' if the source stamps with this machine's "
+                          "monotonic clock (the LSL clock), else 'estimate': source time plus the smallest delay "
+                          "seen (default estimate)")
+    lsl.add_argument("--rate", type=_positive_float, default=90.0,
+                     help="nominal rate of the hand streams, Hz: the service's frame rate (default 90)")
+    lsl.add_argument("--binary", action="store_true", help="subscribe with MessagePack instead of JSON")
+    lsl.set_defaults(func=_cmd_lsl)
 
     sch = sub.add_parser("schema", help="write the JSON Schema of every protocol-v1 message and the AsyncAPI document",
                          description="JSON Schema (draft 2020-12) of every protocol-v1 message, one file each plus "

@@ -1,0 +1,174 @@
+"""The LSL bridge with a real LSL inlet on the loopback, fed by a real service and a streaming source."""
+import asyncio
+import json
+import threading
+
+import numpy as np
+import pytest
+
+try:
+    import pylsl
+except (ImportError, RuntimeError, OSError) as err:       # pylsl missing, or liblsl cannot load
+    pytest.skip(f"pylsl/liblsl cannot load: {err}", allow_module_level=True)
+
+from clients.client import Publisher, Subscription, rest
+from clients.glove import source_messages
+from clients.lsl import CHANNELS, ClockMap, LslBridge
+from service.api.config import ServiceSettings
+from service.api.server import ServerThread
+from service.cli import main
+from service.sim.motions import sequence_motion
+from service.sim.session import SimConfig
+
+SOURCE, VIEWER, ADMIN = "src-lsl-1", "view-lsl-1", "admin-lsl-1"
+
+
+@pytest.fixture(scope="module")
+def server():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
+    with ServerThread(settings) as srv:
+        yield srv
+
+
+def test_the_clock_map_is_the_running_minimum_delay_per_source_run():
+    clock = ClockMap("estimate")
+    t = np.arange(6) * 0.01
+    delays = [0.050, 0.030, 0.045, 0.031, 0.020, 0.090]
+    stamps = [clock.frame_time(ti, 100.0 + ti + d) for ti, d in zip(t, delays)]
+    expected_offsets = np.minimum.accumulate(np.asarray(delays)) + 100.0
+    assert np.allclose(np.asarray(stamps) - t, expected_offsets, atol=1e-12)
+    assert clock.event_time(t[-1]) == pytest.approx(t[-1] + 100.020)
+    # a new run of the source clock (time going back) starts a new estimate
+    assert clock.frame_time(0.0, 500.07) == pytest.approx(500.07)
+    assert clock.runs == 2
+    # as does a clock step the service reports
+    clock.frame_time(1.0, 501.0, clock_steps=0)
+    assert clock.frame_time(9.0, 600.5, clock_steps=1) == pytest.approx(600.5) and clock.runs == 3
+    # a source on the LSL clock is used as is
+    assert ClockMap("lsl").frame_time(12.5, 99.0) == 12.5
+    with pytest.raises(ValueError, match="source clock"):
+        ClockMap("ntp")
+
+
+def _shifted(message, dt: float):
+    """The message with every time field moved by ``dt`` seconds."""
+    if isinstance(message, dict):
+        return {k: (v + dt if k in ("t", "t0", "t1") else _shifted(v, dt)) for k, v in message.items()}
+    if isinstance(message, list):
+        return [_shifted(v, dt) for v in message]
+    return message
+
+
+def _resolve(source_id: str) -> pylsl.StreamInlet:
+    found = pylsl.resolve_byprop("source_id", source_id, 1, 30.0)
+    assert found, f"no LSL stream with source_id {source_id}"
+    inlet = pylsl.StreamInlet(found[0], max_buflen=360, recover=False)
+    inlet.open_stream(30.0)
+    return inlet
+
+
+def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
+    session = "lsl-a"
+    bridge = LslBridge(server.url, VIEWER, [(session, "right")], source_clock="lsl")
+    hand_inlet = _resolve(f"fingertrack/{server.url.split('//')[1]}/{session}/right")
+    marker_inlet = _resolve(f"fingertrack/{server.url.split('//')[1]}/{session}/gestures")
+
+    loop = asyncio.new_event_loop()
+    failures = []
+
+    def follow():                                    # the bridge on its own event loop, as in its own process
+        asyncio.set_event_loop(loop)
+        try:
+            loop.run_until_complete(bridge.run())
+        except Exception as err:                     # reported below; a refusal would end the bridge early
+            failures.append(err)
+    runner = threading.Thread(target=follow)
+    runner.start()
+    try:
+        config = SimConfig(motion="sequence", noise="white", seed=5,
+                           finger_motion=sequence_motion(steps=(("point", 0.6), ("grasp", 0.6), ("relaxed", 0.6))))
+        start = pylsl.local_clock()                  # the source stamps with the LSL clock
+        messages = [_shifted(m, start) for _, m in source_messages(config)]
+
+        async def stream():
+            frames, events = [], []
+            sub = Subscription(server.ws_url, session, VIEWER)
+
+            async def collect():
+                async for m in sub:
+                    (frames if m["type"] == "frame" else events).append(m)
+            task = asyncio.create_task(collect())
+            while True:                              # the bridge and this subscriber are both listening
+                status, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER)
+                if any(s["session"] == session and s["subscribers"] >= 2 for s in sessions):
+                    break
+                await asyncio.sleep(0.05)
+            pub = Publisher(server.url, session, SOURCE)
+            for m in messages:
+                await pub.send(m)
+            await pub.close()                        # syncs: every frame of the session exists now
+            _, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER)
+            total = next(s["frames_out"] for s in sessions if s["session"] == session)
+            while len(frames) < total:
+                await asyncio.sleep(0.05)
+            await sub.close()
+            task.cancel()
+            return frames, events
+        frames, events = asyncio.run(asyncio.wait_for(stream(), 300))
+
+        samples, stamps = [], []
+        while len(samples) < len(frames):
+            sample, stamp = hand_inlet.pull_sample(timeout=60.0)
+            assert sample is not None, f"the inlet got {len(samples)} of {len(frames)} frames"
+            samples.append(sample)
+            stamps.append(stamp)
+        markers = []
+        while len(markers) < len(events):
+            sample, stamp = marker_inlet.pull_sample(timeout=60.0)
+            assert sample is not None, f"the marker inlet got {len(markers)} of {len(events)} events"
+            markers.append((json.loads(sample[0]), stamp))
+    finally:
+        asyncio.run_coroutine_threadsafe(bridge.close(), loop).result(30)
+        runner.join(30)
+        loop.close()
+    assert failures == []
+
+    assert len(frames) > 150 and [f["seq"] for f in frames] == list(range(1, len(frames) + 1))
+    # every frame, in order: the angles the service sent (as float32) ...
+    expected = np.array([[f["fingers"][finger][joint] for finger, joint in CHANNELS] for f in frames])
+    assert np.allclose(np.asarray(samples), expected.astype(np.float32), rtol=0, atol=1e-6)
+    # ... at the frame's mapped time (the source's own time on the LSL clock), within 1 ms
+    t = np.array([f["t"] for f in frames])
+    assert np.max(np.abs(np.asarray(stamps) - t)) <= 1e-3
+    assert np.all(np.diff(stamps) > 0)
+    # the gesture events as markers, at their frames' times
+    assert [e["gesture"] for e, _ in markers] == [e["gesture"] for e in events]
+    assert [(e["event"], e["confidence"]) for e, _ in markers] == [(e["event"], e["confidence"]) for e in events]
+    assert max(abs(stamp - e["t"]) for (_, stamp), e in zip(markers, events)) <= 1e-3
+    assert {e["gesture"] for e in events} >= {"point", "grasp"}
+    # what a recorder reads from the stream description
+    info = hand_inlet.info(30.0)
+    assert (info.type(), info.channel_count(), info.nominal_srate()) == ("MoCap", 14, 90.0)
+    channel = info.desc().child("channels").child("channel")
+    labels, units = [], []
+    while not channel.empty():
+        labels.append(channel.child_value("label"))
+        units.append(channel.child_value("unit"))
+        channel = channel.next_sibling()
+    assert labels == [f"{f}_{j}" for f, j in CHANNELS] and set(units) == {"radians"}
+    assert info.desc().child_value("hand") == "right"
+    assert marker_inlet.info(30.0).type() == "Markers"
+
+
+def test_the_lsl_command_refuses_bad_arguments_and_tokens_clearly(server, capsys):
+    with pytest.raises(SystemExit):
+        main(["lsl", "--url", server.url, "--token", VIEWER, "--session", "a:middle"])
+    assert "expected NAME or NAME:HAND with HAND right or left, got 'a:middle'" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["lsl", "--url", server.url, "--token", VIEWER, "--session", "a", "--rate", "0"])
+    assert "expected a positive finite number, got '0'" in capsys.readouterr().err
+    assert main(["lsl", "--url", server.url, "--token", "wrong-token", "--session", "lsl-refused"]) == 2
+    err = capsys.readouterr().err
+    assert "refused the subscription: HTTP 403" in err and "Traceback" not in err and "wrong-token" not in err
+    assert main(["lsl", "--url", server.url, "--token", SOURCE, "--session", "lsl-refused"]) == 2
+    assert "refused the subscription: HTTP 403; --token needs the viewer role" in capsys.readouterr().err
