@@ -432,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--noise", choices=NOISE_KINDS, default="both", help="IMU errors (default both)")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     sim.add_argument("--rate", type=_positive_float, default=200.0, help="IMU rate in Hz (default 200)")
-    sim.add_argument("--hand", choices=("right", "left"), default="right")
+    sim.add_argument("--hand", choices=("right", "left"), default="right", help="which hand (default right)")
     sim.add_argument("--hand-motion", choices=sorted(HAND_MOTIONS), default="still", help="metacarpus trajectory (default still)")
     sim.add_argument("--optical-rate", type=_positive_float, default=None, help="optical pose rate in Hz (default 90)")
     sim.add_argument("--latency", type=_non_negative_float, default=None, help="optical latency in s (default 0.02)")
@@ -481,24 +481,27 @@ def build_parser() -> argparse.ArgumentParser:
     glv = sub.add_parser("glove", help="stream a simulated glove + optical tracker to a service in real time")
     glv.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
     glv.add_argument("--token", required=True, help="a token with the source role")
-    glv.add_argument("--session", default="default")
-    glv.add_argument("--motion", choices=sorted(FINGER_MOTIONS), default="sequence")
-    glv.add_argument("--tm", type=_positive_float, default=None)
-    glv.add_argument("--hand", choices=("right", "left"), default="right")
-    glv.add_argument("--rate", type=_positive_float, default=200.0)
-    glv.add_argument("--noise", choices=NOISE_KINDS, default="both")
-    glv.add_argument("--hand-motion", choices=sorted(HAND_MOTIONS), default="still")
-    glv.add_argument("--seed", type=int, default=0)
+    glv.add_argument("--session", default="default", help="session to stream into (default default)")
+    glv.add_argument("--motion", choices=sorted(FINGER_MOTIONS), default="sequence",
+                     help="finger motion (default sequence: point, grasp, release, pinch, open)")
+    glv.add_argument("--tm", type=_positive_float, default=None,
+                     help="movement duration t_m in seconds (default: the motion's own)")
+    glv.add_argument("--hand", choices=("right", "left"), default="right", help="which hand (default right)")
+    glv.add_argument("--rate", type=_positive_float, default=200.0, help="IMU rate in Hz (default 200)")
+    glv.add_argument("--noise", choices=NOISE_KINDS, default="both", help="IMU errors (default both)")
+    glv.add_argument("--hand-motion", choices=sorted(HAND_MOTIONS), default="still",
+                     help="metacarpus trajectory (default still)")
+    glv.add_argument("--seed", type=int, default=0, help="random seed of the sensor errors (default 0)")
     glv.add_argument("--reference-pose", type=_positive_float, default=None, metavar="SECONDS",
                      help="hold the hand flat this long first and send a reference_pose message when done")
     glv.set_defaults(func=_cmd_glove)
 
     wat = sub.add_parser("watch", help="subscribe and print gesture events and live joint angles")
-    wat.add_argument("--url", required=True)
+    wat.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
     wat.add_argument("--token", required=True, help="a token with the viewer role")
-    wat.add_argument("--session", default="default")
-    wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines")
-    wat.add_argument("--count", type=int, default=0, help="stop after this many messages (0: never)")
+    wat.add_argument("--session", default="default", help="session to watch (default default)")
+    wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines (default 0.25)")
+    wat.add_argument("--count", type=int, default=0, help="stop after this many messages (default 0: never)")
     wat.set_defaults(func=_cmd_watch)
 
     lsl = sub.add_parser("lsl", help="republish sessions as Lab Streaming Layer streams (joint angles, gesture markers)",
@@ -532,25 +535,70 @@ def build_parser() -> argparse.ArgumentParser:
     demo = sub.add_parser("demo", help="the service, a simulated glove and a subscriber, end to end (~10 s)")
     demo.set_defaults(func=_cmd_demo)
 
-    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, real data and peers, "
-                                         "service latency, service load")
-    bench.add_argument("which", choices=("paper", "gestures", "latency", "peers", "load", "robustness"), help="which benchmark")
-    bench.add_argument("--data", default=None, help="peers: folder of BROAD .mat trials")
-    bench.add_argument("--seconds", type=_positive_float, default=20.0,
-                       help="latency, load: streaming time (per load level), s (default 20)")
-    bench.add_argument("--hands", type=_count_list, default=(1, 2, 4),
-                       help="load: comma-separated numbers of hands streamed at once, one level each (default 1,2,4)")
-    bench.add_argument("--subscribers", type=_positive_int, default=2, help="load: subscribers per hand (default 2)")
-    bench.add_argument("--binary", action="store_true", help="load: MessagePack instead of JSON")
-    bench.add_argument("--messages", type=_positive_int, default=None,
-                       help="robustness: hostile messages in the fuzz (default 100000; 1500 with --quick)")
-    bench.add_argument("--soak-seconds", type=_positive_float, default=None,
-                       help="robustness: length of the soak, s (default 600; 6 with --quick)")
-    bench.add_argument("--quick", action="store_true", help="7 durations up to 100 s, one seed (about a minute)")
-    bench.add_argument("--seeds", type=int, default=5, help="noise seeds per duration and series (default 5)")
-    bench.add_argument("--workers", type=int, default=2, help="worker processes (default 2)")
-    bench.add_argument("--out", required=True, help="output folder")
-    bench.set_defaults(func=_cmd_bench)
+    bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, real data against peer "
+                                         "libraries, service latency, service load, robustness",
+                           description="Each benchmark has its own options: fingertrack bench NAME --help.")
+    which = bench.add_subparsers(dest="which", required=True, metavar="NAME")
+
+    def benchmark(name: str, help: str, description: str) -> argparse.ArgumentParser:
+        b = which.add_parser(name, help=help, description=description)
+        b.add_argument("--out", required=True, metavar="DIR", help="output folder (created if missing)")
+        b.set_defaults(func=_cmd_bench)
+        return b
+
+    b = benchmark("paper", "the paper's experiment: grasp motions, three error series, every estimator",
+                  "Section 3 of the paper: grasp motions with t_m log-spaced from 0.1 s to 1000 s (32 durations), "
+                  "white-noise, zero-offset and both error series at MPU-9250 figures, every estimator; writes "
+                  "results.csv, summary.md, fig10.png, fig9.png.")
+    b.add_argument("--quick", action="store_true",
+                   help="6 durations from 0.1 s to 31.6 s and one seed instead of 32 up to 1000 s")
+    b.add_argument("--seeds", type=_positive_int, default=5,
+                   help="noise seeds per duration and series (default 5; --quick uses 1)")
+    b.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")
+
+    b = benchmark("gestures", "gesture recognition on long simulated sessions, against the true gestures",
+                  "Long simulated sessions with random scripts of point, grasp, pinch and open, a moving hand and "
+                  "IMU errors, through the live path; detected gestures scored against the true ones (precision, "
+                  "recall, onset and release latency, chatter, ray error); writes results.json, summary.md.")
+    b.add_argument("--quick", action="store_true", help="one 40 s session instead of six 120 s sessions (seeds 1-6)")
+    b.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")
+
+    b = benchmark("peers", "real rigid-IMU data (BROAD): our orientation cores against vqf, ahrs, imufusion",
+                  "Inclination error on the BROAD trials against their optical ground truth, and time per sample, "
+                  "for our rigid cores and the peer libraries (pip install -e '.[peers]'); writes results.csv, "
+                  "summary.md, peers.png.")
+    b.add_argument("--data", required=True, metavar="DIR", help="folder of BROAD .mat trials")
+    b.add_argument("--quick", action="store_true",
+                   help="the first 20000 samples of the first three trials instead of every trial in full")
+
+    b = benchmark("latency", "service latency: glove to subscriber, in a fresh service process",
+                  "A simulated hand streams in real time into a fresh service process; for every frame a "
+                  "subscriber receives, the time since the glove sent the message that completed it; writes "
+                  "results.json, summary.md.")
+    b.add_argument("--seconds", type=_positive_float, default=20.0, help="streaming time, s (default 20)")
+
+    b = benchmark("load", "service load: several hands at once, subscribers per hand",
+                  "Hands streamed at once into a fresh service process per load level, with subscribers per hand: "
+                  "every frame accounted for, order and session integrity, backlog and service CPU; writes "
+                  "results.json, summary.md.")
+    b.add_argument("--hands", type=_count_list, default=(1, 2, 4),
+                   help="comma-separated numbers of hands streamed at once, one level each (default 1,2,4)")
+    b.add_argument("--subscribers", type=_positive_int, default=2, help="subscribers per hand (default 2)")
+    b.add_argument("--seconds", type=_positive_float, default=20.0, help="streaming time per load level, s (default 20)")
+    b.add_argument("--binary", action="store_true", help="MessagePack instead of JSON")
+
+    b = benchmark("robustness", "hostile input, extremes, slow readers, connection storms, kill -9, soak",
+                  "A robustness campaign against fresh service processes: fuzzing, schema-valid extremes in a "
+                  "live stream, never-reading subscribers, a connection storm, kill -9 while recording and a soak, "
+                  "each beside a good session; writes summary.md, results.csv, results.json and the logs.")
+    b.add_argument("--quick", action="store_true",
+                   help="1500 fuzz messages, 2 s of extremes on two probes, 2 readers, 100 connects, one kill and a "
+                        "5 s soak instead of 100000 messages, 6 s on every probe, 5 readers, 2000 connects, three "
+                        "kills and a 600 s soak")
+    b.add_argument("--messages", type=_positive_int, default=None,
+                   help="hostile messages in the fuzz (default 100000; 1500 with --quick)")
+    b.add_argument("--soak-seconds", type=_positive_float, default=None,
+                   help="length of the soak, s (default 600; 5 with --quick)")
     return parser
 
 

@@ -1,4 +1,5 @@
 """The command line, through ``service.cli.main`` (the same code the console script runs)."""
+import argparse
 import csv
 
 import numpy as np
@@ -87,3 +88,67 @@ def test_a_dotted_param_sets_a_nested_setting(tmp_path, capsys):
     assert main(["estimate", str(rec), "--estimator", "inertial", "--param", "core.=1",
                  "--out", str(tmp_path / "x.csv")]) == 2
     assert "empty name" in capsys.readouterr().err
+
+
+def _subcommands(parser) -> dict:
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+
+
+def _help(argv: list[str], capsys) -> str:
+    with pytest.raises(SystemExit) as done:
+        main([*argv, "--help"])
+    assert done.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_each_benchmark_has_its_own_help(capsys):
+    from service.cli import build_parser
+    names = list(_subcommands(_subcommands(build_parser())["bench"]))
+    assert set(names) >= {"paper", "gestures", "peers", "latency", "load", "robustness"}
+    helps = {name: _help(["bench", name], capsys) for name in names}
+    assert len(set(helps.values())) == len(names)               # no two the same
+    assert "--hands" in helps["load"] and "--hands" not in helps["paper"]
+    assert "--seeds" in helps["paper"] and "--seeds" not in helps["latency"]
+    assert "--data" in helps["peers"] and "--data" not in helps["gestures"]
+    with pytest.raises(SystemExit):                              # an option of another benchmark is refused
+        main(["bench", "latency", "--hands", "2", "--out", "x"])
+    assert "unrecognized arguments: --hands" in capsys.readouterr().err
+
+
+def test_every_option_of_every_command_says_what_it_does_and_its_default():
+    from service.cli import build_parser
+    commands = dict(_subcommands(build_parser()))
+    commands.update({f"bench {k}": v for k, v in _subcommands(commands.pop("bench")).items()})
+    assert {"glove", "watch", "lsl", "schema", "bench paper"} <= set(commands)
+    for name, parser in commands.items():
+        for action in parser._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            assert action.help, f"{name} {action.option_strings or action.dest} has no help"
+            if action.default not in (None, False, [], argparse.SUPPRESS) and not action.required:
+                assert "default" in action.help, f"{name} {action.option_strings} does not state its default"
+
+
+def test_quick_descriptions_say_what_quick_runs(capsys):
+    """The --quick help texts against the constants the benchmarks run with."""
+    from service.bench import gestures, paper, peers, robustness
+    d = paper.durations(True)
+    text = " ".join(_help(["bench", "paper"], capsys).split())
+    assert f"{len(d)} durations from {d[0]:g} s to {d[-1]:.3g} s and one seed" in text
+    assert f"instead of {len(paper.durations(False))} up to {paper.durations(False)[-1]:g} s" in text
+    text = " ".join(_help(["bench", "gestures"], capsys).split())
+    (seeds, length), (full_seeds, full_length) = gestures.QUICK_SESSIONS, gestures.FULL_SESSIONS
+    assert len(seeds) == 1 and f"one {length:g} s session instead of six {full_length:g} s" in text
+    assert len(full_seeds) == 6
+    text = " ".join(_help(["bench", "peers"], capsys).split())
+    assert f"the first {peers.QUICK_N} samples of the first three trials" in text
+    text = " ".join(_help(["bench", "robustness"], capsys).split())
+    q, f = robustness.QUICK, robustness.FULL
+    assert f"{q['messages']} fuzz messages, {q['extreme_seconds']:g} s of extremes on two probes" in text
+    assert len(q["probes"]) == 2 and f["probes"] is None
+    assert f"{q['readers']} readers, {q['connects']} connects, one kill and a {q['soak_seconds']:g} s soak" in text
+    assert q["kill_trials"] == 1 and f["kill_trials"] == 3
+    assert (f"instead of {f['messages']} messages, {f['extreme_seconds']:g} s on every probe, {f['readers']} readers, "
+            f"{f['connects']} connects, three kills and a {f['soak_seconds']:g} s soak") in text
+    assert f"default {f['soak_seconds']:g}; {q['soak_seconds']:g} with --quick" in text
+    assert f"default {f['messages']}; {q['messages']} with --quick" in text

@@ -139,12 +139,18 @@ def _job(args):
     return run_session(*args)
 
 
+QUICK_SESSIONS = ((1,), 40.0)
+"""--quick: (seeds, session length in s)."""
+FULL_SESSIONS = ((1, 2, 3, 4, 5, 6), 120.0)
+"""The full run: (seeds, session length in s)."""
+
+
 def run(out_dir: str | Path, quick: bool = False, workers: int = 2, progress: bool = True) -> str:
     from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    seeds, duration = ((1,), 40.0) if quick else ((1, 2, 3, 4, 5, 6), 120.0)
+    seeds, duration = QUICK_SESSIONS if quick else FULL_SESSIONS
     start = time.perf_counter()
     with ProcessPoolExecutor(max_workers=workers) as pool:
         sessions = list(tqdm(pool.map(_job, [(s, duration) for s in seeds]), total=len(seeds),

@@ -1,7 +1,7 @@
 """The paper's experiment (section 3), rerunnable: ``fingertrack bench paper [--quick] [--seeds N] --out DIR``.
 
 Three series of sensor errors (white noise, zero offset, both) at MPU-9250 figures; grasp test
-motions with ``t_m`` log-spaced from 0.1 s to 1000 s (32 of them; ``--quick``: 7, one seed) and
+motions with ``t_m`` log-spaced from 0.1 s to 1000 s (32 of them; ``--quick``: 6 from 0.1 s to 31.6 s, one seed) and
 ``t_d = 0.2 s``; the index finger with the paper's sensor placement; the metacarpus pose known
 exactly and still, and the true initial configuration given to every estimator, as in the paper.
 The RMS error is taken over each whole motion ``[0, t_d + t_m]`` and over the three joints.
