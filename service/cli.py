@@ -405,8 +405,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.which == "load":
         from .bench import load
+        if args.bus is not None:
+            _need_nats_extra()
         print(load.run(args.out, hands=args.hands, subscribers=args.subscribers, seconds=args.seconds,
-                       binary=args.binary))
+                       binary=args.binary, bus_workers=args.workers if args.bus else None,
+                       kill_at_s=args.kill_worker_at))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "robustness":
@@ -586,6 +589,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--subscribers", type=_positive_int, default=2, help="subscribers per hand (default 2)")
     b.add_argument("--seconds", type=_positive_float, default=20.0, help="streaming time per load level, s (default 20)")
     b.add_argument("--binary", action="store_true", help="MessagePack instead of JSON")
+    b.add_argument("--bus", choices=("nats",), default=None,
+                   help="run the service as a gateway and --workers hand workers on a local nats-server "
+                        "(default: one service process)")
+    b.add_argument("--workers", type=_positive_int, default=2, help="with --bus nats: hand worker processes (default 2)")
+    b.add_argument("--kill-worker-at", type=_positive_float, default=None, metavar="S",
+                   help="with --bus nats: kill (SIGKILL) the worker owning most sessions S seconds into the stream "
+                        "(default: none)")
 
     b = benchmark("robustness", "hostile input, extremes, slow readers, connection storms, kill -9, soak",
                   "A robustness campaign against fresh service processes: fuzzing, schema-valid extremes in a "

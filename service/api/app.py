@@ -239,6 +239,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         if live is None:
             return
         live.sources += 1
+        live.attach_source(lambda code, detail: send_error(ws, code, detail))
         bucket = TokenBucket(settings.rate_limit_msgs_per_s)
         greeted = False
         try:
@@ -276,6 +277,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                     await send_error(ws, "expected_hello", f"the first message must be hello, got {msg.type}")
                     continue
                 elif isinstance(msg, Sync):           # everything before it is handled: say so
+                    await live.settled()
                     await send(ws, {"type": "sync", "id": msg.id})
                     continue
                 counters = live.hand.session.counters

@@ -166,6 +166,13 @@ class LiveSession:
                 self._fan_out(group, t0)
                 await asyncio.sleep(0)
 
+    def attach_source(self, send_error) -> None:
+        """``send_error(code, detail)`` (async) answers the connected source. Errors are found while
+        ingesting here, so the embedded session needs it not; a bus session answers from its replies."""
+
+    async def settled(self) -> None:
+        """Every message ingested so far has been handled (here: as soon as ``ingest`` returned)."""
+
     def _fan_out(self, group: list[dict], t0: float) -> None:
         for out in group:
             if out["type"] == "frame":

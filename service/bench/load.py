@@ -22,6 +22,7 @@ level it reports:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -35,8 +36,9 @@ FRAME_FIELDS = ("t", "seq", "hand")
 
 
 async def _level(url: str, source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
-                 binary: bool, service_cpu) -> dict:
-    """``service_cpu()``: the service process's CPU seconds so far (None where it cannot be read)."""
+                 binary: bool, service_cpu, kill=None) -> dict:
+    """``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
+    ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed)."""
     from clients.client import Subscription
     from clients.glove import source_messages, stream_glove
 
@@ -70,9 +72,19 @@ async def _level(url: str, source: str, viewer: str, admin: str, hands: int, sub
 
     # CPU shares over the streaming window only (the service may work on past it when it falls behind)
     cpu0, service0, wall0 = time.process_time(), service_cpu(), time.perf_counter()
+    killed: dict = {}
+
+    async def kill_later():
+        await asyncio.sleep(kill[0])
+        killed.update(await kill[1]())
+        killed["t"] = time.perf_counter()
+
+    killer = asyncio.create_task(kill_later()) if kill is not None else None
     pubs = await asyncio.gather(*(stream_glove(url, n, source, c, on_send=on_send_for(n), messages=m, binary=binary)
                                   for n, c, m in zip(names, configs, msgs)))
     service1, wall = service_cpu(), time.perf_counter() - wall0
+    if killer is not None:
+        await killer
     generator_cpu = time.process_time() - cpu0
     for p in pubs:
         await p.close()                                       # returns once the service has handled everything sent (sync)
@@ -91,7 +103,7 @@ async def _level(url: str, source: str, viewer: str, admin: str, hands: int, sub
     delays = [r[0] - (first_send[n] + (r[4] - m[0][0])) for n, m in zip(names, msgs)
               for k in range(subscribers) for r in received[(n, k)]]
     return {"names": names, "hands_of": {n: c.hand for n, c in zip(names, configs)}, "received": received,
-            "delays": delays,
+            "delays": delays, "killed": killed,
             "wall_s": wall, "drain_s": drain, "generator_cpu_s": generator_cpu, "errors": errors,
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
@@ -123,14 +135,66 @@ def _integrity(received: dict, hands_of: dict) -> int:
     return bad
 
 
-def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: bool = False) -> dict:
-    """One load level in a fresh service process; returns its measured figures."""
+def _recovery(received: dict, killed: dict, subscribers: int) -> dict | None:
+    """After a worker was killed: for each session it owned, the time from the kill to the first frame
+    a subscriber got from the new owner, and the frames never produced (the jump in ``seq``)."""
+    if not killed:
+        return None
+    t_kill, moved = killed["t"], killed["sessions"]
+    times, lost = [], 0
+    for name in moved:
+        rows = received[(name, 0)]
+        after = [r for r in rows if r[0] > t_kill]
+        before = [r for r in rows if r[0] <= t_kill]
+        if not after:
+            times.append(float("inf"))
+            continue
+        base = before[-1][2] if before else after[0][2] - 1
+        jump = next((i for i, r in enumerate(after) if r[2] - (after[i - 1][2] if i else base) > 1), None)
+        times.append(after[jump][0] - t_kill if jump is not None else after[0][0] - t_kill)
+        seqs = [base] + [r[2] for r in after]
+        lost += sum(b - a - 1 for a, b in zip(seqs, seqs[1:]) if b - a > 1)
+    return {"worker": killed["worker"], "sessions_moved": len(moved),
+            "recovery_s_max": max(times) if times else None, "recovery_s": times,
+            "frames_never_produced": lost, "messages_lost": killed.get("messages_lost")}
+
+
+def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: bool = False,
+              bus_workers: int | None = None, kill_at_s: float | None = None) -> dict:
+    """One load level in a fresh service process, or with ``bus_workers`` a fresh NATS cluster (a
+    gateway and that many workers; ``kill_at_s``: the worker owning most sessions is killed that
+    long into the stream); returns its measured figures."""
     from clients.client import rest
 
-    with service_process() as svc:
-        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary, svc.cpu_seconds))
+    with contextlib.ExitStack() as stack:
+        if bus_workers is None:
+            svc = stack.enter_context(service_process())
+            service_cpu, worker_cpu, kill = svc.cpu_seconds, None, None
+        else:
+            from .cluster import cluster
+            cl = stack.enter_context(cluster(bus_workers))
+            svc = cl.gateway
+            worker_cpu = cl.worker_cpu_seconds
+
+            def service_cpu():
+                g, w = svc.cpu_seconds(), cl.worker_cpu_seconds()
+                return None if g is None or w is None else g + w
+
+            async def kill_busiest():
+                owners = await cl.owners()
+                counts = {w: sum(1 for o in owners.values() if o == w) for w in cl.workers}
+                victim = max(counts, key=counts.get)
+                cl.kill(victim)
+                return {"worker": victim, "sessions": [s for s, o in owners.items() if o == victim]}
+            kill = (kill_at_s, kill_busiest) if kill_at_s is not None else None
+        w0 = worker_cpu() if worker_cpu else None
+        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
+                                 service_cpu, kill))
+        w1 = worker_cpu() if worker_cpu else None
         _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     by_name = {s["session"]: s for s in sessions}
+    if lvl["killed"]:
+        lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) for n in lvl["names"] if n in by_name)
     produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)
     dropped = sum(by_name[n]["dropped_subscriber_frames"] for n in lvl["names"] if n in by_name)
     rows = [r for v in lvl["received"].values() for r in v]
@@ -150,6 +214,9 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
         "source_errors": int(lvl["errors"]),
         "service_cpu_share": None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"],
+        "bus_workers": bus_workers,
+        "worker_cpu_share": None if w0 is None or w1 is None else (w1 - w0) / lvl["wall_s"],
+        "failover": _recovery(lvl["received"], lvl["killed"], subscribers),
         "generator_cpu_share": lvl["generator_cpu_s"] / lvl["wall_s"],
         "stream_wall_s": lvl["wall_s"],
         "drain_after_stream_s": lvl["drain_s"],
@@ -157,7 +224,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
 
 
 def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: int = 2, seconds: float = 15.0,
-        binary: bool = False, progress: bool = True) -> str:
+        binary: bool = False, progress: bool = True, bus_workers: int | None = None,
+        kill_at_s: float | None = None) -> str:
     from tqdm import tqdm
 
     if not hands or any(h < 1 for h in hands):
@@ -166,11 +234,16 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
         raise ValueError(f"subscribers must be at least 1, got {subscribers}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    levels = [run_level(h, subscribers, seconds, binary) for h in tqdm(hands, desc="bench load", unit="level",
+    if kill_at_s is not None and (bus_workers is None or bus_workers < 2):
+        raise ValueError("--kill-worker-at needs --bus nats with at least 2 workers")
+    if kill_at_s is not None and not 0 < kill_at_s < seconds:
+        raise ValueError(f"--kill-worker-at must lie inside the stream (0 < S < {seconds:g} s), got {kill_at_s:g}")
+    levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s) for h in tqdm(hands, desc="bench load", unit="level",
                                                                        disable=not progress)]
     (out / "results.json").write_text(json.dumps(levels, indent=2))
     enc = "MessagePack" if binary else "JSON"
-    lines = [f"# Load: hands at once, {subscribers} subscribers per hand, {seconds:.0f} s per level, {enc}", "",
+    where = "one service process" if bus_workers is None else f"NATS: a gateway and {bus_workers} workers, own processes"
+    lines = [f"# Load: hands at once, {subscribers} subscribers per hand, {seconds:.0f} s per level, {enc}, {where}", "",
              "| hands | frames produced | delivered / expected | dropped | send -> receive p50 / p99, ms | "
              "behind schedule p50 / p99 / max, ms | service still busy after the stream, s | "
              "service CPU, % of a core | generator CPU, % | integrity violations | source errors |",
@@ -184,6 +257,20 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
         lines.append(f"| {lv['hands']} | {lv['frames_produced']} | {lv['frames_delivered']} / {lv['frames_expected']} | "
                      f"{lv['frames_dropped']} | {lat_s} | {delay_s} | {lv['drain_after_stream_s']:.1f} | {cpu} | {100 * lv['generator_cpu_share']:.0f} | "
                      f"{lv['integrity_violations']} | {lv['source_errors']} |")
+    if bus_workers is not None:
+        lines += ["", "| hands | workers' CPU, % of a core | gateway + workers CPU, % | worker killed | sessions moved | "
+                  "kill -> first frame of the new owner, max s | frames never produced | source messages lost |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for lv in levels:
+            wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
+            cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
+            fo = lv["failover"]
+            if fo is None:
+                lines.append(f"| {lv['hands']} | {wc} | {cpu} | - | - | - | - | - |")
+            else:
+                rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
+                lines.append(f"| {lv['hands']} | {wc} | {cpu} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
+                             f"{fo['frames_never_produced']} | {fo['messages_lost']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule: a "
               "frame's arrival after the moment its tick's data were due to be sent; it includes the pipeline's "

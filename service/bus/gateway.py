@@ -2,11 +2,14 @@
 
 ``fingertrack serve --bus nats://...`` keeps the whole API (tokens, validation, rate limits,
 subscribers' bounded queues, sync barriers) and swaps the session: ``BusSession.ingest`` sends the
-validated source message to the session's owning worker as a request and returns once the worker
-has handled it (its frames are out, its late/duplicate counts and errors come back in the reply);
+validated source message to the session's owning worker (pipelined: it does not wait for the
+reply; the reply's late/duplicate counts and errors become the usual error replies to the source, and
+a ``sync`` is answered once every earlier message was answered);
 frames and gesture events of ``ft.out.<s>`` go to this gateway's subscribers of the session. When no
-worker listens (the owner died), the gateway asks ``ft.assign``; until a worker has taken the session
-over, messages are dropped and counted (``lost_to_failover`` in the session summary).
+worker listens (the owner died), the gateway asks ``ft.assign`` until a worker has taken the session
+over, holding the source's next message meanwhile; messages the server reported undeliverable are
+counted as ``lost_to_failover``, messages the dead owner never answered as ``unconfirmed`` (session
+summary).
 """
 from __future__ import annotations
 
@@ -24,6 +27,8 @@ from .subjects import (ASSIGN, REPLY_WAIT_S, close, config_subject, connect, out
 
 ASSIGN_TIMEOUT_S = 1.0
 """how long a gateway waits for a worker to answer ``ft.assign``, s"""
+WINDOW = 256
+"""source messages of one session on their way to its worker at once (more: the source waits)"""
 UNCONFIRMED = {"late": 0, "duplicate": 0, "error": None, "unconfirmed": True}
 
 
@@ -71,22 +76,35 @@ class GatewayBus:
 
 
 class BusSession(LiveSession):
-    """A session whose hand runs in a worker (module docstring)."""
+    """A session whose hand runs in a worker (module docstring). Source messages are pipelined: up to
+    ``WINDOW`` wait for their reply at once, each with its own reply subject, so a reply (or the
+    server's "no responders" status) belongs to exactly one message."""
 
     def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics, bus: GatewayBus):
         super().__init__(name, settings, metrics)
         self.bus = bus
-        self.lost_to_failover = 0
-        self.unconfirmed = 0                        # handed to a live owner that did not answer in time
+        self.lost_to_failover = 0                   # sent while no worker owned the session
+        self.unconfirmed = 0                        # handed to an owner that never answered (it died holding them)
         self.hand_side: str | None = None
+        self._inbox = f"{bus.nc.new_inbox()}.ft"
+        self._n = 0
+        self._pending: dict[int, tuple[str, float | None]] = {}
+        self._replied = asyncio.Event()
+        self._owner_ok = False
+        self._assigning: asyncio.Task | None = None
+        self._source_error = None
         self._subscribed = asyncio.Event()
-        self._subscription = None
+        self._subscriptions: list = []
         bus.loop.call_soon_threadsafe(lambda: bus.loop.create_task(self._subscribe()))
 
     async def _subscribe(self) -> None:
-        self._subscription = await self.bus.nc.subscribe(output_subject(self.name), cb=self._on_output)
+        self._subscriptions = [await self.bus.nc.subscribe(output_subject(self.name), cb=self._on_output),
+                               await self.bus.nc.subscribe(f"{self._inbox}.*", cb=self._on_reply)]
         await self.bus.nc.flush()
         self._subscribed.set()
+
+    def attach_source(self, send_error) -> None:
+        self._source_error = send_error
 
     async def _on_output(self, msg) -> None:
         out = unpack(msg.data)
@@ -94,19 +112,74 @@ class BusSession(LiveSession):
             self.hand_side = out.get("hand")
         self._fan_out([out], time.perf_counter())
 
+    async def _on_reply(self, msg) -> None:
+        n = int(msg.subject.rsplit(".", 1)[1])
+        entry = self._pending.get(n)
+        try:
+            if entry is not None:                   # else written off already
+                await self._answer(msg, *entry)
+        finally:                                    # answered (its error sent) before a sync can see it gone
+            self._pending.pop(n, None)
+            self._replied.set()
+
+    async def _answer(self, msg, kind: str, t: float | None) -> None:
+        if msg.headers and msg.headers.get("Status") == "503":     # nobody listens: the owner is gone
+            self.lost_to_failover += 1
+            self._owner_ok = False
+            return
+        reply = unpack(msg.data)
+        if self._source_error is None:
+            return
+        if reply["error"]:
+            await self._source_error("invalid_message", reply["error"])
+        elif reply["late"]:
+            await self._source_error("time_backwards", f"{kind} at t={t} is older than what was already processed; dropped")
+        elif reply["duplicate"]:
+            await self._source_error("duplicate", f"{kind} at t={t} was already received; dropped")
+
+    async def _ensure_owner(self) -> None:
+        """Until a live worker owns the session (a takeover needs the old owner gone or its lease
+        lapsed); messages wait meanwhile instead of being lost."""
+        while not self._owner_ok:
+            answer = await self.bus.assign(self.name)
+            if answer and answer.get("owner") == answer.get("by"):
+                self._owner_ok = True
+            else:
+                await asyncio.sleep(0.05)
+
     async def ingest(self, raw: dict, parsed) -> None:
         await self._subscribed.wait()
+        if not self._owner_ok:
+            self._write_off()
+            await self._ensure_owner()
+        while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker
+            if not await self._wait_replies():
+                self._write_off()
         self.metrics.messages_in.labels(self.name).inc()
-        reply = await self.bus.request(source_subject(self.name), {"raw": raw}, self.name)
-        if reply is None:
-            self.lost_to_failover += 1
-            return
-        self.unconfirmed += int(reply.get("unconfirmed", False))
-        counters = self.hand.session.counters       # the API compares them around this call
-        counters.late += reply["late"]
-        counters.duplicate += reply["duplicate"]
-        if reply["error"]:
-            raise ValueError(reply["error"])
+        self._n += 1
+        self._pending[self._n] = (parsed.type, getattr(parsed, "t", None))
+        await self.bus.nc.publish(source_subject(self.name), pack({"raw": raw}), reply=f"{self._inbox}.{self._n}")
+
+    async def _wait_replies(self) -> bool:
+        """Wait for a reply. None for ``REPLY_WAIT_S``: the workers check the owner; False when it was
+        gone and the session has a new owner now (the pending messages will never be answered)."""
+        self._replied.clear()
+        try:
+            await asyncio.wait_for(self._replied.wait(), REPLY_WAIT_S)
+            return True
+        except asyncio.TimeoutError:
+            return not (await self.bus.assign(self.name)).get("claimed")
+
+    def _write_off(self) -> None:
+        """Messages sent to an owner that is gone will not be answered."""
+        self.unconfirmed += len(self._pending)
+        self._pending.clear()
+
+    async def settled(self) -> None:
+        """Every message sent so far was answered (or written off): what ``sync`` waits for."""
+        while self._pending:
+            if not await self._wait_replies():
+                self._write_off()
 
     def update_config(self, change: dict) -> dict:
         """Validated here (a bad change changes nothing), then applied by the owner, which keeps it in
@@ -130,5 +203,5 @@ class BusSession(LiveSession):
 
     def close(self) -> None:
         super().close()
-        if self._subscription is not None:
-            self.bus.loop.call_soon_threadsafe(lambda: self.bus.loop.create_task(self._subscription.unsubscribe()))
+        for sub in self._subscriptions:
+            self.bus.loop.call_soon_threadsafe(lambda sub=sub: self.bus.loop.create_task(sub.unsubscribe()))
