@@ -1,10 +1,10 @@
 """Protocol-v1 messages the service sends (DESIGN.md "Wire protocol v1", service -> client).
 
 The service builds these messages and clients read them: the hello reply, the ``sync`` reply,
-``frame``, ``gesture`` and ``error``. The models are the published contract: ``service.protocol.schema`` turns them into
-the JSON Schema documents under ``docs/schema/``, served at ``/v1/schema``. Like every protocol-v1
-reader, they ignore unknown fields, so a field added later (always optional) does not break an
-older client.
+``frame``, ``gesture`` and ``error``. The models are the published contract: ``service.protocol.schema``
+turns them into the JSON Schema documents under ``docs/schema/``, served at ``/v1/schema``. Like
+every protocol-v1 reader, they ignore unknown fields, so a field added later (always optional) does
+not break an older client.
 
 Units: SI (seconds, metres, radians); quaternions ``[x, y, z, w]``; positions and directions in the
 world frame (OpenXR stage space, +Y up).
