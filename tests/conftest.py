@@ -7,6 +7,26 @@ from starlette.websockets import WebSocket
 from protocol_validation import ServiceMessageCheck
 
 
+def pytest_addoption(parser):
+    parser.addoption("--busy", type=int, default=0, metavar="N",
+                     help="run the tests with N CPU-bound processes beside them (tests/busy.py)")
+
+
+def pytest_configure(config):
+    count = config.getoption("busy")
+    if count:
+        from busy import busy_processes
+        config._busy = busy_processes(count)
+        pids = config._busy.__enter__()
+        print(f"\nbusy: {count} CPU-bound processes beside the tests (pids {pids})")
+
+
+def pytest_unconfigure(config):
+    busy = getattr(config, "_busy", None)
+    if busy is not None:
+        busy.__exit__(None, None, None)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

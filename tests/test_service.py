@@ -143,8 +143,8 @@ def test_bad_messages_get_errors_while_a_good_session_keeps_going(server):
             last_t = max(m[0] for m in sent)
             old = {"type": "imu_batch", "samples": [{"t": last_t - 0.3, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 0, 9.8]}]}
             await ws.send(json.dumps(old))
-            while True:
-                reply = json.loads(await asyncio.wait_for(ws.recv(), 5))
+            while True:                 # replies come as the service gets through the batch (120 s bounds a failure)
+                reply = json.loads(await asyncio.wait_for(ws.recv(), 120))
                 if reply.get("code") == "time_backwards":
                     codes.append(reply["code"])
                     break
@@ -387,8 +387,8 @@ def test_msgpack_stream_and_ingest(server):
                 for _, m in source_messages(_config(seed=7))[:200]:
                     await src.send(msgpack.packb(m))
                 frame = None
-                while frame is None or frame["type"] != "frame":
-                    frame = msgpack.unpackb(await asyncio.wait_for(sub.recv(), 5))
+                while frame is None or frame["type"] != "frame":      # 120 s bounds a failure
+                    frame = msgpack.unpackb(await asyncio.wait_for(sub.recv(), 120))
             return hello, frame
     hello, frame = asyncio.run(go())
     assert hello["type"] == "hello" and frame["type"] == "frame" and len(frame["joints"]) == 26
@@ -448,15 +448,23 @@ def test_limits_and_graceful_shutdown(tmp_path):
                 codes = []
                 for k in range(120):                                    # far above 50 messages/s
                     await src.send(json.dumps({"type": "pose", "t": 0.01 * k, "valid": False}))
-                try:
+
+                async def end_marker():                                 # answered once the bucket has room again
                     while True:
-                        codes.append(json.loads(await asyncio.wait_for(src.recv(), 0.5))["code"])
-                except asyncio.TimeoutError:
-                    pass
+                        await src.send(json.dumps({"type": "end-of-burst"}))
+                        await asyncio.sleep(0.2)
+                marker = asyncio.create_task(end_marker())
+                while True:                                             # every reply until the marker's own
+                    reply = json.loads(await asyncio.wait_for(src.recv(), 120))
+                    if reply["code"] == "unknown_type":
+                        break
+                    codes.append(reply["code"])
+                marker.cancel()
+                await asyncio.gather(marker, return_exceptions=True)
             await asyncio.to_thread(srv.__exit__, None, None, None)     # graceful shutdown
             try:
                 while True:
-                    await asyncio.wait_for(sub.recv(), 5)
+                    await asyncio.wait_for(sub.recv(), 120)
             except Exception:
                 pass
             return too_large, codes, sub.close_code
@@ -497,9 +505,13 @@ def test_serve_glove_and_watch_commands(tmp_path):
         watcher = threading.Thread(target=lambda: watch_rc.append(
             main(["watch", "--url", url, "--token", VIEWER, "--session", "cli", "--count", "40", "--every", "0.05"])))
         watcher.start()
-        time.sleep(0.5)
+        # the glove starts once the watcher is subscribed (the service's subscriber gauge), not after a pause
+        deadline = time.monotonic() + 120
+        while "fingertrack_subscribers 1.0" not in str(rest(url, "GET", "/metrics", admin)[1]):
+            assert time.monotonic() < deadline and watcher.is_alive(), "the watcher did not subscribe"
+            time.sleep(0.05)
         assert main(["glove", "--url", url, "--token", SOURCE, "--session", "cli", "--motion", "point", "--noise", "white"]) == 0
-        watcher.join(timeout=20)
+        watcher.join(timeout=120)                  # bounds a failure
         assert watch_rc == [0]
         assert rest(url, "GET", "/v1/sessions", admin)[1][0]["session"] == "cli"
     finally:
