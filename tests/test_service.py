@@ -51,8 +51,17 @@ async def _session_summary(server, session: str) -> dict:
 async def _wait_for_last_frame(server, session: str, received: list) -> None:
     """Wait until a subscriber that joined a fresh session before its first frame holds the session's
     last frame (``seq`` counts the session's frames from 1; a slow subscriber loses its oldest frames,
-    never the newest). Call it after the source closed: the service has then handled all it was sent."""
-    last = (await _session_summary(server, session))["frames_out"]
+    never the newest). Call it after the source closed: the service has then handled all it was sent,
+    or, if the close could not wait for the service's sync (the client's keepalive gave up while the
+    service worked through a backlog), it is still working through the connection's queue: the
+    session's source count drops once it has, and the frame count is final from then on."""
+    summary = await _session_summary(server, session)
+    deadline = time.monotonic() + 120                   # bounds a failure
+    while summary["sources"]:
+        assert time.monotonic() < deadline, f"session {session!r} still has a source 120 s after it closed"
+        await asyncio.sleep(0.02)
+        summary = await _session_summary(server, session)
+    last = summary["frames_out"]
     await _wait_for(lambda: last == 0 or any(m.get("type") == "frame" and m["seq"] >= last for _, m in received[::-1]),
                     f"frame {last} of session {session!r}")
 
