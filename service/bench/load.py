@@ -167,17 +167,18 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
     from clients.client import rest
 
     with contextlib.ExitStack() as stack:
+        readings: list = []                        # the workers' CPU seconds at the streaming window's ends
         if bus_workers is None:
             svc = stack.enter_context(service_process())
-            service_cpu, worker_cpu, kill = svc.cpu_seconds, None, None
+            service_cpu, kill = svc.cpu_seconds, None
         else:
             from .cluster import cluster
             cl = stack.enter_context(cluster(bus_workers))
             svc = cl.gateway
-            worker_cpu = cl.worker_cpu_seconds
 
             def service_cpu():
                 g, w = svc.cpu_seconds(), cl.worker_cpu_seconds()
+                readings.append(w)
                 return None if g is None or w is None else g + w
 
             async def kill_busiest():
@@ -187,14 +188,14 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                 cl.kill(victim)
                 return {"worker": victim, "sessions": [s for s, o in owners.items() if o == victim]}
             kill = (kill_at_s, kill_busiest) if kill_at_s is not None else None
-        w0 = worker_cpu() if worker_cpu else None
         lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
                                  service_cpu, kill))
-        w1 = worker_cpu() if worker_cpu else None
+        w0, w1 = (readings[0], readings[1]) if len(readings) >= 2 else (None, None)
         _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     by_name = {s["session"]: s for s in sessions}
     if lvl["killed"]:
-        lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) for n in lvl["names"] if n in by_name)
+        lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) + by_name[n].get("unconfirmed", 0)
+                                             for n in lvl["names"] if n in by_name)
     produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)
     dropped = sum(by_name[n]["dropped_subscriber_frames"] for n in lvl["names"] if n in by_name)
     rows = [r for v in lvl["received"].values() for r in v]

@@ -85,6 +85,8 @@ class BusSession(LiveSession):
         self.bus = bus
         self.lost_to_failover = 0                   # sent while no worker owned the session
         self.unconfirmed = 0                        # handed to an owner that never answered (it died holding them)
+        self.stale_frames = 0                       # frames of a former owner, dropped
+        self._last_seq = 0
         self.hand_side: str | None = None
         self._inbox = f"{bus.nc.new_inbox()}.ft"
         self._n = 0
@@ -109,6 +111,10 @@ class BusSession(LiveSession):
     async def _on_output(self, msg) -> None:
         out = unpack(msg.data)
         if out.get("type") == "frame":
+            if out["seq"] <= self._last_seq:        # from a former owner that has not noticed yet
+                self.stale_frames += 1
+                return
+            self._last_seq = out["seq"]
             self.hand_side = out.get("hand")
         self._fan_out([out], time.perf_counter())
 
@@ -199,6 +205,7 @@ class BusSession(LiveSession):
         out["hand"] = self.hand_side or out["hand"]
         out["lost_to_failover"] = self.lost_to_failover
         out["unconfirmed"] = self.unconfirmed
+        out["stale_frames"] = self.stale_frames
         return out
 
     def close(self) -> None:

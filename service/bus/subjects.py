@@ -23,7 +23,9 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
   "config"}``, rewritten by the owner every ``RENEW_S`` with a compare-and-set on the revision it
   last wrote. A worker that saw the same revision for longer than ``LEASE_S`` may take the session
   over with a compare-and-set on that revision: exactly one succeeds, and a former owner whose
-  renewal fails gives the session up.
+  renewal fails gives the session up. An owner whose last renewal is older than ``LEASE_S / 2``
+  renews before it publishes anything more (a fence), and gateways drop a frame whose ``seq`` is not
+  above the last one they passed on.
 """
 from __future__ import annotations
 
@@ -40,8 +42,10 @@ WORKERS_QUEUE = "ft-workers"
 BUCKET = "ft_sessions"
 RENEW_S = 0.15
 """how often an owner rewrites its sessions' lease and state, s"""
-LEASE_S = 0.6
-"""a lease not renewed for this long (as seen by another worker) may be taken over, s"""
+LEASE_S = 3.0
+"""a lease not renewed for this long (as seen by another worker) may be taken over, s. Only for an
+owner that is alive but stuck or cut off: a dead owner is found at once by the liveness probe. Long
+enough that a worker starved of CPU on a busy machine keeps its sessions."""
 REPLY_WAIT_S = 0.3
 """how long a gateway waits for a worker's reply to one source message before it checks the owner, s"""
 PROBE_TIMEOUT_S = 0.2

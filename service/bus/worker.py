@@ -91,6 +91,7 @@ class OwnedSession:
         self.resume_angles: dict | None = None      # applied at the first timed message after a takeover
         self.subscriptions: list = []
         self.lock = asyncio.Lock()
+        self.renewed_at = time.monotonic()
 
     def state(self, worker: str | None) -> bytes:
         seq = self.sink.last_seq
@@ -239,19 +240,29 @@ class Worker:
             owned.sink.resume_after = (int(state["seq"]), float(state["t"]))
         owned.resume_angles = state.get("angles") or None
 
+    async def _renew(self, owned: OwnedSession) -> bool:
+        """Rewrite the lease with the current state; False (and the session given up) if another
+        worker took it over meanwhile."""
+        try:
+            owned.revision = await self.kv.update(session_token(owned.name), owned.state(self.id), last=owned.revision)
+            owned.renewed_at = time.monotonic()
+            return True
+        except KeyWrongLastSequenceError:           # taken over while we were away: give it up
+            if self.owned.get(owned.name) is owned:
+                del self.owned[owned.name]
+                for sub in owned.subscriptions:
+                    await sub.unsubscribe()
+                owned.live.close()
+                log.warning("worker %s gave session %r up: another worker took it over", self.id, owned.name)
+            return False
+        except Exception:                           # NATS reconnecting: the next round tries again
+            return True
+
     async def _renew_forever(self) -> None:
         while True:
             await asyncio.sleep(RENEW_S)
-            for name, owned in list(self.owned.items()):
-                try:
-                    owned.revision = await self.kv.update(session_token(name), owned.state(self.id), last=owned.revision)
-                except KeyWrongLastSequenceError:   # taken over while we were away: give it up
-                    self.owned.pop(name, None)
-                    for sub in owned.subscriptions:
-                        await sub.unsubscribe()
-                    owned.live.close()
-                except Exception:                   # NATS reconnecting: the next round tries again
-                    pass
+            for owned in list(self.owned.values()):
+                await self._renew(owned)
 
     # -- session traffic -------------------------------------------------------------------------
     async def _handle(self, owned: OwnedSession, raw: dict) -> dict:
@@ -283,6 +294,10 @@ class Worker:
                 reply = await self._handle(owned, raw)
             except ProtocolError as err:            # the gateway validated it; only a version skew gets here
                 reply = {"late": 0, "duplicate": 0, "error": f"{err.code}: {err.detail}"}
+            # fence: after a long stall, make sure the session is still ours before publishing
+            if time.monotonic() - owned.renewed_at > LEASE_S / 2 and not await self._renew(owned):
+                owned.sink.pending.clear()
+                return
             for data in owned.sink.pending:
                 await self.nc.publish(output_subject(owned.name), data)
             owned.sink.pending.clear()
