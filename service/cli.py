@@ -417,6 +417,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(robustness.run(args.out, quick=args.quick, messages=args.messages, soak_seconds=args.soak_seconds))
         print(f"wrote {args.out}/summary.md, results.csv, results.json, fuzz.csv, extremes.csv, soak.csv, logs/")
         return 0
+    if args.which == "accuracy":
+        from .bench import accuracy
+        print(accuracy.run(args.out, quick=args.quick, trials=args.trials, workers=args.workers))
+        print(f"wrote {args.out}/results.csv, events.csv, results.json, summary.md, accuracy.png")
+        return 0
     if args.which == "gestures":
         from .bench import gestures
         print(gestures.run(args.out, quick=args.quick, workers=args.workers))
@@ -609,6 +614,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="hostile messages in the fuzz (default 100000; 1500 with --quick)")
     b.add_argument("--soak-seconds", type=_positive_float, default=None,
                    help="length of the soak, s (default 600; 5 with --quick)")
+
+    b = benchmark("accuracy", "accuracy where the glove is really used: realistic errors, live pipeline, no true start",
+                  "Seeded trials of realistic use through the live pipeline: the realistic error profile, random "
+                  "gesture scripts with fast transitions, a rotating or reaching hand, sensor dropouts, an optical "
+                  "occlusion, a flat-hand hold with and without its reference_pose; every estimator side by side; "
+                  "writes results.csv, events.csv, results.json, summary.md, accuracy.png.")
+    b.add_argument("--quick", action="store_true", help="one 6 s trial, chain / ekf / vector (instead of 5 trials of 12 s, every estimator)")
+    b.add_argument("--trials", type=_positive_int, default=None, help="seeded trials (default 5; --quick 1)")
+    b.add_argument("--seconds", type=_positive_float, default=None, help="length of each trial, s (default 12; --quick 6)")
+    b.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")
     return parser
 
 

@@ -220,6 +220,12 @@ class FingerEstimator:
         self._t_last = value["t_last"]
         self._state = value["filter"]
 
+    def inherit(self, previous: "FingerEstimator") -> None:
+        """Called right after construction when this estimator replaces ``previous`` for the same finger
+        (a sensor fell silent or came back, a calibration, an estimator switch), before any sample.
+        Estimators that learn something about their sensors (offsets) take it over here; the default
+        keeps nothing but the configuration the pipeline passes as ``initial_theta``."""
+
     def known_configuration(self, theta: np.ndarray, std_rad: float) -> None:
         """The finger is known to be at phalanx angles ``theta`` (*B, n) rad, each joint to within
         ``std_rad`` (a ``reference_pose``, at the time of the last processed sample). The default, for
@@ -227,6 +233,12 @@ class FingerEstimator:
         initial configuration (paper 2.2.3); filters that carry a covariance override this with a
         measurement update that keeps what they have learned."""
         self.reset(initial_theta=theta)
+
+    def hand_tracked(self, tracked: bool) -> None:
+        """The pipeline says whether the metacarpus kinematics it passes come from the optics (True)
+        or are carried on without them (False: orientation from the finger gyros, acceleration
+        unknown). Filters that trust the hand's acceleration may weigh the accelerometer less while it
+        is unknown; the default ignores it."""
 
     def reference_lost(self, duration_s: float) -> None:
         """The metacarpus pose was unavailable (held) for ``duration_s``: whatever the filter believes

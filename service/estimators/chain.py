@@ -58,11 +58,23 @@ class ChainSettings(EstimatorSettings):
     unknown_angle_std_rad: float = Field(10.0 * DEG, gt=0.0, description="prior std when starting from a vector observation, rad")
     acc_noise_m_s2: float = Field(0.03, gt=0.0, description="accelerometer white noise per sample, m/s² (MPU-9250 at 200 Hz)")
     kinematic_uncertainty: float = Field(0.1, ge=0.0, description="added accelerometer std per m/s² of the eq. 6 bound")
+    gyro_scale_uncertainty: float = Field(0.03, ge=0.0, le=1.0, description="gyro scale and cross-axis error as a fraction of the rate's magnitude (MPU-9250: ±3 %, ±2 %); widens the angle's process noise")
+    acc_scale_uncertainty: float = Field(0.05, ge=0.0, le=1.0, description="accelerometer scale, cross-axis and mounting error as a fraction of the specific force's magnitude; added to its noise")
+    gyro_range_rad_s: float = Field(2000.0 * DEG, gt=0.0, description="gyro full scale (MPU-9250: ±2000 deg/s); a sample at it is saturated, rad/s")
+    acc_range_m_s2: float = Field(16.0 * 9.80665, gt=0.0, description="accelerometer full scale (±16 g); a sample at it is saturated, m/s²")
+    hand_jerk_time_s: float = Field(0.0, ge=0.0, description="added accelerometer std per m/s³ of the optical hand jerk: the optical acceleration is a windowed derivative fit that lags by about this long in fast reaches, s")
+    untracked_acc_noise_m_s2: float = Field(3.0, gt=0.0, description="accelerometer std while the hand's acceleration is unknown (optics lost), m/s²")
+    rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
 
 
 class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
+
+    def _advance(self, t, gyr, acc, hand):
+        if self._state is None:
+            self._start_t = t
+        return super()._advance(t, gyr, acc, hand)
 
     def _init_state(self, gyr, acc, hand, theta0):
         s = self.settings
@@ -72,8 +84,47 @@ class Chain(FingerEstimator):
         P[..., 0, 0] = (known_std if theta0 is not None else s.unknown_angle_std_rad) ** 2
         P[..., 1, 1] = s.initial_gyro_bias_std_rad_s**2
         P[..., 2:, 2:] = s.initial_acc_bias_std_m_s2**2 * np.eye(3)
-        return {"x": np.concatenate([theta[..., None], np.zeros(theta.shape + (4,))], axis=-1),
-                "P": P, "rate": self.obs.relative_rate(gyr, hand)}
+        x = np.concatenate([theta[..., None], np.zeros(theta.shape + (4,))], axis=-1)
+        self._restore_memory(x, P)
+        return {"x": x, "P": P, "rate": self.obs.relative_rate(gyr, hand)}
+
+    # -- what survives a rebuild -------------------------------------------------------------
+    def inherit(self, previous: FingerEstimator) -> None:
+        """Take over what ``previous`` (the estimator this one replaces: a sensor fell silent or came
+        back, a calibration, an estimator switch) learned about each sensor, by sensor id: the
+        offsets with their covariance always; the angle, with its covariance (at least
+        ``rebuild_angle_std_rad``) and its correlation with the offsets, for sensors that were live in
+        ``previous`` up to now. A sensor that was silent starts from the given configuration with
+        ``unknown_angle_std_rad`` (nobody saw where it went) but keeps its offsets, so its first
+        accelerometer samples place it. Offsets of sensors not in this geometry are remembered for
+        a later rebuild."""
+        memory = dict(getattr(previous, "_memory", {}))
+        fresh = set()
+        state = getattr(previous, "_state", None)
+        if isinstance(previous, Chain) and state is not None and previous.batch_shape == self.batch_shape:
+            for k, sp in enumerate(previous.geom.sensors):
+                memory[sp.id] = (state["x"][..., k, :].copy(), state["P"][..., k, :, :].copy(), previous.last_t)
+                fresh.add(sp.id)
+        self._memory = memory
+        self._fresh = fresh
+        self._hand_untracked = getattr(previous, "_hand_untracked", False)
+
+    def _restore_memory(self, x: np.ndarray, P: np.ndarray) -> None:
+        memory = getattr(self, "_memory", {})
+        s = self.settings
+        for k, sp in enumerate(self.geom.sensors):
+            if sp.id not in memory:
+                continue
+            mx, mP, t_mem = memory[sp.id]
+            gap = max(0.0, getattr(self, "_start_t", t_mem) - t_mem)
+            walk = np.array([s.gyro_bias_walk_rad_s_rts**2] + [s.acc_bias_walk_m_s2_rts**2] * 3) * gap
+            x[..., k, 1:] = mx[..., 1:]
+            P[..., k, 1:, 1:] = mP[..., 1:, 1:] + np.diag(walk)
+            if sp.id in self._fresh:
+                x[..., k, 0] = mx[..., 0]
+                P[..., k, 0, :] = mP[..., 0, :]
+                P[..., k, :, 0] = mP[..., :, 0]
+                P[..., k, 0, 0] = np.maximum(mP[..., 0, 0], s.rebuild_angle_std_rad**2)
 
     def known_configuration(self, theta: np.ndarray, std_rad: float) -> None:
         """A measurement ``θ_{i_k} = theta[i_k]`` of every sensor's phalanx angle (a phalanx angle sums
@@ -97,6 +148,9 @@ class Chain(FingerEstimator):
         dx, P = kalman.update(P, H, R, y)
         self._state = {**self._state, "x": x + dx, "P": P}
 
+    def hand_tracked(self, tracked: bool) -> None:
+        self._hand_untracked = not tracked
+
     def reference_lost(self, duration_s: float) -> None:
         if self._state is not None:
             self._state["P"][..., 0, 0] += lost_optics_variance(duration_s)
@@ -117,7 +171,13 @@ class Chain(FingerEstimator):
         F[..., 0, 1] = -dt
         q_diag = np.array([s.gyro_noise_density_rad_s_rthz**2, s.gyro_bias_walk_rad_s_rts**2]
                           + [s.acc_bias_walk_m_s2_rts**2] * 3) * dt
-        P = kalman.predict(P, F, np.diag(q_diag))
+        Q = np.broadcast_to(np.diag(q_diag), P.shape).copy()
+        # scale and cross-axis errors move the angle by a fraction of the rate; a saturated gyro
+        # says only that the rate is at least its range
+        gyr_norm = np.linalg.norm(gyr, axis=-1)
+        gyr_sat = np.any(np.abs(gyr) >= s.gyro_range_rad_s * (1.0 - 1e-3), axis=-1)
+        Q[..., 0, 0] += (dt * (s.gyro_scale_uncertainty * gyr_norm + np.where(gyr_sat, s.gyro_range_rad_s, 0.0))) ** 2
+        P = kalman.predict(P, F, Q)
 
         # accelerometer through the chain model (both sensors' angles and corrected rates)
         rate_change = self.obs.rate_change(rate, prev_rate, dt)
@@ -132,11 +192,20 @@ class Chain(FingerEstimator):
         H[..., 2, 0] = -c * uy - sn * uz
         H[..., :, 2:] = np.eye(3)
         mu = self.obs.acceleration_bound(self.closure, rate, rate_change)
-        sigma = np.hypot(s.acc_noise_m_s2, s.kinematic_uncertainty * mu)
+        force_norm = np.linalg.norm(force, axis=-1)
+        prev_hand_acc = state.get("hand_acc", hand.acceleration)
+        jerk = np.linalg.norm(hand.acceleration - prev_hand_acc, axis=-1)[..., None] / dt if dt > 0 else 0.0
+        sigma = np.sqrt(s.acc_noise_m_s2**2 + (s.kinematic_uncertainty * mu) ** 2 + (s.acc_scale_uncertainty * force_norm) ** 2
+                        + (s.hand_jerk_time_s * jerk) ** 2
+                        + (s.untracked_acc_noise_m_s2 if getattr(self, "_hand_untracked", False) else 0.0) ** 2)
+        # a clipped accelerometer (or a gyro whose rate, and so the kinematic terms, is unknown)
+        # carries no usable direction: no update
+        acc_sat = np.any(np.abs(acc) >= s.acc_range_m_s2 * (1.0 - 1e-3), axis=-1) | gyr_sat
+        sigma = np.where(acc_sat, 1e6, sigma)
         R = (sigma**2)[..., None, None] * np.eye(3)
         dx, P = kalman.update(P, H, R, y)
         x = x + dx
         theta = x[..., 0]
         # "fast" while the accelerometer carries little weight (eq. 6 bound above g/2), else "fused"
         mode = np.where(mu > 0.5 * np.linalg.norm(self.gravity_world), MODE_FAST, MODE_FUSED).astype(np.int8)
-        return {"x": x, "P": P, "rate": rate_meas}, theta, mode
+        return {"x": x, "P": P, "rate": rate_meas, "hand_acc": np.array(hand.acceleration, dtype=float)}, theta, mode

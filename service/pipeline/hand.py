@@ -19,9 +19,10 @@ Data flow (one call of ``handle`` per message, in arrival order):
 4. Frames are emitted on the source clock at ``output_rate_hz`` with the latest estimate of every
    finger, the 26 OpenXR joint poses and a status.
 
-While the optics are occluded the metacarpus pose is held and the fingers keep being estimated from
-the IMUs; the status says so. Everything here is deterministic: the same messages give the same
-frames, which is what ``fingertrack replay`` relies on.
+While the optics are occluded the metacarpus position is held and its orientation is carried on by
+the hand's angular velocity as the finger gyros see it (``_dead_reckoned_hand``); the fingers keep
+being estimated from the IMUs and the status says so. Everything here is deterministic: the same
+messages give the same frames, which is what ``fingertrack replay`` relies on.
 """
 from __future__ import annotations
 
@@ -29,15 +30,21 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Iterator
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..estimators.base import FingerEstimator, finger_mode
 from ..estimators.registry import estimator_class
 from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
+from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
 from ..model.openxr import joint_poses, joint_radii, joint_tracked
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from .optical import OpticalTrack
+
+DEAD_RECKONING_PRIOR = 1e-2
+"""Weight of the pull of the hand's angular velocity toward zero in ``_dead_reckoned_hand`` (against 1
+per gyro equation): negligible where the finger gyros observe it."""
 
 
 class PipelineSettings(BaseModel):
@@ -131,6 +138,7 @@ class HandSession:
         self._lost_since: float | None = None
         self._fingers: dict[str, FingerState] = {}
         self._references: list[ReferencePose] = []
+        self._tick_t: float | None = None
         self.estimator_name = self.settings.estimator
         self._estimator_params = dict(self.settings.estimator_params)
         self._check_estimator(self.estimator_name, self._estimator_params)
@@ -153,8 +161,10 @@ class HandSession:
             # continue from the current estimate, if there is one yet
             theta0 = joint_to_phalanx_angles(phi) if (old is not None and old.estimator.started) else None
             sensors = tuple(s.id for s in geom.sensors)
-            new[name] = FingerState(geom, self._make_estimator(geom, theta0), sensors, phi,
-                                    old.mode if old is not None else "none")
+            estimator = self._make_estimator(geom, theta0)
+            if old is not None:
+                estimator.inherit(old.estimator)
+            new[name] = FingerState(geom, estimator, sensors, phi, old.mode if old is not None else "none")
         self._fingers = new
 
     def set_estimator(self, name: str, params: dict | None = None) -> None:
@@ -257,6 +267,7 @@ class HandSession:
         self._processed_t = None
         self._newest_imu_t = None
         self._next_frame_t = None
+        self._tick_t = None
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
         self._build_fingers()
 
@@ -286,15 +297,53 @@ class HandSession:
             return []                           # no pose seen yet: nothing to fuse with
         if tracking and not self._tracking and self._lost_since is not None:
             for fs in self._fingers.values():
+                fs.estimator.hand_tracked(True)
                 fs.estimator.reference_lost(t - self._lost_since)
             self._lost_since = None
         elif not tracking and self._tracking:
             self._lost_since = t
-        self._hand_motion, self._tracking = hand, tracking
+            for fs in self._fingers.values():
+                fs.estimator.hand_tracked(False)
+        if not tracking and self._hand_motion is not None and self._tick_t is not None:
+            hand = self._dead_reckoned_hand(t - self._tick_t)
+        self._hand_motion, self._tracking, self._tick_t = hand, tracking, t
         for name, fs in self._fingers.items():
             self._update_finger(name, fs, t, hand)
         self._apply_references(t)
         return self._emit_frames(t)
+
+    def _dead_reckoned_hand(self, dt: float) -> BaseMotion:
+        """While the optics are lost: the held pose turned by the hand's angular velocity as the finger
+        gyros see it. Every live sensor ``k`` reads ``R_k ω_k = ω_M + θ̇_k x_f`` in metacarpus
+        coordinates (``R_k = R_B R_x(θ_k) R_mount`` from the current estimate, ``x_f`` its finger's
+        hinge axis), so each gives ``ω_M`` across its hinge axis; hinge axes that differ (the thumb's)
+        give the rest. Least squares over ``ω_M`` and every ``θ̇_k``, with a weak pull of ``ω_M`` to
+        zero where nothing observes it. Position and acceleration are held (unknown)."""
+        prev = self._hand_motion
+        assert prev is not None
+        blocks, axes = [], []
+        for fs in self._fingers.values():
+            if not fs.active_sensors:
+                continue
+            theta = joint_to_phalanx_angles(fs.phi)
+            rb = fs.geom.base_matrix()
+            for sp in fs.geom.sensors:
+                if sp.id in fs.active_sensors and sp.id in self._last_sample:
+                    blocks.append(rb @ rot_x(theta[sp.phalanx]) @ sp.mounting_matrix() @ self._last_sample[sp.id][1])
+                    axes.append(rb[:, 0])
+        omega_m = np.zeros(3)
+        if blocks:
+            k = len(blocks)
+            a = np.zeros((3 * k + 3, 3 + k))
+            for i, x in enumerate(axes):
+                a[3 * i:3 * i + 3, :3] = np.eye(3)
+                a[3 * i:3 * i + 3, 3 + i] = x
+            a[3 * k:, :3] = DEAD_RECKONING_PRIOR * np.eye(3)
+            b = np.concatenate(blocks + [np.zeros(3)])
+            omega_m = np.linalg.lstsq(a, b, rcond=None)[0][:3]
+        rot = prev.rotation @ Rotation.from_rotvec(omega_m * dt).as_matrix()
+        z = np.zeros(3)
+        return BaseMotion(rot, prev.position.copy(), z, z.copy(), rot @ omega_m, z.copy())
 
     def _live_sensors(self, geom: FingerGeometry, t: float) -> tuple[str, ...]:
         return tuple(s.id for s in geom.sensors
@@ -324,7 +373,9 @@ class HandSession:
         theta0 = joint_to_phalanx_angles(fs.phi) if fs.estimator.started else None
         extra = [] if len(live) == len(fs.geom.sensors) else [(0, self.settings.fallback_coupling)]
         try:
-            fs.estimator = self._make_estimator(geom, theta0, extra)
+            estimator = self._make_estimator(geom, theta0, extra)
+            estimator.inherit(fs.estimator)
+            fs.estimator = estimator
         except ValueError:
             fs.active_sensors = ()           # nothing observable: hold the angles
 
