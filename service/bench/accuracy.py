@@ -197,8 +197,8 @@ def run(out: str | Path, quick: bool = False, trials: int | None = None, workers
         progress: bool = True) -> str:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    n_trials = trials or (1 if quick else 6)
-    duration = 6.0 if quick else 16.0
+    n_trials = trials or (1 if quick else 5)
+    duration = 6.0 if quick else 12.0
     labels = QUICK_ESTIMATORS if quick else tuple(e[0] for e in ESTIMATORS)
     spec = {e[0]: e for e in ESTIMATORS}
     jobs = [(make_trial(seed, duration), ref, label, spec[label][1], spec[label][2])
