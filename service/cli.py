@@ -144,6 +144,9 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     rows = []
     report = []
     for finger, geom in rec.calibration.fingers.items():
+        if not rec.instrumented(finger):
+            report.append(f"  {finger:<7} untracked: no sensors or no complete IMU sample")
+            continue
         samples, dropped = rec.finger_samples(finger)
         truth = rec.truth_angles(finger, samples.t)
         initial = None
@@ -400,7 +403,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.which == "latency":
         from .bench import latency
-        print(latency.run(args.out, seconds=args.seconds))
+        print(latency.run(args.out, seconds=args.seconds or 20.0))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "load":
@@ -419,7 +422,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.which == "accuracy":
         from .bench import accuracy
-        print(accuracy.run(args.out, quick=args.quick, trials=args.trials, workers=args.workers))
+        print(accuracy.run(args.out, quick=args.quick, trials=args.trials, workers=args.workers,
+                           duration_s=args.seconds))
         print(f"wrote {args.out}/results.csv, events.csv, results.json, summary.md, accuracy.png")
         return 0
     if args.which == "gestures":

@@ -8,7 +8,7 @@ from service.bench import accuracy
 from service.estimators.chain import Chain
 from service.pipeline.hand import HandSession, PipelineSettings
 from service.protocol import parse_message
-from service.sim.errors import MG
+from service.model.units import MG
 from service.sim.session import SimConfig, simulate
 
 

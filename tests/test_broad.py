@@ -4,15 +4,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service.bench.peers import _ours, inclination_rmse_deg, load_trial
+from service.bench.peers import _ours, _peer, inclination_rmse_deg, load_trial
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "broad"
 TRIAL = DATA / "01_undisturbed_slow_rotation_A.mat"
 pytestmark = pytest.mark.skipif(not TRIAL.exists(), reason=f"BROAD data not found at {DATA}")
 
 N = 20000
-# recorded with this code on 2026-11-22 (first 20000 samples: 35 s of rest, then slow rotation)
-EXPECTED = {"madgwick": 0.5313453049876002, "ekf": 0.535982810494175, "inertial": 0.3332187141791665}
+"""First 20000 samples: 35 s of rest, then slow rotation."""
+PEER = {"inertial": "vqf", "madgwick": "ahrs-madgwick", "ekf": "ahrs-ekf"}
+"""The published implementation of the same kind of filter each core is held against."""
 
 
 @pytest.fixture(scope="module")
@@ -21,11 +22,16 @@ def trial():
 
 
 @pytest.mark.parametrize("kind", ["inertial", "madgwick", "ekf"])
-def test_imu_only_core_reproduces_its_recorded_result(trial, kind):
+def test_imu_only_core_is_as_good_as_a_published_peer(trial, kind):
+    """Against an independent reference instead of a number recorded from this code: the core's
+    inclination error on the optical truth is at most 20 % above the peer library's on the same
+    samples, and below 1 deg."""
     q, _ = _ours(kind, False, trial["gyr"][:N], trial["acc"][:N], trial["quat"][:N], 1.0 / trial["rate"])
     err = inclination_rmse_deg(q, trial["quat"][:N], trial["movement"][:N])
-    assert err == pytest.approx(EXPECTED[kind], abs=1e-6)
+    q_peer = _peer(PEER[kind], trial["gyr"][:N], trial["acc"][:N], trial["rate"])[0]
+    peer = inclination_rmse_deg(q_peer, trial["quat"][:N], trial["movement"][:N])
     assert err < 1.0
+    assert err <= 1.2 * peer, (kind, err, PEER[kind], peer)
 
 
 @pytest.mark.parametrize("kind", ["inertial", "madgwick", "ekf"])

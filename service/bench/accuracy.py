@@ -194,11 +194,13 @@ def _observable(session, idx, phi, scored) -> dict:
 
 
 def run(out: str | Path, quick: bool = False, trials: int | None = None, workers: int = 2,
-        progress: bool = True) -> str:
+        progress: bool = True, duration_s: float | None = None) -> str:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     n_trials = trials or (1 if quick else 5)
-    duration = 6.0 if quick else 12.0
+    duration = duration_s or (6.0 if quick else 12.0)
+    if duration < SCORE_FROM_S + 3.0:
+        raise ValueError(f"accuracy trials need at least {SCORE_FROM_S + 3.0:g} s (hold, blend and disturbances), got {duration:g} s")
     labels = QUICK_ESTIMATORS if quick else tuple(e[0] for e in ESTIMATORS)
     spec = {e[0]: e for e in ESTIMATORS}
     jobs = [(make_trial(seed, duration), ref, label, spec[label][1], spec[label][2])

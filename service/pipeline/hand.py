@@ -79,10 +79,31 @@ class Counters:
     references_stale: int = 0
 
 
+class Uninstrumented:
+    """Stands in for the estimator of a finger without sensors (a partially instrumented glove): it
+    never starts, so the finger holds its angles (zero, or a ``reference_pose``'s) and its joints are
+    reported untracked."""
+
+    started = False
+    last_t = None
+
+    def inherit(self, previous) -> None:
+        pass
+
+    def known_configuration(self, theta, std_rad: float) -> None:
+        pass
+
+    def hand_tracked(self, tracked: bool) -> None:
+        pass
+
+    def reference_lost(self, duration_s: float) -> None:
+        pass
+
+
 @dataclass
 class FingerState:
     geom: FingerGeometry
-    estimator: FingerEstimator
+    estimator: FingerEstimator | Uninstrumented
     active_sensors: tuple[str, ...]
     phi: np.ndarray
     mode: str = "none"
@@ -161,6 +182,9 @@ class HandSession:
             # continue from the current estimate, if there is one yet
             theta0 = joint_to_phalanx_angles(phi) if (old is not None and old.estimator.started) else None
             sensors = tuple(s.id for s in geom.sensors)
+            if not sensors:
+                new[name] = FingerState(geom, Uninstrumented(), (), phi, "none")
+                continue
             estimator = self._make_estimator(geom, theta0)
             if old is not None:
                 estimator.inherit(old.estimator)

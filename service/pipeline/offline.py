@@ -29,6 +29,12 @@ class Recording:
     truth: dict[float, dict[str, dict[str, float]]] = field(default_factory=dict)
     references: list[ReferencePose] = field(default_factory=list)
 
+    def instrumented(self, finger: str) -> bool:
+        """True if ``finger`` has sensors and at least one complete IMU sample (a partially
+        instrumented glove leaves the others out: ``"sensors": []`` or no samples)."""
+        ids = [s.id for s in self.calibration.finger(finger).sensors]
+        return bool(ids) and any(all(i in group for i in ids) for group in self.imu.values())
+
     def finger_samples(self, finger: str) -> tuple[FingerSamples, int]:
         """``(samples, dropped_ticks)`` of ``finger``; hand kinematics from the optical poses."""
         ids = [s.id for s in self.calibration.finger(finger).sensors]
