@@ -156,7 +156,8 @@ def _recovery(received: dict, killed: dict, subscribers: int) -> dict | None:
         lost += sum(b - a - 1 for a, b in zip(seqs, seqs[1:]) if b - a > 1)
     return {"worker": killed["worker"], "sessions_moved": len(moved),
             "recovery_s_max": max(times) if times else None, "recovery_s": times,
-            "frames_never_produced": lost, "messages_lost": killed.get("messages_lost")}
+            "frames_never_produced": lost, "messages_lost": killed.get("messages_lost"),
+            "messages_resent": killed.get("messages_resent")}
 
 
 def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: bool = False,
@@ -194,8 +195,9 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     by_name = {s["session"]: s for s in sessions}
     if lvl["killed"]:
-        lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) + by_name[n].get("unconfirmed", 0)
-                                             for n in lvl["names"] if n in by_name)
+        lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) for n in lvl["names"] if n in by_name)
+        lvl["killed"]["messages_resent"] = sum(by_name[n].get("resent_after_failover", 0) for n in lvl["names"]
+                                               if n in by_name)
     produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)
     dropped = sum(by_name[n]["dropped_subscriber_frames"] for n in lvl["names"] if n in by_name)
     rows = [r for v in lvl["received"].values() for r in v]
@@ -260,8 +262,8 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
                      f"{lv['integrity_violations']} | {lv['source_errors']} |")
     if bus_workers is not None:
         lines += ["", "| hands | workers' CPU, % of a core | gateway + workers CPU, % | worker killed | sessions moved | "
-                  "kill -> first frame of the new owner, max s | frames never produced | source messages lost |",
-                  "|---|---|---|---|---|---|---|---|"]
+                  "kill -> first frame of the new owner, max s | frames never produced | source messages resent to the new owner "
+                  "/ lost |", "|---|---|---|---|---|---|---|---|"]
         for lv in levels:
             wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
             cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
@@ -271,7 +273,7 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
             else:
                 rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
                 lines.append(f"| {lv['hands']} | {wc} | {cpu} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
-                             f"{fo['frames_never_produced']} | {fo['messages_lost']} |")
+                             f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule: a "
               "frame's arrival after the moment its tick's data were due to be sent; it includes the pipeline's "

@@ -7,9 +7,9 @@ reply; the reply's late/duplicate counts and errors become the usual error repli
 a ``sync`` is answered once every earlier message was answered);
 frames and gesture events of ``ft.out.<s>`` go to this gateway's subscribers of the session. When no
 worker listens (the owner died), the gateway asks ``ft.assign`` until a worker has taken the session
-over, holding the source's next message meanwhile; messages the server reported undeliverable are
-counted as ``lost_to_failover``, messages the dead owner never answered as ``unconfirmed`` (session
-summary).
+over, holding the source's next message meanwhile, and sends the new owner, in order, every message
+the old one never answered (``resent_after_failover``; beyond ``RESEND_MAX`` they are lost and
+counted as ``lost_to_failover``; session summary). With no worker at all, sources wait.
 """
 from __future__ import annotations
 
@@ -29,6 +29,8 @@ ASSIGN_TIMEOUT_S = 1.0
 """how long a gateway waits for a worker to answer ``ft.assign``, s"""
 WINDOW = 256
 """source messages of one session on their way to its worker at once (more: the source waits)"""
+RESEND_MAX = 4 * WINDOW
+"""source messages kept for a new owner while a session has none (more are lost and counted)"""
 UNCONFIRMED = {"late": 0, "duplicate": 0, "error": None, "unconfirmed": True}
 
 
@@ -83,17 +85,17 @@ class BusSession(LiveSession):
     def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics, bus: GatewayBus):
         super().__init__(name, settings, metrics)
         self.bus = bus
-        self.lost_to_failover = 0                   # sent while no worker owned the session
-        self.unconfirmed = 0                        # handed to an owner that never answered (it died holding them)
+        self.lost_to_failover = 0                   # could not be kept for the next owner (RESEND_MAX)
+        self.resent = 0                             # sent again to a new owner (the old one died holding them)
         self.stale_frames = 0                       # frames of a former owner, dropped
         self._last_seq = 0
         self.hand_side: str | None = None
         self._inbox = f"{bus.nc.new_inbox()}.ft"
         self._n = 0
-        self._pending: dict[int, tuple[str, float | None]] = {}
+        self._pending: dict[int, tuple[str, float | None, bytes]] = {}
+        self._resend: dict[int, tuple[str, float | None, bytes]] = {}
         self._replied = asyncio.Event()
         self._owner_ok = False
-        self._assigning: asyncio.Task | None = None
         self._source_error = None
         self._subscribed = asyncio.Event()
         self._subscriptions: list = []
@@ -123,16 +125,23 @@ class BusSession(LiveSession):
         entry = self._pending.get(n)
         try:
             if entry is not None:                   # else written off already
-                await self._answer(msg, *entry)
+                await self._answer(msg, n, entry)
         finally:                                    # answered (its error sent) before a sync can see it gone
             self._pending.pop(n, None)
             self._replied.set()
 
-    async def _answer(self, msg, kind: str, t: float | None) -> None:
-        if msg.headers and msg.headers.get("Status") == "503":     # nobody listens: the owner is gone
+    def _keep_for_next_owner(self, n: int, entry) -> None:
+        if len(self._resend) < RESEND_MAX:
+            self._resend[n] = entry
+        else:
             self.lost_to_failover += 1
+
+    async def _answer(self, msg, n: int, entry) -> None:
+        if msg.headers and msg.headers.get("Status") == "503":     # nobody listens: the owner is gone
+            self._keep_for_next_owner(n, entry)
             self._owner_ok = False
             return
+        kind, t, _ = entry
         reply = unpack(msg.data)
         if self._source_error is None:
             return
@@ -143,28 +152,35 @@ class BusSession(LiveSession):
         elif reply["duplicate"]:
             await self._source_error("duplicate", f"{kind} at t={t} was already received; dropped")
 
-    async def _ensure_owner(self) -> None:
+    async def _recover(self) -> None:
         """Until a live worker owns the session (a takeover needs the old owner gone or its lease
-        lapsed); messages wait meanwhile instead of being lost."""
+        lapsed), the source waits; then what the old owner never answered goes to the new one, in order."""
+        self._write_off()
         while not self._owner_ok:
             answer = await self.bus.assign(self.name)
             if answer and answer.get("owner") == answer.get("by"):
                 self._owner_ok = True
             else:
                 await asyncio.sleep(0.05)
+        kept, self._resend = self._resend, {}
+        for n in sorted(kept):
+            self.resent += 1
+            await self._publish(kept[n])
+
+    async def _publish(self, entry) -> None:
+        self._n += 1
+        self._pending[self._n] = entry
+        await self.bus.nc.publish(source_subject(self.name), entry[2], reply=f"{self._inbox}.{self._n}")
 
     async def ingest(self, raw: dict, parsed) -> None:
         await self._subscribed.wait()
         if not self._owner_ok:
-            self._write_off()
-            await self._ensure_owner()
+            await self._recover()
         while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker
             if not await self._wait_replies():
-                self._write_off()
+                await self._recover()
         self.metrics.messages_in.labels(self.name).inc()
-        self._n += 1
-        self._pending[self._n] = (parsed.type, getattr(parsed, "t", None))
-        await self.bus.nc.publish(source_subject(self.name), pack({"raw": raw}), reply=f"{self._inbox}.{self._n}")
+        await self._publish((parsed.type, getattr(parsed, "t", None), pack({"raw": raw})))
 
     async def _wait_replies(self) -> bool:
         """Wait for a reply. None for ``REPLY_WAIT_S``: the workers check the owner; False when it was
@@ -177,15 +193,18 @@ class BusSession(LiveSession):
             return not (await self.bus.assign(self.name)).get("claimed")
 
     def _write_off(self) -> None:
-        """Messages sent to an owner that is gone will not be answered."""
-        self.unconfirmed += len(self._pending)
+        """Messages sent to an owner that is gone will not be answered: kept for the next owner."""
+        for n, entry in self._pending.items():
+            self._keep_for_next_owner(n, entry)
         self._pending.clear()
 
     async def settled(self) -> None:
-        """Every message sent so far was answered (or written off): what ``sync`` waits for."""
-        while self._pending:
-            if not await self._wait_replies():
-                self._write_off()
+        """Every message sent so far was answered: what ``sync`` waits for."""
+        while self._pending or self._resend or not self._owner_ok:
+            if not self._owner_ok or self._resend:
+                await self._recover()
+            elif not await self._wait_replies():
+                self._owner_ok = False
 
     def update_config(self, change: dict) -> dict:
         """Validated here (a bad change changes nothing), then applied by the owner, which keeps it in
@@ -204,7 +223,7 @@ class BusSession(LiveSession):
         out = super().summary()
         out["hand"] = self.hand_side or out["hand"]
         out["lost_to_failover"] = self.lost_to_failover
-        out["unconfirmed"] = self.unconfirmed
+        out["resent_after_failover"] = self.resent
         out["stale_frames"] = self.stale_frames
         return out
 

@@ -9,8 +9,7 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
   source message the gateway validated; the reply ``{"late": n, "duplicate": n, "error": str|None}``
   comes once the worker has handled it (its frames are published before the reply), so ``sync`` keeps
   its meaning across the bus. No reply within ``REPLY_WAIT_S``: the gateway asks ``ft.assign`` again;
-  if that moved the session (its owner was gone) the message is sent to the new owner, else it counts
-  as unconfirmed.
+  if that moved the session (its owner was gone) the unanswered messages go to the new owner.
 * ``ft.worker.<id>`` (request, the worker itself): an empty liveness probe, answered at once. A
   worker's subscriptions end with its connection, so "no responders" means the process is gone: its
   sessions are taken over at once instead of after the lease.
