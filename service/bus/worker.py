@@ -91,6 +91,7 @@ class OwnedSession:
         self.resume_angles: dict | None = None      # applied at the first timed message after a takeover
         self.subscriptions: list = []
         self.lock = asyncio.Lock()
+        self.renew_lock = asyncio.Lock()
         self.renewed_at = time.monotonic()
 
     def state(self, worker: str | None) -> bytes:
@@ -175,7 +176,7 @@ class Worker:
             entry, state = None, None
         if entry is None or state is None:
             return self.id if await self._claim(name, None, None) else await self._owner_of(key)
-        if state.get("worker") is None:             # released by a worker that stopped
+        if state.get("worker") in (None, self.id):  # released by a worker that stopped, or ours before a restart
             return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
         if state["worker"] != self.id and await self._gone(state["worker"]):
             return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
@@ -242,12 +243,20 @@ class Worker:
 
     async def _renew(self, owned: OwnedSession) -> bool:
         """Rewrite the lease with the current state; False (and the session given up) if another
-        worker took it over meanwhile."""
+        worker took it over meanwhile. One renewal of a session at a time (the periodic one and the
+        fence before publishing would otherwise race each other's compare-and-set)."""
+        async with owned.renew_lock:
+            return await self._renew_now(owned)
+
+    async def _renew_now(self, owned: OwnedSession) -> bool:
         try:
             owned.revision = await self.kv.update(session_token(owned.name), owned.state(self.id), last=owned.revision)
             owned.renewed_at = time.monotonic()
             return True
         except KeyWrongLastSequenceError:           # taken over while we were away: give it up
+            if await self._owner_of(session_token(owned.name)) == self.id:    # still ours: a stale revision
+                owned.revision = (await self.kv.get(session_token(owned.name))).revision
+                return True
             if self.owned.get(owned.name) is owned:
                 del self.owned[owned.name]
                 for sub in owned.subscriptions:
