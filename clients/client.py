@@ -17,13 +17,10 @@ import random
 from collections import deque
 from typing import Any, AsyncIterator, Iterable
 
-import msgpack
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
-from service.protocol import parse_message, parse_output
-
-MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
+from service.protocol import PROTOCOL_VERSION, decode, encode, parse_message, parse_output
 
 
 class Backoff:
@@ -53,12 +50,9 @@ def _url(base: str, path: str, token: str | None, binary: bool) -> str:
     return f"{base}{path}" + ("?" + "&".join(query) if query else "")
 
 
-def _decode(data) -> dict:
-    return msgpack.unpackb(data) if isinstance(data, bytes) else json.loads(data)
-
-
-def _encode(message: dict, binary: bool):
-    return msgpack.packb(message) if binary else json.dumps(message, separators=(",", ":"))
+def _decode(data: str | bytes) -> dict:
+    """A server message: MessagePack frames are binary, JSON ones text (``service.protocol.wire``)."""
+    return decode(data, binary=isinstance(data, bytes))  # type: ignore[return-value]
 
 
 class Publisher:
@@ -66,7 +60,7 @@ class Publisher:
                  binary: bool = False, backoff: Backoff | None = None, max_errors: int = 1000):
         self.url = _url(url, f"/v1/ingest/{session}", token, binary)
         self.binary = binary
-        self.hello = {"type": "hello", "protocol": 1, "hand": hand, "source": source}
+        self.hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": hand, "source": source}
         self.calibration: dict | None = None
         self.backoff = backoff or Backoff()
         self.errors: deque = deque(maxlen=max_errors)
@@ -79,13 +73,13 @@ class Publisher:
 
     async def connect(self) -> None:
         self._ws = await connect(self.url, max_size=None)
-        await self._ws.send(_encode(self.hello, self.binary))
+        await self._ws.send(encode(self.hello, self.binary))
         reply = _decode(await self._ws.recv())
         if reply.get("type") == "error":
             raise ConnectionRefusedError(f"{reply['code']}: {reply['detail']}")
         self.server_hello = reply
         if self.calibration is not None:
-            await self._ws.send(_encode(self.calibration, self.binary))
+            await self._ws.send(encode(self.calibration, self.binary))
         self._reader = asyncio.create_task(self._read())
 
     async def _read(self) -> None:
@@ -123,7 +117,7 @@ class Publisher:
                     self.backoff.reset()
                     if message is self.calibration:
                         return                      # connect() has just sent it
-                await self._ws.send(_encode(message, self.binary))
+                await self._ws.send(encode(message, self.binary))
                 return
             except (ConnectionClosed, OSError):
                 self._ws = None
@@ -147,7 +141,7 @@ class Publisher:
         self._sync_id += 1
         waiter = asyncio.get_running_loop().create_future()
         self._synced[self._sync_id] = waiter
-        await self._ws.send(_encode({"type": "sync", "id": self._sync_id}, self.binary))
+        await self._ws.send(encode({"type": "sync", "id": self._sync_id}, self.binary))
         await asyncio.wait_for(waiter, timeout_s)
 
     async def close(self, sync_timeout_s: float = 120.0) -> None:

@@ -185,9 +185,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     from pydantic import ValidationError
 
-    from gestures.stream import replay
     from .pipeline.hand import PipelineSettings
-    from .protocol import ProtocolError, parse_line
+    from .pipeline.tracked import replay
+    from .protocol import read_recording
 
     try:
         settings = PipelineSettings(estimator=args.estimator, estimator_params=_parse_params(args.param, None))
@@ -197,17 +197,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         raise ValueError(f"replay settings: {err}") from None
     bad = 0
 
-    def messages():
+    def skipped(number, err) -> None:
         nonlocal bad
-        with open(args.recording, encoding="utf-8") as fh:
-            for number, line in enumerate(fh, start=1):
-                if not line.strip():
-                    continue
-                try:
-                    yield parse_line(line)
-                except ProtocolError as err:
-                    bad += 1
-                    print(f"{args.recording}:{number}: skipped: {err.code}: {err.detail}", file=sys.stderr)
+        bad += 1
+        print(f"{args.recording}:{number}: skipped: {err.code}: {err.detail}", file=sys.stderr)
+
+    def messages():
+        for _, message in read_recording(args.recording, on_error="skip", skipped=skipped):
+            yield message
 
     counts: dict[str, int] = {}
     events = []

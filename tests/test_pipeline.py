@@ -4,8 +4,8 @@ import json
 import numpy as np
 import pytest
 
-from gestures.stream import TrackedHand, replay
-from service.pipeline.hand import PipelineSettings
+from service.pipeline.tracked import TrackedHand, replay
+from service.pipeline.hand import Dropped, HandSession, PipelineSettings
 from service.protocol import parse_message
 from service.sim.errors import OpticalModel
 from service.sim.session import SimConfig, simulate
@@ -118,7 +118,7 @@ def test_out_of_order_and_duplicate_samples_do_not_change_the_frames():
     out = [o for m in disordered for o in hand.handle(parse_message(m))]
     assert [f["fingers"] for f in _frames(out)] == [f["fingers"] for f in _frames(reference)]
     assert _events(out) == _events(reference)
-    counters = hand.session.counters
+    counters = hand.counters
     # a duplicate arriving after its tick was processed counts as late
     assert counters.duplicate + counters.late == duplicates and counters.duplicate > 0.9 * duplicates
     # a sample far behind the processed time is late: dropped and counted, frames unchanged
@@ -127,10 +127,26 @@ def test_out_of_order_and_duplicate_samples_do_not_change_the_frames():
     out_late = []
     for m in msgs:
         out_late += hand.handle(parse_message(m))
-        if m["type"] == "imu" and m["t"] > 1.0 and hand.session.counters.late == 0:
+        if m["type"] == "imu" and m["t"] > 1.0 and hand.counters.late == 0:
             out_late += hand.handle(parse_message(old_imu))
-    assert hand.session.counters.late == 1
+    assert hand.counters.late == 1
     assert [f["fingers"] for f in _frames(out_late)] == [f["fingers"] for f in _frames(reference)]
+
+
+def test_handle_says_what_a_message_dropped_and_why():
+    msgs = list(simulate(SimConfig(motion="point", noise="white", seed=5, t_m_s=1.0)).messages())
+    session = HandSession()
+    imus = [m for m in msgs if m["type"] == "imu"]
+    results = [session.handle(parse_message(m)) for m in msgs]
+    assert not any(r.dropped for r in results) and sum(len(r.frames) for r in results) > 10
+    again = session.handle(parse_message(imus[-1]))                 # its tick is still pending
+    assert again.dropped == Dropped(duplicate=1) and again.frames == []
+    processed = next(m for m in imus if m["t"] > imus[-1]["t"] - 0.2)   # processed, no clock step
+    old = session.handle(parse_message(processed))
+    assert old.dropped == Dropped(late=1)
+    stranger = session.handle(parse_message({**imus[-1], "id": "thumb.2", "t": imus[-1]["t"] + 0.001}))
+    assert stranger.dropped == Dropped(unknown_sensor=1)
+    assert (session.counters.duplicate, session.counters.late, session.counters.unknown_sensor) == (1, 1, 1)
 
 
 def test_replaying_twice_gives_identical_frames(sequence_clean, tmp_path):
@@ -160,15 +176,15 @@ def test_estimator_switches_live_from_the_current_estimate(sequence_clean):
     switched_at = None
     for m in sequence_clean.messages():
         if m["type"] == "imu" and m["t"] == 3.0 and m["id"] == "thumb.0":
-            hand.session.set_estimator("madgwick", {"beta": 0.05})
+            hand.set_estimator("madgwick", {"beta": 0.05})
             switched_at = len(frames)
         frames += [o for o in hand.handle(parse_message(m)) if o["type"] == "frame"]
     before, after = frames[switched_at - 1], frames[switched_at]
     assert before["status"]["estimator"] == "chain" and after["status"]["estimator"] == "madgwick"
     assert abs(after["fingers"]["index"]["pip"] - before["fingers"]["index"]["pip"]) < np.radians(2)
     with pytest.raises(ValueError, match="unknown estimator"):
-        hand.session.set_estimator("kalman")
-    assert hand.session.estimator_name == "madgwick"
+        hand.set_estimator("kalman")
+    assert hand.estimator_name == "madgwick"
 
 
 def test_bad_pipeline_settings_are_rejected():

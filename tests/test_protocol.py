@@ -4,7 +4,7 @@ import json
 import pytest
 
 from service.model.hand import default_calibration
-from service.protocol import Calibration, Hello, Imu, Pose, ProtocolError, Truth, parse_line, read_recording
+from service.protocol import Calibration, Hello, Imu, Pose, ProtocolError, Truth, decode, encode, parse_line, read_recording
 from service.sim.session import SimConfig, simulate, write_recording
 
 
@@ -63,3 +63,25 @@ def test_read_recording_names_the_bad_line(tmp_path):
     path.write_text(json.dumps(GOOD_IMU) + "\n" + '{"type":"imu"}\n')
     with pytest.raises(ProtocolError, match=r"bad.jsonl:2: imu"):
         list(read_recording(path))
+
+
+def test_read_recording_can_skip_bad_lines_and_say_which(tmp_path):
+    path = tmp_path / "mixed.jsonl"
+    path.write_text(json.dumps(GOOD_IMU) + "\n{not json\n\n" + json.dumps({**GOOD_IMU, "t": 2.0}) + "\n")
+    skipped = []
+    read = list(read_recording(path, on_error="skip", skipped=lambda n, err: skipped.append((n, err.code))))
+    assert [(n, m.t) for n, m in read] == [(1, 1.0), (4, 2.0)]
+    assert skipped == [(2, "invalid_json")]
+    with pytest.raises(ValueError, match="on_error"):
+        list(read_recording(path, on_error="ignore"))
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_the_wire_encodings_round_trip_and_refuse_garbage(binary):
+    message = {"type": "imu", "t": 1.5, "id": "index.1", "gyr": [0.1, -0.2, 0.3], "acc": [0.0, 9.81, 0.0]}
+    data = encode(message, binary)
+    assert isinstance(data, bytes if binary else str)
+    assert decode(data, binary) == message
+    with pytest.raises(ProtocolError) as err:
+        decode(b"\xc1" if binary else '{"t": NaN}', binary)
+    assert err.value.code == ("invalid_msgpack" if binary else "invalid_json")

@@ -10,7 +10,7 @@ from websockets.asyncio.client import connect
 
 from clients.client import Publisher, Subscription, rest, wait_healthy
 from clients.glove import source_messages, stream_glove
-from gestures.stream import replay
+from service.pipeline.tracked import replay
 from service.api.config import ServiceSettings
 from service.api.server import ServerThread, serving_gc
 from service.protocol import parse_line
@@ -44,7 +44,7 @@ async def _wait_for(condition, what: str, timeout_s: float = 120.0, interval_s: 
 
 
 async def _session_summary(server, session: str) -> dict:
-    _, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", ADMIN)
+    _, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER)
     return next(s for s in sessions if s["session"] == session)
 
 
@@ -113,6 +113,10 @@ def test_tokens_and_roles(server):
     status, body = rest(server.url, "PUT", "/v1/sessions/x/config", VIEWER, {"estimator": "ekf"})
     assert status == 403 and "may not configure" in body["detail"]
     assert rest(server.url, "GET", "/metrics")[0] == 401
+    # the bearer scheme is declared, so the generated API docs and clients know how to authenticate
+    _, spec = rest(server.url, "GET", "/openapi.json")
+    assert spec["components"]["securitySchemes"]["token"]["scheme"] == "bearer"
+    assert spec["paths"]["/v1/sessions"]["get"]["security"] == [{"token": []}]
 
     async def refused(path, token):
         from websockets.exceptions import InvalidStatus
@@ -306,6 +310,8 @@ def test_config_change_over_rest_switches_the_estimator_live(server):
     assert status == 422 and "unknown estimator 'kalman'" in json.dumps(body)
     status, body = rest(server.url, "PUT", "/v1/sessions/cfg/config", ADMIN, {"estimatr": "ekf"})
     assert status == 422 and "estimatr" in json.dumps(body)
+    status, body = rest(server.url, "PUT", "/v1/sessions/cfg/config", ADMIN, {"record": "maybe"})
+    assert status == 422 and body["detail"][0]["loc"] == ["body", "record"]
     assert rest(server.url, "GET", "/v1/sessions/cfg/config", VIEWER)[1]["estimator"] == "madgwick"
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from gestures.stream import replay
+from service.pipeline.tracked import replay
 from service.api.config import ServiceSettings
 from service.api.server import ServerThread
 from service.protocol import parse_message

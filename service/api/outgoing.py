@@ -6,9 +6,7 @@ format. Encoding used to be done per subscriber and was a measurable share of a 
 """
 from __future__ import annotations
 
-import json
-
-import msgpack
+from ..protocol import encode
 
 
 class Outgoing:
@@ -28,11 +26,14 @@ class Outgoing:
     def text(self) -> str:
         """Compact JSON text (the default format)."""
         if self._text is None:
-            self._text = json.dumps(self.message, separators=(",", ":"))
-        return self._text
+            self._text = encode(self.message, binary=False)          # type: ignore[assignment]
+        return self._text                                             # type: ignore[return-value]
 
     def packed(self) -> bytes:
         """MessagePack bytes (subprotocol ``fingertrack.msgpack``)."""
         if self._packed is None:
-            self._packed = msgpack.packb(self.message)
-        return self._packed
+            self._packed = encode(self.message, binary=True)          # type: ignore[assignment]
+        return self._packed                                           # type: ignore[return-value]
+
+    def encoded(self, binary: bool) -> str | bytes:
+        return self.packed() if binary else self.text()

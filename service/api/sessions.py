@@ -16,11 +16,14 @@ from pathlib import Path
 from typing import Any
 
 from gestures.recognizer import GestureSettings
-from gestures.stream import TrackedHand
-from ..pipeline.hand import PipelineSettings
+from ..estimators.registry import estimator_class
+from ..pipeline.hand import Dropped, PipelineSettings
+from ..pipeline.tracked import TrackedHand
 from .config import ServiceSettings
 from .metrics import Metrics
 from .outgoing import Outgoing
+
+SESSION_NAME_MAX = 64
 
 
 class SubscriberTooSlow(Exception):
@@ -65,6 +68,11 @@ class Subscriber:
         if not self.queue:
             self.wake.clear()
         return msg, t
+
+    def close(self) -> None:
+        """Ask the subscriber's sender to finish (it sends the close frame)."""
+        self.closed = True
+        self.wake.set()
 
 
 class Recorder:
@@ -140,13 +148,12 @@ class LiveSession:
         gestures = self.config.gestures
         if "gestures" in change:
             gestures = GestureSettings(**{**self.config.gestures.model_dump(), **change["gestures"]})
-        from ..estimators.registry import estimator_class
         estimator_class(estimator).Settings(**params)
         record = bool(change.get("record", self.config.record))
         if record and self.settings.record_dir is None:
             raise ValueError("record: the service has no record_dir; start it with one to record sessions")
         if (estimator, params) != (self.config.estimator, self.config.estimator_params):
-            self.hand.session.set_estimator(estimator, params)
+            self.hand.set_estimator(estimator, params)
         self.config.estimator, self.config.estimator_params = estimator, params
         self.config.gestures = gestures
         self.hand.set_gesture_settings(gestures)
@@ -154,17 +161,21 @@ class LiveSession:
         self._apply_recording()
         return self.config.as_dict()
 
-    async def ingest(self, raw: dict, parsed) -> None:
+    async def ingest(self, raw: dict, parsed) -> Dropped | None:
         """Run one validated source message through the hand and fan the outputs out; after each
-        frame it yields to the event loop so the subscribers' senders go out before the next tick."""
+        frame it yields to the event loop so the subscribers' senders go out before the next tick.
+        Returns what the message dropped and why (``None``: a session whose hand runs elsewhere
+        answers later, through ``attach_source``)."""
         t0 = time.perf_counter()
         async with self._lock:          # several sources (glove, tracker) may feed one hand: one at a time
             self.metrics.messages_in.labels(self.name).inc()
             if self.recorder is not None:
                 self.recorder.write(raw)
-            for group in self.hand.handle_iter(parsed):
+            dropped = self.hand.accept(parsed)
+            for group in self.hand.outputs():
                 self._fan_out(group, t0)
                 await asyncio.sleep(0)
+        return dropped
 
     def attach_source(self, send_error) -> None:
         """``send_error(code, detail)`` (async) answers the connected source. Errors are found while
@@ -191,7 +202,7 @@ class LiveSession:
                     self.metrics.dropped_frames.labels(self.name).inc(dropped)
 
     def summary(self) -> dict:
-        return {"session": self.name, "hand": self.hand.session.hand, "sources": self.sources,
+        return {"session": self.name, "hand": self.hand.hand, "sources": self.sources,
                 "subscribers": len(self.subscribers), "frames_out": self.frames_out,
                 "dropped_subscriber_frames": self.dropped_frames, "config": self.config.as_dict(),
                 "status": self.last_status, "recording": str(self.recorder.path) if self.recorder else None}
@@ -199,3 +210,60 @@ class LiveSession:
     def close(self) -> None:
         if self.recorder is not None:
             self.recorder.close()
+
+
+class SessionFull(Exception):
+    """The service holds ``max_sessions`` sessions; a new one may fit later."""
+
+
+def check_session_name(name: str) -> None:
+    if not (1 <= len(name) <= SESSION_NAME_MAX) or not all(c.isalnum() or c in "-_." for c in name):
+        raise ValueError(f"session name must be 1-{SESSION_NAME_MAX} characters of letters, digits, '-', '_', '.', got {name!r}")
+
+
+class Sessions:
+    """The service's live sessions by name, at most ``settings.max_sessions``, and its shutdown."""
+
+    def __init__(self, settings: ServiceSettings, metrics: Metrics):
+        self.settings = settings
+        self.metrics = metrics
+        self.by_name: dict[str, LiveSession] = {}
+        self.closing = False
+        self.bus = None
+        """A ``bus.gateway.GatewayBus`` when the hands run in workers (``settings.bus``), else None."""
+
+    def __len__(self) -> int:
+        return len(self.by_name)
+
+    def __iter__(self):
+        return iter(list(self.by_name.values()))
+
+    def get(self, name: str, create: bool) -> LiveSession | None:
+        """The session ``name``; a new one when ``create`` (``SessionFull`` at the limit), else ``None``
+        if there is none. A bad name raises ``ValueError``."""
+        check_session_name(name)
+        live = self.by_name.get(name)
+        if live is None and create:
+            if len(self.by_name) >= self.settings.max_sessions:
+                raise SessionFull(f"session limit {self.settings.max_sessions} reached")
+            live = self.by_name[name] = (LiveSession(name, self.settings, self.metrics) if self.bus is None
+                                         else self.bus.session(name, self.settings, self.metrics))
+            self.metrics.sessions.set(len(self.by_name))
+        return live
+
+    def flush_recordings(self) -> None:
+        for live in self:
+            if live.recorder is not None:
+                live.recorder.flush()
+
+    async def drain(self) -> None:
+        """Graceful shutdown: subscribers are asked to close (1001 with a reason), recordings flushed
+        and closed. Runs before the server closes the remaining connections."""
+        if self.closing:
+            return
+        self.closing = True
+        for live in self:
+            for sub in live.subscribers:
+                sub.close()
+            live.close()
+        await asyncio.sleep(0.1)            # let the stream handlers send their close frames

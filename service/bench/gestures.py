@@ -1,6 +1,6 @@
 """Gesture benchmark: ``fingertrack bench gestures [--quick] --out DIR``.
 
-Long simulated sessions run through the whole live path (``gestures.stream.TrackedHand``: protocol
+Long simulated sessions run through the whole live path (``service.pipeline.tracked.TrackedHand``: protocol
 messages, hand pipeline with its default estimator, recogniser): random gesture scripts (point,
 grasp, pinch, open and a relaxed hand, 0.25-0.6 s transitions, 0.6-2 s holds), a slowly rotating and
 swaying hand, 'both' IMU errors at MPU-9250 figures and the default optical tracker (90 Hz, 20 ms
@@ -50,7 +50,7 @@ def _intervals(events: list[tuple[str, str, float]], end_t: float) -> dict[str, 
 def run_session(seed: int, duration_s: float, hand_motion: str = "slow-rotation") -> dict:
     """One session: detected and true intervals, ray errors."""
     from gestures.recognizer import GestureRecognizer, GestureSettings
-    from gestures.stream import TrackedHand
+    from ..pipeline.tracked import TrackedHand
 
     steps = random_sequence(duration_s, seed)
     motion = sequence_motion(steps=steps)

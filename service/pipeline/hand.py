@@ -100,6 +100,32 @@ class Uninstrumented:
         pass
 
 
+DROP_REASONS = ("late", "duplicate", "unknown_sensor", "overflow")
+"""Why the pipeline drops input: older than what was processed, already received, a sensor the
+calibration does not know, pushed out of the full pending-tick table."""
+
+
+@dataclass(frozen=True)
+class Dropped:
+    """What one message cost the pipeline, per reason (``DROP_REASONS``): samples, or a pose."""
+
+    late: int = 0
+    duplicate: int = 0
+    unknown_sensor: int = 0
+    overflow: int = 0
+
+    def __bool__(self) -> bool:
+        return any(getattr(self, r) for r in DROP_REASONS)
+
+
+@dataclass(frozen=True)
+class Handled:
+    """The result of ``HandSession.handle``: the frames one message completes and what it dropped."""
+
+    frames: list["HandFrame"]
+    dropped: Dropped
+
+
 @dataclass
 class FingerState:
     geom: FingerGeometry
@@ -160,6 +186,7 @@ class HandSession:
         self._fingers: dict[str, FingerState] = {}
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
+        self._dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)      # this message's drops (``accept``)
         self.estimator_name = self.settings.estimator
         self._estimator_params = dict(self.settings.estimator_params)
         self._check_estimator(self.estimator_name, self._estimator_params)
@@ -204,15 +231,26 @@ class HandSession:
         self._build_fingers()
 
     # -- input ---------------------------------------------------------------------------------------
-    def handle(self, msg) -> list[HandFrame]:
-        """All frames this message completes."""
-        return list(self.handle_iter(msg))
+    def handle(self, msg) -> Handled:
+        """All frames this message completes, and what it dropped and why."""
+        dropped = self.accept(msg)
+        return Handled(list(self.ready_frames()), dropped)
 
-    def handle_iter(self, msg) -> Iterator[HandFrame]:
-        """The same frames, each yielded as soon as its tick is processed (a message that completes
-        several ticks need not hold the first frame back until the last tick is done)."""
+    def accept(self, msg) -> Dropped:
+        """Take one source message in (the first half of ``handle``); returns what it dropped. The
+        frames it completes come from ``ready_frames``."""
+        self._dropped = dict.fromkeys(DROP_REASONS, 0)
         self._accept(msg)
+        return Dropped(**self._dropped)
+
+    def ready_frames(self) -> Iterator[HandFrame]:
+        """The frames of every tick that is ready, each yielded as soon as its tick is processed (a
+        message that completes several ticks need not hold the first frame back until the last)."""
         yield from self._process_ready()
+
+    def _drop(self, reason: str, count: int = 1) -> None:
+        setattr(self.counters, reason, getattr(self.counters, reason) + count)
+        self._dropped[reason] += count
 
     def _accept(self, msg) -> None:
         if isinstance(msg, Imu):
@@ -222,7 +260,7 @@ class HandSession:
                 self._add_imu(s.t, s.id, s.gyr, s.acc)
         elif isinstance(msg, Pose):
             if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
-                self.counters.late += 1
+                self._drop("late")
             else:
                 self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
         elif isinstance(msg, Calibration):
@@ -265,24 +303,24 @@ class HandSession:
 
     def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
         if sid not in self.calibration.sensor_ids:
-            self.counters.unknown_sensor += 1
+            self._drop("unknown_sensor")
             return
         newest = self._newest_imu_t
         if newest is not None and abs(t - newest) > self.settings.clock_step_s:
             self._clock_step()
             newest = None
         if self._processed_t is not None and t <= self._processed_t:
-            self.counters.late += 1
+            self._drop("late")
             return
         tick = self._pending.setdefault(t, {})
         if sid in tick:
-            self.counters.duplicate += 1
+            self._drop("duplicate")
             return
         tick[sid] = (np.asarray(gyr, dtype=float), np.asarray(acc, dtype=float))
         self._newest_imu_t = t if newest is None else max(newest, t)
         if len(self._pending) > self.settings.max_pending_ticks:
             oldest = min(self._pending)
-            self.counters.overflow += len(self._pending.pop(oldest))
+            self._drop("overflow", len(self._pending.pop(oldest)))
 
     def _clock_step(self) -> None:
         self.counters.clock_steps += 1

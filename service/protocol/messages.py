@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
-from typing import Annotated, Iterator, Literal, Union
+from typing import Annotated, Literal, Union
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
 
@@ -217,29 +216,3 @@ def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | 
     except ValidationError as err:
         code = "non_unit_quaternion" if "unit quaternion" in str(err) else "invalid_message"
         raise ProtocolError(code, f"{kind}: {_describe(err)}") from None
-
-
-def _reject_constant(name: str):
-    raise ValueError(f"non-finite number {name} is not allowed")
-
-
-def parse_line(line: str | bytes):
-    """Decode one JSON text and validate it; raises ``ProtocolError`` (``invalid_json`` for bad JSON,
-    including the non-standard ``NaN``/``Infinity`` literals)."""
-    try:
-        obj = json.loads(line, parse_constant=_reject_constant)
-    except (ValueError, UnicodeDecodeError) as err:
-        raise ProtocolError("invalid_json", f"not valid JSON: {err}") from None
-    return parse_message(obj)
-
-
-def read_recording(path: str | Path) -> Iterator[tuple[int, object]]:
-    """Yield ``(line_number, message)`` for every line of a recording; ``ProtocolError`` names the line."""
-    with open(path, encoding="utf-8") as fh:
-        for number, line in enumerate(fh, start=1):
-            if not line.strip():
-                continue
-            try:
-                yield number, parse_line(line)
-            except ProtocolError as err:
-                raise ProtocolError(err.code, f"{path}:{number}: {err.detail}") from None

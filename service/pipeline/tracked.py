@@ -3,22 +3,41 @@
 ``TrackedHand.handle(message)`` returns output messages in order: each ``frame`` (with a
 ``gesture`` object: active gesture, curls, pinch and grab strength, pointing ray) followed by the
 ``gesture`` events it caused. Live streaming and replay both use it, so a recording replays to the
-same messages.
+same messages. It is the one object the service holds per session: what it needs from the
+pipeline (the hand, the estimator, the counters) is exposed here.
 """
 from __future__ import annotations
 
 from typing import Iterable, Iterator
 
-from service.pipeline.hand import HandSession, PipelineSettings
+from gestures.recognizer import GestureRecognizer, GestureSettings
 
-from .recognizer import GestureRecognizer, GestureSettings
+from .hand import Counters, Dropped, HandSession, PipelineSettings
 
 
 class TrackedHand:
     def __init__(self, hand: str = "right", settings: PipelineSettings | None = None,
                  gesture_settings: GestureSettings | None = None):
-        self.session = HandSession(hand, settings)
+        self._session = HandSession(hand, settings)
         self.recognizer = GestureRecognizer(gesture_settings or GestureSettings())
+
+    @property
+    def hand(self) -> str:
+        """``right`` or ``left`` (a source's ``hello`` may change it)."""
+        return self._session.hand
+
+    @property
+    def estimator_name(self) -> str:
+        return self._session.estimator_name
+
+    @property
+    def counters(self) -> Counters:
+        """The pipeline's running counts of dropped input, clock steps and reference poses."""
+        return self._session.counters
+
+    def set_estimator(self, name: str, params: dict | None = None) -> None:
+        """Switch every finger's estimator live (``HandSession.set_estimator``)."""
+        self._session.set_estimator(name, params)
 
     def set_gesture_settings(self, settings: GestureSettings) -> None:
         self.recognizer.settings = settings
@@ -28,9 +47,19 @@ class TrackedHand:
 
     def handle_iter(self, message) -> Iterator[list[dict]]:
         """For each frame the message completes, as soon as it is ready: the frame and its events."""
-        for frame in self.session.handle_iter(message):
+        self.accept(message)
+        yield from self.outputs()
+
+    def accept(self, message) -> Dropped:
+        """Take one source message in; returns what it dropped and why. Its outputs follow from
+        ``outputs``."""
+        return self._session.accept(message)
+
+    def outputs(self) -> Iterator[list[dict]]:
+        """For each frame that is ready, as soon as it is: the frame message and its gesture events."""
+        for frame in self._session.ready_frames():
             annotation, events = self.recognizer.update(frame)
-            msg = frame.to_message(self.session.calibration)
+            msg = frame.to_message(self._session.calibration)
             msg["gesture"] = annotation
             yield [msg, *events]
 

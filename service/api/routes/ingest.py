@@ -1,0 +1,107 @@
+"""``WS /v1/ingest/{session}`` (role ``source``): ``hello`` first (answered with the server's hello, or
+refused with a clear reason when its protocol is not this server's), then ``calibration``, ``pose``,
+``imu``, ``imu_batch``, ``reference_pose`` and ``sync`` barriers. Bad input gets an ``error`` reply
+(code and detail) and is dropped; the connection and every other session go on."""
+from __future__ import annotations
+
+import time
+
+from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
+
+from ...pipeline.hand import Dropped
+from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
+from ..config import ServiceSettings
+from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
+from .socket import open_session, send, send_error, server_hello
+
+router = APIRouter()
+
+
+class TokenBucket:
+    def __init__(self, rate: float):
+        self.rate, self.capacity = rate, rate
+        self.tokens, self.t = rate, time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self.tokens = min(self.capacity, self.tokens + (now - self.t) * self.rate)
+        self.t = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+def _admit(data: dict, settings: ServiceSettings, bucket: TokenBucket) -> tuple[str, str] | None:
+    """``(code, detail)`` if a received WebSocket message must be refused before decoding."""
+    size = len(data["bytes"]) if data.get("bytes") is not None else len(data.get("text") or "")
+    if size > settings.max_message_bytes:
+        return "message_too_large", f"{size} bytes; the limit is {settings.max_message_bytes}"
+    if not bucket.take():
+        return "rate_limited", f"more than {settings.rate_limit_msgs_per_s:g} messages/s; message dropped"
+    return None
+
+
+def _drop_error(msg, dropped: Dropped | None) -> tuple[str, str] | None:
+    """The ``error`` reply for a message the pipeline dropped as late or duplicate."""
+    if dropped is None:                    # a bus session answers from its worker's reply
+        return None
+    when = f"{msg.type} at t={getattr(msg, 't', None)}"
+    if dropped.late:
+        return "time_backwards", f"{when} is older than what was already processed; dropped"
+    if dropped.duplicate:
+        return "duplicate", f"{when} was already received; dropped"
+    return None
+
+
+@router.websocket("/v1/ingest/{session}", dependencies=[Security(Role("ingest"))])
+async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: SettingsDep, metrics: MetricsDep):
+    live = await open_session(ws, sessions, session)
+    if live is None:
+        return
+    live.sources += 1
+    live.attach_source(lambda code, detail: send_error(ws, metrics, code, detail))
+    bucket = TokenBucket(settings.rate_limit_msgs_per_s)
+    greeted = False
+    try:
+        while True:
+            data = await ws.receive()
+            if data["type"] == "websocket.disconnect":
+                break
+            refused = _admit(data, settings, bucket)
+            if refused:
+                await send_error(ws, metrics, *refused)
+                continue
+            binary = data.get("bytes") is not None
+            try:
+                raw = decode(data["bytes"] if binary else data["text"], binary)
+                msg = parse_message(raw)
+            except ProtocolError as err:
+                await send_error(ws, metrics, err.code, err.detail)
+                continue
+            if isinstance(msg, Hello):
+                if msg.protocol != PROTOCOL_VERSION:
+                    await send_error(ws, metrics, "unsupported_protocol",
+                                     f"protocol {msg.protocol} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
+                    await ws.close(code=WS_POLICY_VIOLATION, reason=f"unsupported protocol {msg.protocol}")
+                    return
+                greeted = True
+                await send(ws, server_hello(session))
+            elif not greeted:
+                await send_error(ws, metrics, "expected_hello", f"the first message must be hello, got {msg.type}")
+                continue
+            elif isinstance(msg, Sync):           # everything before it is handled: say so
+                await live.settled()
+                await send(ws, {"type": "sync", "id": msg.id})
+                continue
+            try:
+                dropped = await live.ingest(raw, msg)
+            except ValueError as err:          # e.g. a calibration that does not fit the hand
+                await send_error(ws, metrics, "invalid_message", str(err))
+                continue
+            if (reply := _drop_error(msg, dropped)) is not None:
+                await send_error(ws, metrics, *reply)
+    except WebSocketDisconnect:
+        pass
+    finally:
+        live.sources -= 1

@@ -1,0 +1,75 @@
+"""REST: the index page, health and readiness, the sessions, a session's configuration, Prometheus metrics."""
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Security
+from fastapi.responses import HTMLResponse, Response
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from ...protocol import PROTOCOL_VERSION
+from ..deps import MetricsDep, Role, SessionsDep, existing_session, session_or_new
+from ..sessions import LiveSession
+
+router = APIRouter()
+INDEX_PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8"><title>fingertrack</title>
+<link rel="icon" href="data:,"></head><body style="font: 15px system-ui, sans-serif; margin: 2em">
+<h1>fingertrack</h1><ul><li><a href="/viewer/">viewer</a>: a live hand, its joint angles and gesture events</li>
+<li><a href="/docs">API docs</a> (<a href="/openapi.json">OpenAPI</a>)</li><li><a href="/health">health</a></li></ul>
+</body></html>"""
+
+
+class SessionConfigChange(BaseModel):
+    """Body of ``PUT /v1/sessions/{session}/config``: the fields to change; the others stay."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    estimator: str | None = Field(None, description="estimator name (``fingertrack estimate --list``)")
+    estimator_params: dict[str, Any] | None = Field(None, description="the estimator's settings; omitted: kept if the estimator stays, else its defaults")
+    gestures: dict[str, Any] | None = Field(None, description="gesture recogniser settings to change")
+    record: bool | None = Field(None, description="record the session's source messages (needs the service's record_dir)")
+
+
+@router.get("/", include_in_schema=False)
+def index():
+    """A page that leads to the viewer and the API docs."""
+    return HTMLResponse(INDEX_PAGE)
+
+
+@router.get("/health")
+def health():
+    return {"status": "ok"}
+
+
+@router.get("/ready")
+def ready(sessions: SessionsDep):
+    if sessions.closing:
+        raise HTTPException(503, "shutting down")
+    return {"ready": True, "sessions": len(sessions), "protocol": PROTOCOL_VERSION}
+
+
+@router.get("/v1/sessions", dependencies=[Security(Role("read"))])
+def list_sessions(sessions: SessionsDep):
+    return [live.summary() for live in sessions]
+
+
+@router.get("/v1/sessions/{session}/config", dependencies=[Security(Role("read"))])
+def get_config(live: Annotated[LiveSession, Depends(existing_session)]):
+    return live.config.as_dict()
+
+
+@router.put("/v1/sessions/{session}/config", dependencies=[Security(Role("configure"))])
+def put_config(session: str, change: SessionConfigChange, sessions: SessionsDep):
+    live = session_or_new(session, sessions)
+    try:
+        return live.update_config(change.model_dump(exclude_unset=True, exclude_none=True))
+    except ValidationError as err:
+        raise HTTPException(422, json.loads(err.json(include_url=False))) from None
+    except ValueError as err:
+        raise HTTPException(422, str(err)) from None
+
+
+@router.get("/metrics", dependencies=[Security(Role("metrics"))])
+def get_metrics(metrics: MetricsDep):
+    return Response(metrics.render(), media_type="text/plain; version=0.0.4")

@@ -1,0 +1,59 @@
+"""``WS /v1/stream/{session}`` (role ``viewer``): the server's hello, then ``frame`` and ``gesture``
+messages from the subscriber's own bounded queue (``sessions.Subscriber``). A subscriber that fell
+too far behind is closed with 1013 (it may reconnect); shutdown closes with 1001."""
+from __future__ import annotations
+
+import asyncio
+import time
+
+from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
+
+from ..deps import WS_GOING_AWAY, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
+from ..sessions import Subscriber
+from .socket import open_session, send, server_hello
+
+router = APIRouter()
+
+
+async def _until_disconnect(ws: WebSocket) -> None:
+    try:
+        while True:
+            data = await ws.receive()
+            if data["type"] == "websocket.disconnect":
+                return
+    except Exception:
+        return
+
+
+@router.websocket("/v1/stream/{session}", dependencies=[Security(Role("stream"))])
+async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: SettingsDep, metrics: MetricsDep):
+    live = await open_session(ws, sessions, session)
+    if live is None:
+        return
+    sub = Subscriber(settings.subscriber_queue_frames, settings.subscriber_queue_events, binary=ws.state.binary)
+    live.subscribers.add(sub)
+    metrics.subscribers.inc()
+    closer = asyncio.create_task(_until_disconnect(ws))
+    try:
+        await send(ws, server_hello(session))
+        while not closer.done():
+            if not sub.queue:
+                waiter = asyncio.create_task(sub.wake.wait())
+                await asyncio.wait({waiter, closer}, return_when=asyncio.FIRST_COMPLETED)
+                waiter.cancel()
+            if sessions.closing or (sub.closed and not sub.queue):
+                reason = "server shutting down" if sessions.closing else "subscriber too slow: gesture events would be lost"
+                # 1013 "try again later": a client that fell behind may reconnect (1008 means refused)
+                await ws.close(code=WS_GOING_AWAY if sessions.closing else WS_TRY_AGAIN_LATER, reason=reason)
+                break
+            while sub.queue:
+                msg, t0 = sub.pop()
+                await send(ws, msg)
+                metrics.messages_out.labels(session).inc()
+                metrics.latency.labels(session).observe(time.perf_counter() - t0)
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        closer.cancel()
+        live.subscribers.discard(sub)
+        metrics.subscribers.dec()

@@ -1,0 +1,72 @@
+"""The wire encodings of protocol v1, shared by the service and the Python client: JSON text by
+default, MessagePack binary (the same objects) when a client asks with the WebSocket subprotocol
+``MSGPACK_SUBPROTOCOL`` or ``?format=msgpack``; and recordings, JSON Lines of source messages.
+
+``decode`` is the one place raw bytes become a Python value: bad input raises ``ProtocolError``
+(``invalid_json`` or ``invalid_msgpack``), and the non-standard ``NaN``/``Infinity`` JSON literals
+are refused (DESIGN.md: non-finite numbers are an error).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable, Iterator, Literal
+
+import msgpack
+
+from .messages import ProtocolError, parse_message
+
+MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
+"""WebSocket subprotocol name of the MessagePack encoding."""
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"non-finite number {name} is not allowed")
+
+
+def encode(message: dict, binary: bool) -> str | bytes:
+    """One message as compact JSON text, or MessagePack bytes when ``binary``."""
+    return msgpack.packb(message) if binary else json.dumps(message, separators=(",", ":"))
+
+
+def decode(data: str | bytes, binary: bool = False) -> object:
+    """One message's Python value from JSON text (``str`` or UTF-8 ``bytes``), or from MessagePack
+    bytes when ``binary``; raises ``ProtocolError`` naming the encoding and the problem."""
+    if binary:
+        try:
+            return msgpack.unpackb(data)
+        except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as err:
+            raise ProtocolError("invalid_msgpack", f"not valid MessagePack: {err}") from None
+    try:
+        return json.loads(data, parse_constant=_reject_constant)
+    except (ValueError, UnicodeDecodeError) as err:
+        raise ProtocolError("invalid_json", f"not valid JSON: {err}") from None
+
+
+def parse_line(line: str | bytes):
+    """Decode one JSON text and validate it as a source message; raises ``ProtocolError``
+    (``invalid_json`` for bad JSON, including the non-standard ``NaN``/``Infinity`` literals)."""
+    return parse_message(decode(line))
+
+
+def read_recording(path: str | Path, on_error: Literal["raise", "skip"] = "raise",
+                   skipped: Callable[[int, ProtocolError], None] | None = None) -> Iterator[tuple[int, object]]:
+    """Yield ``(line_number, message)`` for every line of a recording (blank lines ignored).
+
+    A bad line raises ``ProtocolError`` naming the file and the line (``on_error="raise"``), or is
+    left out (``on_error="skip"``), after ``skipped(line_number, error)`` if given."""
+    if on_error not in ("raise", "skip"):
+        raise ValueError(f"on_error must be 'raise' or 'skip', got {on_error!r}")
+    with open(path, encoding="utf-8") as fh:
+        for number, line in enumerate(fh, start=1):
+            if not line.strip():
+                continue
+            try:
+                message = parse_line(line)
+            except ProtocolError as err:
+                if on_error == "raise":
+                    raise ProtocolError(err.code, f"{path}:{number}: {err.detail}") from None
+                if skipped is not None:
+                    skipped(number, err)
+                continue
+            yield number, message
