@@ -59,15 +59,17 @@ def _refuse(connection: HTTPConnection, status: int, detail: str):
     raise HTTPException(status, detail)
 
 
-def get_sessions(connection: HTTPConnection) -> Sessions:
+# dependencies are coroutines: FastAPI runs plain functions in a thread pool, which would lengthen
+# every WebSocket handshake (a handshake still open at shutdown is answered with HTTP 500)
+async def get_sessions(connection: HTTPConnection) -> Sessions:
     return connection.app.state.sessions
 
 
-def get_settings(connection: HTTPConnection) -> ServiceSettings:
+async def get_settings(connection: HTTPConnection) -> ServiceSettings:
     return connection.app.state.settings
 
 
-def get_metrics(connection: HTTPConnection) -> Metrics:
+async def get_metrics(connection: HTTPConnection) -> Metrics:
     return connection.app.state.metrics
 
 
@@ -76,7 +78,7 @@ SettingsDep = Annotated[ServiceSettings, Depends(get_settings)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
 
 
-def existing_session(session: str, sessions: SessionsDep) -> LiveSession:
+async def existing_session(session: str, sessions: SessionsDep) -> LiveSession:
     """The session named in the path; 422 for a bad name, 404 if there is none."""
     try:
         live = sessions.get(session, create=False)
@@ -87,7 +89,7 @@ def existing_session(session: str, sessions: SessionsDep) -> LiveSession:
     return live
 
 
-def session_or_new(session: str, sessions: SessionsDep) -> LiveSession:
+async def session_or_new(session: str, sessions: SessionsDep) -> LiveSession:
     """The session named in the path, created if new; 422 for a bad name, 503 when the service is full."""
     try:
         return sessions.get(session, create=True)          # type: ignore[return-value]

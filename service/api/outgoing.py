@@ -6,7 +6,9 @@ format. Encoding used to be done per subscriber and was a measurable share of a 
 """
 from __future__ import annotations
 
-from ..protocol import encode
+import json
+
+import msgpack
 
 
 class Outgoing:
@@ -26,14 +28,11 @@ class Outgoing:
     def text(self) -> str:
         """Compact JSON text (the default format)."""
         if self._text is None:
-            self._text = encode(self.message, binary=False)          # type: ignore[assignment]
-        return self._text                                             # type: ignore[return-value]
+            self._text = json.dumps(self.message, separators=(",", ":"))
+        return self._text
 
     def packed(self) -> bytes:
         """MessagePack bytes (subprotocol ``fingertrack.msgpack``)."""
         if self._packed is None:
-            self._packed = encode(self.message, binary=True)          # type: ignore[assignment]
-        return self._packed                                           # type: ignore[return-value]
-
-    def encoded(self, binary: bool) -> str | bytes:
-        return self.packed() if binary else self.text()
+            self._packed = msgpack.packb(self.message)
+        return self._packed

@@ -35,7 +35,10 @@ async def open_session(ws: WebSocket, sessions: Sessions, name: str) -> LiveSess
 async def send(ws: WebSocket, message: dict | Outgoing) -> None:
     """One message in the connection's encoding (an ``Outgoing`` one is encoded once for everyone)."""
     binary = ws.state.binary
-    data = message.encoded(binary) if isinstance(message, Outgoing) else encode(message, binary)
+    if isinstance(message, Outgoing):
+        data = message.packed() if binary else message.text()
+    else:
+        data = encode(message, binary)
     if isinstance(data, bytes):
         await ws.send_bytes(data)
     else:
