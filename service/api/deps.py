@@ -89,7 +89,7 @@ async def existing_session(session: str, sessions: SessionsDep) -> LiveSession:
     return live
 
 
-async def session_or_new(session: str, sessions: SessionsDep) -> LiveSession:
+def session_or_new(session: str, sessions: Sessions) -> LiveSession:
     """The session named in the path, created if new; 422 for a bad name, 503 when the service is full."""
     try:
         return sessions.get(session, create=True)          # type: ignore[return-value]

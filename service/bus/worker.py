@@ -27,6 +27,7 @@ from ..api.config import ServiceSettings
 from ..api.metrics import Metrics
 from ..api.outgoing import Outgoing
 from ..api.sessions import LiveSession
+from ..pipeline.hand import Dropped
 from ..protocol import ProtocolError, parse_message
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
@@ -276,18 +277,16 @@ class Worker:
     # -- session traffic -------------------------------------------------------------------------
     async def _handle(self, owned: OwnedSession, raw: dict) -> dict:
         parsed = parse_message(raw)
-        counters = owned.live.hand.session.counters
-        late, duplicate = counters.late, counters.duplicate
-        error = None
+        dropped, error = Dropped(), None
         try:
-            await owned.live.ingest(raw, parsed)
+            dropped = await owned.live.ingest(raw, parsed)
         except ValueError as err:
             error = str(err)
         if parsed.type == "hello":
             owned.hello = raw
         elif parsed.type == "calibration" and error is None:
             owned.calibration = raw
-        return {"late": counters.late - late, "duplicate": counters.duplicate - duplicate, "error": error}
+        return {"late": dropped.late, "duplicate": dropped.duplicate, "error": error}
 
     async def _on_source(self, owned: OwnedSession, msg) -> None:
         raw = unpack(msg.data)["raw"]

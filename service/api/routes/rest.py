@@ -60,9 +60,9 @@ def get_config(live: Annotated[LiveSession, Depends(existing_session)]):
 
 
 @router.put("/v1/sessions/{session}/config", dependencies=[Security(Role("configure"))])
-async def put_config(session: str, change: SessionConfigChange, sessions: SessionsDep):
-    # on the event loop, like ingest: the session is never changed from two threads at once
-    live = await session_or_new(session, sessions)
+def put_config(session: str, change: SessionConfigChange, sessions: SessionsDep):
+    # a plain function (FastAPI's thread pool), as before: a bus session's change waits for its worker
+    live = session_or_new(session, sessions)
     try:
         return live.update_config(change.model_dump(exclude_unset=True, exclude_none=True))
     except ValidationError as err:
