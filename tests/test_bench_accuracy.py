@@ -58,7 +58,7 @@ def _dropout_run(estimator_cls, session, drop=("index.2", 6.0, 6.5)):
     for m in session.messages(include_truth=False):
         if m["type"] == "imu" and m["id"] == sid and a <= m["t"] < b:
             continue
-        for f in hs.handle(parse_message(m)):
+        for f in hs.handle(parse_message(m)).frames:
             t.append(f.t)
             phi.append(f.joint_angles["index"])
     t, phi = np.array(t), np.array(phi)

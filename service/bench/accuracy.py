@@ -111,7 +111,7 @@ def run_pipeline(messages: list, estimator: str, params: dict) -> tuple[np.ndarr
     hs = HandSession(settings=PipelineSettings(estimator=estimator, estimator_params=params))
     t, phi = [], {f: [] for f in FINGERS}
     for m in messages:
-        for frame in hs.handle(m):
+        for frame in hs.handle(m).frames:
             t.append(frame.t)
             for f in FINGERS:
                 phi[f].append(frame.joint_angles[f])
