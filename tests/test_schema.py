@@ -203,3 +203,23 @@ def test_real_frames_events_and_errors_follow_the_published_schema(server):
     assert source.is_valid({"type": "hello", "protocol": 1, "hand": "left"})
     assert not source.is_valid({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0], "acc": [0, 0, 9.8]})
     assert not source.is_valid({"type": "wave"})
+
+
+def test_the_openapi_document_declares_the_bearer_scheme_and_typed_bodies(server):
+    status, doc = rest(server.url, "GET", "/openapi.json")
+    assert status == 200
+    schemes = doc["components"]["securitySchemes"]
+    bearer = {name for name, s in schemes.items() if s["type"] == "http" and s["scheme"].lower() == "bearer"}
+    assert bearer, schemes
+
+    def secured(operation) -> bool:
+        return any(set(requirement) & bearer for requirement in operation.get("security", []))
+    paths = doc["paths"]
+    assert secured(paths["/v1/sessions"]["get"]) and secured(paths["/metrics"]["get"])
+    put = paths["/v1/sessions/{session}/config"]["put"]
+    assert secured(put) and secured(paths["/v1/sessions/{session}/config"]["get"])
+    assert not secured(paths["/health"]["get"]) and not secured(paths["/v1/schema"]["get"])
+    body = put["requestBody"]["content"]["application/json"]["schema"]
+    body = _resolve(doc, body["$ref"]) if "$ref" in body else body
+    assert set(body["properties"]) == {"estimator", "estimator_params", "gestures", "record"}
+    assert body.get("additionalProperties") is False            # unknown fields are refused, as the route does
