@@ -76,7 +76,7 @@ def test_recording_carries_the_reference_to_estimate_and_the_pipeline(tmp_path):
     assert np.degrees(np.sqrt(np.mean((with_ref[after] - truth) ** 2))) < 3.0
     # live pipeline: the same message, applied once, reported in the status
     hs = HandSession()
-    frames = [f for line in open(path) for f in hs.handle(parse_line(line))]
+    frames = [f for line in open(path) for f in hs.handle(parse_line(line)).frames]
     assert frames[-1].status["reference_poses"] == {"applied": 1, "stale": 0}
 
 
@@ -85,7 +85,7 @@ def test_a_reference_older_than_the_processed_time_is_stale(tmp_path):
     hs = HandSession()
     msgs = [parse_line(line) for line in open(path)]
     ref = next(m for m in msgs if isinstance(m, ReferencePose))
-    frames = [f for m in msgs if m is not ref for f in hs.handle(m)]
+    frames = [f for m in msgs if m is not ref for f in hs.handle(m).frames]
     hs.handle(ref)                                           # arrives after the whole recording
     assert hs.status()["reference_poses"] == {"applied": 0, "stale": 1} and frames
 
