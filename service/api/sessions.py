@@ -161,6 +161,14 @@ class LiveSession:
         self._apply_recording()
         return self.config.as_dict()
 
+    def enrol(self, segments: list) -> dict:
+        """Fit the gesture thresholds to labelled segments of the recent frames and apply them
+        (``gestures.enrolment``); raises ``EnrolmentError`` naming what was wrong."""
+        from gestures.enrolment import enrol
+        fitted, report = enrol(self.hand.recognizer, segments, self.config.gestures)
+        config = self.update_config({"gestures": fitted.model_dump()})
+        return {"gestures": config["gestures"], "changes": report}
+
     async def ingest(self, raw: dict, parsed) -> Dropped | None:
         """Run one validated source message through the hand and fan the outputs out; after each
         frame it yields to the event loop so the subscribers' senders go out before the next tick.

@@ -206,6 +206,11 @@ class BusSession(LiveSession):
             elif not await self._wait_replies():
                 self._owner_ok = False
 
+    def enrol(self, segments: list) -> dict:
+        """Enrolment needs the recent frames, which the worker holds: refused with a reason."""
+        raise ValueError("enrolment: this session's hand runs on a bus worker, which holds its recent frames; "
+                         "enrolment is available for sessions served in process")
+
     def update_config(self, change: dict) -> dict:
         """Validated here (a bad change changes nothing), then applied by the owner, which keeps it in
         the session's state so it survives a change of owner. Called from a worker thread of the API."""

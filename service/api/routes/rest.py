@@ -1,4 +1,5 @@
-"""REST: the index page, health and readiness, the sessions, a session's configuration, Prometheus metrics."""
+"""REST: the index page, health and readiness, the sessions, a session's configuration and gesture
+enrolment, Prometheus metrics."""
 from __future__ import annotations
 
 import json
@@ -67,6 +68,24 @@ def put_config(session: str, change: SessionConfigChange, sessions: SessionsDep)
         return live.update_config(change.model_dump(exclude_unset=True, exclude_none=True))
     except ValidationError as err:
         raise HTTPException(422, json.loads(err.json(include_url=False))) from None
+    except ValueError as err:
+        raise HTTPException(422, str(err)) from None
+
+
+class EnrolmentRequest(BaseModel):
+    """Body of ``POST /v1/sessions/{session}/enrolment``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    segments: list[dict[str, Any]] = Field(..., min_length=1, description="labelled segments of the session's recent "
+                                           "frames: ``{label: point|grasp|pinch|open|rest, start_s, end_s}`` (source clock, s)")
+
+
+@router.post("/v1/sessions/{session}/enrolment", dependencies=[Security(Role("configure"))])
+def post_enrolment(body: EnrolmentRequest, live: Annotated[LiveSession, Depends(existing_session)]):
+    """Fit the session's gesture thresholds to the user (``gestures.enrolment``) and apply them."""
+    try:
+        return live.enrol(body.segments)
     except ValueError as err:
         raise HTTPException(422, str(err)) from None
 
