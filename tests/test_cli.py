@@ -137,9 +137,8 @@ def test_quick_descriptions_say_what_quick_runs(capsys):
     assert f"{len(d)} durations from {d[0]:g} s to {d[-1]:.3g} s and one seed" in text
     assert f"instead of {len(paper.durations(False))} up to {paper.durations(False)[-1]:g} s" in text
     text = " ".join(_help(["bench", "gestures"], capsys).split())
-    (seeds, length), (full_seeds, full_length) = gestures.QUICK_SESSIONS, gestures.FULL_SESSIONS
-    assert len(seeds) == 1 and f"one {length:g} s session instead of six {full_length:g} s" in text
-    assert len(full_seeds) == 6
+    q, f = gestures.QUICK, gestures.FULL
+    assert f"{len(q['seeds'])} trials of {q['duration_s']:g} s instead of {len(f['seeds'])} of {f['duration_s']:g} s" in text
     text = " ".join(_help(["bench", "peers"], capsys).split())
     assert f"the first {peers.QUICK_N} samples of the first three trials" in text
     text = " ".join(_help(["bench", "robustness"], capsys).split())

@@ -1,162 +1,470 @@
-"""Gesture benchmark: ``fingertrack bench gestures [--quick] --out DIR``.
+"""Gesture benchmark against what the visitor means: ``fingertrack bench gestures [--quick] --out DIR``.
 
-Long simulated sessions run through the whole live path (``service.pipeline.tracked.TrackedHand``: protocol
-messages, hand pipeline with its default estimator, recogniser): random gesture scripts (point,
-grasp, pinch, open and a relaxed hand, 0.25-0.6 s transitions, 0.6-2 s holds), a slowly rotating and
-swaying hand, 'both' IMU errors at MPU-9250 figures and the default optical tracker (90 Hz, 20 ms
-latency, jitter).
+Trials (``service.sim.gesture_script``): each a different simulated person (hand size, DIP/PIP
+coupling, gesture styles, pinch aperture, rest pose) doing an enrolment procedure and then a random
+script of gestures and of steps that mean nothing (rest, half-curled fingers, fidgeting, a pinch-
+like approach), some grasps passing through a pinch-like pose, with a slowly turning or fast-
+reaching hand. Labels are the script's intents (intended onset and release), never a recogniser's
+output. Sensor errors: the realistic profile where the simulator has it, else offsets plus white
+noise ('both'); the optical tracker at its defaults (90 Hz, 20 ms latency, jitter). The pipeline is
+told the hand's size but not the coupling, and gets no true start.
 
-Labels come from the simulator: the same recogniser run on the *true* hand (true joint angles and
-metacarpus pose at every output frame) with the same thresholds but no dwell times gives the true
-gesture intervals. A detected interval matches a true one of the same gesture when they overlap
-(each matched once). Per gesture: precision, recall, F1, onset latency (detected start - true start)
-and release latency (detected end - true end), median and 95th percentile; chatter: detected
-intervals shorter than 100 ms; pointing-ray error: the angle between the estimated and the true ray
-on frames where both say "point".
+Each trial's messages run through the hand pipeline (``HandSession``, as the service runs it) with
+the default estimator and with ``vector``; the recogniser runs on its frames. Variants scored on the
+same trials:
+
+* ``default``: the default estimator, default thresholds;
+* ``enrolled``: the same frames, thresholds fitted by ``gestures.enrolment`` to the trial's own
+  enrolment segment (which is never scored);
+* ``vector``: the memoryless vector-observation estimator (a deliberately worse baseline);
+* ``truth``: the true hand (true angles and geometry) at the same frame times: the recogniser alone;
+* ``truth+5deg``: the true hand plus 5 deg RMS of error on every joint (AR(1), 0.5 s time constant).
+
+Scoring (per variant, scripted part only):
+
+* a detected start matches an intent of the same gesture if it lies within ``WINDOW_S`` (±150 ms)
+  of the intended onset (each used once, nearest first); unmatched intents are misses, unmatched
+  starts false activations, so a start later than the window is a miss *and* a false activation;
+* precision, recall, F1 per gesture; a confusion matrix (rows: intents incl. ``none``; columns: the
+  gesture shown for most of the intended interval, or ``none``);
+* false activations per minute during rest, during the meaningless distractor steps and during
+  gestures (a wrong gesture or a restart);
+* onset latency (matched start - intended onset) and release latency (detected end - intended
+  release), p50 and p95, on the source clock; the pipeline's alignment delay (a frame's emission on
+  the arrival clock minus its timestamp) is reported separately and adds to both;
+* pointing-ray error against the true ray (index MCP to tip of the true hand) on frames of matched
+  point intents where the variant shows ``point``: median and p95;
+* chatter: detected intervals shorter than ``CHATTER_S``, and restarts of a gesture within one
+  intended hold;
+* agreement: the share of frames inside intended intervals (transitions excluded) on which the
+  shown gesture (or none) is the one meant: it counts late onsets, late releases and dropouts by
+  their duration.
 """
 from __future__ import annotations
 
 import json
+import pickle
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from ..model.hand import default_calibration
+from ..model.hand import calibration_message
 from ..model.openxr import joint_poses
-from ..pipeline.hand import HandFrame
+from ..pipeline.hand import HandFrame, HandSession, PipelineSettings
 from ..protocol import parse_message
-from ..sim.motions import random_sequence, sequence_motion
+from ..sim.errors import NOISE_KINDS
+from ..sim.gesture_script import GESTURE_NAMES, INTENTS, Trial, make_trial
 from ..sim.session import SimConfig, simulate
 
-GESTURE_NAMES = ("point", "grasp", "pinch", "open")
+WINDOW_S = 0.15
 CHATTER_S = 0.1
+TRUTH_NOISE_DEG = 5.0
+TRUTH_NOISE_TAU_S = 0.5
+NOISE = "realistic" if "realistic" in NOISE_KINDS else "both"
+VARIANTS = ("default", "enrolled", "vector", "truth", "truth+5deg")
+QUICK = {"seeds": (101, 102), "duration_s": 20.0}
+FULL = {"seeds": tuple(range(1, 13)), "duration_s": 60.0}
+"""Trials of the quick and the full run (``--trials N`` takes the first N seeds of the full run)."""
 
 
-def _intervals(events: list[tuple[str, str, float]], end_t: float) -> dict[str, list[list[float]]]:
-    out: dict[str, list[list[float]]] = {g: [] for g in GESTURE_NAMES}
-    open_: dict[str, float] = {}
-    for g, kind, t in events:
-        if kind == "start":
-            open_[g] = t
-        elif g in open_:
-            out[g].append([open_.pop(g), t])
-    for g, t0 in open_.items():
-        out[g].append([t0, end_t])
+# -- running a trial --------------------------------------------------------------------------------
+
+def _pipeline(session, trial: Trial, estimator: str) -> tuple[list[HandFrame], list[float]]:
+    """Frames of the live pipeline, and each frame's alignment delay (emission on the arrival clock
+    minus its timestamp, s). The glove app sends the measured hand size, not the coupling."""
+    hand = HandSession("right", PipelineSettings(estimator=estimator))
+    frames, delays = [], []
+    latency = session.optical.latency_s
+    known = calibration_message(trial.known_calibration())
+    for m in session.messages(include_truth=False):
+        if m["type"] == "calibration":
+            m = known
+        arrival = m["t"] + latency if m["type"] == "pose" else m.get("t", 0.0)
+        for f in hand.handle(parse_message(m)).frames:
+            frames.append(f)
+            delays.append(arrival - f.t)
+    return frames, delays
+
+
+def _truth_frames(session, trial: Trial, times: np.ndarray, noise_deg: float, seed: int) -> list[HandFrame]:
+    """The true hand at ``times`` (plus AR(1) joint-angle error of ``noise_deg`` RMS)."""
+    calib = trial.calibration()
+    rate = session.config.rate_hz
+    idx = np.clip(np.round((times - session.t[0]) * rate).astype(int), 0, len(session.t) - 1)
+    rng = np.random.default_rng(seed)
+    err = {f: np.zeros((len(times), a.shape[1])) for f, a in session.joint_angles.items()}
+    if noise_deg > 0:
+        a = np.exp(-np.diff(times, prepend=times[0]) / TRUTH_NOISE_TAU_S)
+        sigma = np.radians(noise_deg)
+        for f, e in err.items():
+            e[0] = rng.normal(0.0, sigma, e.shape[1])
+            for k in range(1, len(times)):
+                e[k] = a[k] * e[k - 1] + np.sqrt(1.0 - a[k] ** 2) * rng.normal(0.0, sigma, e.shape[1])
+    frames = []
+    for k, n in enumerate(idx):
+        phi = {f: a[n] + err[f][k] for f, a in session.joint_angles.items()}
+        rot, pos = session.base.rotation[n], session.base.position[n]
+        frames.append(HandFrame(float(times[k]), k, "right", phi, {}, rot, pos, joint_poses(calib, phi, rot, pos), {}))
+    return frames
+
+
+def recognise(frames: list[HandFrame], settings=None) -> dict:
+    """Run a fresh recogniser over ``frames``: events ``(gesture, start|end, t, confidence, raw)``,
+    the active gesture per frame and the pointing ray per frame (None when not pointing)."""
+    from gestures.recognizer import RULES, GestureRecognizer, GestureSettings
+
+    rec = GestureRecognizer(settings or GestureSettings())
+    events, active, rays = [], [], []
+    for f in frames:
+        ann, evs = rec.update(f)
+        for e in evs:
+            raw = RULES[e["gesture"]].score(rec.features(f), rec.settings)
+            events.append((e["gesture"], e["event"], e["t"], e["confidence"], raw))
+        active.append(ann["active"])
+        rays.append(ann["ray"]["direction"] if "ray" in ann else None)
+    return {"events": events, "active": active, "rays": rays}
+
+
+def _enrolment_samples(trial: Trial, frames: list[HandFrame]) -> dict:
+    """Features of the frames inside each enrolment hold (after the transition plus 0.2 s, before
+    the hold's last 0.1 s), keyed by label."""
+    from gestures.recognizer import GestureRecognizer
+
+    rec = GestureRecognizer()
+    times = np.array([f.t for f in frames])
+    samples: dict[str, list] = {}
+    for st in trial.steps:
+        if st.start_s >= trial.scored_from_s:
+            break
+        label = st.intent if st.intent != "none" else "rest"
+        a, b = st.start_s + st.transition_s + 0.2, st.end_s - 0.1
+        samples.setdefault(label, []).extend(rec.features(frames[k]) for k in np.flatnonzero((times >= a) & (times < b)))
+    return samples
+
+
+def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = None) -> dict:
+    """The expensive part of a trial: the pipeline's frames with the default estimator and with
+    ``vector``, the true hand's frames (exact and with error) and the alignment delays. With
+    ``cache_dir`` they are kept in a file named by the trial, the noise profile and the estimator,
+    so the recogniser (which only reads frames) can be rescored without rerunning the pipeline."""
+    key = f"trial-{seed}-{duration_s:g}s-{NOISE}-{PipelineSettings().estimator}.pkl"
+    if cache_dir is not None and (Path(cache_dir) / key).exists():
+        with open(Path(cache_dir) / key, "rb") as fh:
+            return pickle.load(fh)
+    trial = make_trial(seed, duration_s)
+    session = simulate(SimConfig(motion="sequence", noise=NOISE, seed=seed, calibration=trial.calibration(),
+                                 finger_motion=trial.finger_motion(), hand_trajectory=trial.hand_trajectory()))
+    default_frames, delays = _pipeline(session, trial, PipelineSettings().estimator)
+    vector_frames, _ = _pipeline(session, trial, "vector")
+    times = np.array([f.t for f in default_frames])
+    out = {"trial": trial, "frames": {"default": default_frames, "vector": vector_frames,
+                                      "truth": _truth_frames(session, trial, times, 0.0, seed),
+                                      "truth+5deg": _truth_frames(session, trial, times, TRUTH_NOISE_DEG, seed + 10_000)},
+           "alignment_delay_s": delays}
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        with open(Path(cache_dir) / key, "wb") as fh:
+            pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
     return out
 
 
-def run_session(seed: int, duration_s: float, hand_motion: str = "slow-rotation") -> dict:
-    """One session: detected and true intervals, ray errors."""
-    from gestures.recognizer import GestureRecognizer, GestureSettings
-    from ..pipeline.tracked import TrackedHand
+def run_trial(seed: int, duration_s: float, cache_dir: str | Path | None = None) -> dict:
+    """One trial through every variant; returns what scoring needs (plain data)."""
+    from gestures.enrolment import fit_thresholds
+    from gestures.recognizer import GestureRecognizer
 
-    steps = random_sequence(duration_s, seed)
-    motion = sequence_motion(steps=steps)
-    sess = simulate(SimConfig(motion="sequence", noise="both", hand_motion=hand_motion, seed=seed,
-                              finger_motion=motion))
-    tracked = TrackedHand()
-    frames, events = [], []
-    for m in sess.messages(include_truth=False):
-        for out in tracked.handle(parse_message(m)):
-            if out["type"] == "frame":
-                frames.append(out)
-            else:
-                events.append((out["gesture"], out["event"], out["t"]))
-    # the true hand at every output frame, through a dwell-free recogniser with the same thresholds
-    calib = default_calibration("right")
-    truth_rec = GestureRecognizer(GestureSettings(start_dwell_s=0.0, end_dwell_s=0.0))
-    true_events, ray_err = [], []
-    rate = sess.config.rate_hz
-    for f in frames:
-        n = int(round((f["t"] - sess.t[0]) * rate))
-        phi = {name: a[n] for name, a in sess.joint_angles.items()}
-        rot, pos = sess.base.rotation[n], sess.base.position[n]
-        hf = HandFrame(f["t"], f["seq"], "right", phi, {}, rot, pos, joint_poses(calib, phi, rot, pos), {})
-        ann, evs = truth_rec.update(hf)
-        true_events += [(e["gesture"], e["event"], e["t"]) for e in evs]
-        if ann["active"] == "point" and f["gesture"]["active"] == "point":
-            d_true = np.array(ann["ray"]["direction"])
-            d_est = np.array(f["gesture"]["ray"]["direction"])
-            ray_err.append(float(np.degrees(np.arccos(np.clip(d_true @ d_est, -1.0, 1.0)))))
-    end_t = frames[-1]["t"]
-    return {"detected": _intervals(events, end_t), "truth": _intervals(true_events, end_t), "ray_error_deg": ray_err,
-            "duration_s": end_t - frames[0]["t"], "frames": len(frames)}
+    data = trial_frames(seed, duration_s, cache_dir)
+    trial, frames = data["trial"], data["frames"]
+    enrolled_settings, enrol_report = fit_thresholds(_enrolment_samples(trial, frames["default"]))
+    runs = {
+        "default": recognise(frames["default"]),
+        "enrolled": recognise(frames["default"], enrolled_settings),
+        "vector": recognise(frames["vector"]),
+        "truth": recognise(frames["truth"]),
+        "truth+5deg": recognise(frames["truth+5deg"]),
+    }
+    return {
+        "seed": seed, "subject": trial.subject.__dict__, "hand_motion": trial.hand_motion,
+        "scored_from_s": trial.scored_from_s, "end_s": float(frames["default"][-1].t),
+        "steps": [(s.kind, s.intent, s.start_s, s.end_s) for s in trial.steps],
+        "intents": [(i.gesture, i.onset_s, i.release_s, i.kind) for i in trial.intents()],
+        "times": {"default": [f.t for f in frames["default"]], "vector": [f.t for f in frames["vector"]]},
+        "true_rays": [GestureRecognizer.ray(f)["direction"] for f in frames["truth"]],
+        "alignment_delay_s": data["alignment_delay_s"], "runs": runs,
+        "enrolment": {k: v for k, v in enrol_report.items() if v["old"] != v["new"]},
+    }
 
 
-def score(sessions: list[dict]) -> dict:
-    result: dict = {"gestures": {}, "chatter": 0}
+# -- scoring ------------------------------------------------------------------------------------------
+
+def _intervals(events, end_t: float) -> list[tuple[str, float, float, float, float]]:
+    """Detected intervals ``(gesture, start, end, start confidence, start raw score)``."""
+    out, open_ = [], {}
+    for g, kind, t, conf, raw in events:
+        if kind == "start":
+            open_[g] = (t, conf, raw)
+        elif g in open_:
+            t0, c, r = open_.pop(g)
+            out.append((g, t0, t, c, r))
+    out += [(g, t0, end_t, c, r) for g, (t0, c, r) in open_.items()]
+    return sorted(out, key=lambda x: x[1])
+
+
+def match(intents, detected, window_s: float = WINDOW_S) -> tuple[dict, list[int]]:
+    """Match detected intervals to intents of the same gesture by onset (module docstring).
+    Returns ``{intent index: detected index}`` and the unmatched detected indices."""
+    pairs = sorted((abs(d[1] - it[1]), i, j) for i, it in enumerate(intents) if it[0] in GESTURE_NAMES
+                   for j, d in enumerate(detected) if d[0] == it[0] and abs(d[1] - it[1]) <= window_s)
+    matched: dict[int, int] = {}
+    used: set[int] = set()
+    for _, i, j in pairs:
+        if i not in matched and j not in used:
+            matched[i] = j
+            used.add(j)
+    return matched, [j for j in range(len(detected)) if j not in used]
+
+
+def _step_at(steps, t: float):
+    for s in steps:
+        if s[2] <= t < s[3]:
+            return s
+    return steps[-1]
+
+
+def score_trial(rec: dict, variant: str) -> dict:
+    """Raw counts and samples of one trial and variant (summed by ``aggregate``)."""
+    run = rec["runs"][variant]
+    times = np.array(rec["times"]["vector" if variant == "vector" else "default"])
+    t0 = rec["scored_from_s"]
+    intents = [it for it in rec["intents"] if it[1] >= t0]
+    steps = [s for s in rec["steps"] if s[2] >= t0]
+    detected = [d for d in _intervals(run["events"], rec["end_s"]) if d[1] >= t0]
+    matched, unmatched = match(intents, detected)
+    out: dict = {g: {"tp": 0, "intents": 0, "detected": 0} for g in GESTURE_NAMES}
+    for it in intents:
+        if it[0] in out:
+            out[it[0]]["intents"] += 1
+    for d in detected:
+        out[d[0]]["detected"] += 1
+    for i in matched:
+        out[intents[i][0]]["tp"] += 1
+    out["onset_s"] = {g: [] for g in GESTURE_NAMES}
+    out["release_s"] = {g: [] for g in GESTURE_NAMES}
+    out["starts"] = [(d[0], d[3], d[4], j not in unmatched) for j, d in enumerate(detected)]
+    for i, j in matched.items():
+        out["onset_s"][intents[i][0]].append(detected[j][1] - intents[i][1])
+        out["release_s"][intents[i][0]].append(detected[j][2] - intents[i][2])
+    fa = {"rest": 0, "distractor": 0, "gesture": 0}
+    for j in unmatched:
+        st = _step_at(steps, detected[j][1])
+        fa["rest" if st[0] == "rest" else ("distractor" if st[1] == "none" else "gesture")] += 1
+    out["false_activations"] = fa
+    out["minutes"] = {
+        "rest": sum(s[3] - s[2] for s in steps if s[0] == "rest") / 60.0,
+        "distractor": sum(s[3] - s[2] for s in steps if s[1] == "none" and s[0] != "rest") / 60.0,
+        "gesture": sum(s[3] - s[2] for s in steps if s[1] != "none") / 60.0,
+    }
+    # confusion: the label shown for most of each intended interval
+    active = np.array([a or "none" for a in run["active"]])
+    conf = {r: {c: 0 for c in INTENTS} for r in INTENTS}
+    for it in intents:
+        sel = active[(times >= it[1]) & (times < it[2])]
+        shown = max(INTENTS, key=lambda c: int(np.sum(sel == c))) if len(sel) else "none"
+        conf[it[0]][shown] += 1
+    out["confusion"] = conf
+    # agreement: frames inside intended intervals (transitions excluded) showing what was meant
+    inside = np.zeros(len(times), dtype=bool)
+    agree = np.zeros(len(times), dtype=bool)
+    for it in intents:
+        sel = (times >= it[1]) & (times < it[2])
+        inside |= sel
+        agree |= sel & (active == it[0])
+    out["agreement"] = (int(agree.sum()), int(inside.sum()))
+    # chatter: short intervals, and restarts within an intended hold
+    out["chatter_short"] = sum(1 for d in detected if d[2] - d[1] < CHATTER_S)
+    out["chatter_restarts"] = sum(
+        sum(1 for j in unmatched if detected[j][0] == intents[i][0] and intents[i][1] < detected[j][1] < intents[i][2])
+        for i in matched)
+    # pointing ray on matched point intents while the variant shows point
+    ray_err = []
+    if variant not in ("truth",):
+        true_times = np.array(rec["times"]["default"])
+        for i in matched:
+            if intents[i][0] != "point":
+                continue
+            for k in np.flatnonzero((times >= intents[i][1]) & (times < intents[i][2])):
+                if run["rays"][k] is None:
+                    continue
+                kt = int(np.clip(np.searchsorted(true_times, times[k]), 0, len(true_times) - 1))
+                c = float(np.clip(np.dot(run["rays"][k], rec["true_rays"][kt]), -1.0, 1.0))
+                ray_err.append(float(np.degrees(np.arccos(c))))
+    out["ray_error_deg"] = ray_err
+    return out
+
+
+def _pct(v, q) -> float:
+    return float(np.percentile(v, q)) if len(v) else float("nan")
+
+
+def aggregate(parts: list[dict]) -> dict:
+    """Sum the per-trial scores of one variant into the reported figures."""
+    res: dict = {"gestures": {}}
     for g in GESTURE_NAMES:
-        tp_det = tp_true = n_det = n_true = 0
-        onset, release = [], []
-        for s in sessions:
-            det, tru = s["detected"][g], s["truth"][g]
-            n_det += len(det)
-            n_true += len(tru)
-            used = set()
-            for d in det:
-                match = next((i for i, tr in enumerate(tru) if i not in used and d[0] < tr[1] and tr[0] < d[1]), None)
-                if match is not None:
-                    used.add(match)
-                    tp_det += 1
-                    onset.append(d[0] - tru[match][0])
-                    release.append(d[1] - tru[match][1])
-            tp_true += len(used)
-            result["chatter"] += sum(1 for d in det if d[1] - d[0] < CHATTER_S)
-        precision = tp_det / n_det if n_det else 1.0
-        recall = tp_true / n_true if n_true else 1.0
-        f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+        tp = sum(p[g]["tp"] for p in parts)
+        n_int = sum(p[g]["intents"] for p in parts)
+        n_det = sum(p[g]["detected"] for p in parts)
+        precision = tp / n_det if n_det else float("nan")
+        recall = tp / n_int if n_int else float("nan")
+        if not n_int:
+            f1 = float("nan") if not n_det else 0.0
+        else:
+            f1 = 2 * precision * recall / (precision + recall) if n_det and precision + recall > 0 else 0.0
+        onset = [x for p in parts for x in p["onset_s"][g]]
+        release = [x for p in parts for x in p["release_s"][g]]
+        res["gestures"][g] = {"intents": n_int, "detected": n_det, "matched": tp, "precision": precision,
+                              "recall": recall, "f1": f1,
+                              "onset_p50_s": _pct(onset, 50), "onset_p95_s": _pct(onset, 95),
+                              "release_p50_s": _pct(release, 50), "release_p95_s": _pct(release, 95)}
+    res["mean_f1"] = float(np.nanmean([r["f1"] for r in res["gestures"].values()]))
+    onset_all = [x for p in parts for g in GESTURE_NAMES for x in p["onset_s"][g]]
+    release_all = [x for p in parts for g in GESTURE_NAMES for x in p["release_s"][g]]
+    res["onset_s"] = {"p50": _pct(onset_all, 50), "p95": _pct(onset_all, 95)}
+    res["release_s"] = {"p50": _pct(release_all, 50), "p95": _pct(release_all, 95)}
+    fa = {k: sum(p["false_activations"][k] for p in parts) for k in ("rest", "distractor", "gesture")}
+    minutes = {k: sum(p["minutes"][k] for p in parts) for k in fa}
+    res["false_activations"] = {k: {"count": fa[k], "minutes": minutes[k],
+                                    "per_min": fa[k] / minutes[k] if minutes[k] else float("nan")} for k in fa}
+    agree = np.sum([p["agreement"] for p in parts], axis=0)
+    res["agreement"] = float(agree[0] / agree[1]) if agree[1] else float("nan")
+    res["errors"] = sum(r["intents"] - r["matched"] + r["detected"] - r["matched"] for r in res["gestures"].values())
+    res["confusion"] = {r: {c: sum(p["confusion"][r][c] for p in parts) for c in INTENTS} for r in INTENTS}
+    res["chatter"] = {"short": sum(p["chatter_short"] for p in parts),
+                      "restarts": sum(p["chatter_restarts"] for p in parts)}
+    rays = [x for p in parts for x in p["ray_error_deg"]]
+    res["ray_error_deg"] = {"median": _pct(rays, 50), "p95": _pct(rays, 95), "frames": len(rays)}
+    res["starts"] = [s for p in parts for s in p["starts"]]
+    return res
 
-        def pct(v, q):
-            return float(np.percentile(v, q)) if v else float("nan")
-        result["gestures"][g] = {
-            "precision": precision, "recall": recall, "f1": f1, "true_count": n_true, "detected_count": n_det,
-            "onset_median_s": pct(onset, 50), "onset_p95_s": pct(onset, 95),
-            "release_median_s": pct(release, 50), "release_p95_s": pct(release, 95),
-        }
-    rays = [e for s in sessions for e in s["ray_error_deg"]]
-    result["ray_error_deg"] = {"median": float(np.median(rays)) if rays else float("nan"),
-                               "p95": float(np.percentile(rays, 95)) if rays else float("nan")}
-    return result
+
+def score(records: list[dict]) -> dict:
+    """Every variant's figures, the alignment delay and the enrolment changes."""
+    out = {"window_s": WINDOW_S, "noise": NOISE, "trials": len(records),
+           "scored_minutes": sum(r["end_s"] - r["scored_from_s"] for r in records) / 60.0,
+           "variants": {v: aggregate([score_trial(r, v) for r in records]) for v in VARIANTS}}
+    delays = [d for r in records for d in r["alignment_delay_s"]]
+    out["alignment_delay_s"] = {"p50": _pct(delays, 50), "p95": _pct(delays, 95)}
+    out["enrolment_changes"] = {r["seed"]: r["enrolment"] for r in records}
+    out["confidence"] = confidence_figures(records)
+    return out
 
 
-def table(result: dict, sessions: int, duration_s: float, wall_s: float) -> str:
-    lines = [f"# Gesture benchmark: {sessions} session(s) of {duration_s:.0f} s, 'both' IMU errors, rotating hand; "
-             f"wall time {wall_s:.0f} s", "",
-             "| gesture | true | detected | precision | recall | F1 | onset median / p95 ms | release median / p95 ms |",
-             "|---|---|---|---|---|---|---|---|"]
-    for g, r in result["gestures"].items():
-        lines.append(f"| {g} | {r['true_count']} | {r['detected_count']} | {r['precision']:.3f} | {r['recall']:.3f} | "
-                     f"{r['f1']:.3f} | {1e3 * r['onset_median_s']:.0f} / {1e3 * r['onset_p95_s']:.0f} | "
-                     f"{1e3 * r['release_median_s']:.0f} / {1e3 * r['release_p95_s']:.0f} |")
-    lines += ["", f"Chatter (start/end pairs shorter than {1e3 * CHATTER_S:.0f} ms): {result['chatter']}",
-              f"Pointing-ray error: median {result['ray_error_deg']['median']:.2f} deg, p95 {result['ray_error_deg']['p95']:.2f} deg", ""]
+RELIABILITY_EDGES = (0.0, 0.5, 0.7, 0.8, 0.9, 0.95, 1.0001)
+
+
+def confidence_figures(records: list[dict]) -> dict:
+    """The confidence table fitted on this run's trials in ``FIT_SEEDS`` (default variant), and the
+    reliability of the shipped confidences on the other trials: per confidence bin, the starts, their
+    mean confidence and the observed precision."""
+    from gestures.confidence import FIT_SEEDS, fit_table
+
+    def starts(rs, variant):
+        return [s for r in rs for s in score_trial(r, variant)["starts"]]
+
+    fit = [r for r in records if r["seed"] in FIT_SEEDS]
+    held = [r for r in records if r["seed"] not in FIT_SEEDS]
+    rows = []
+    for variant in ("default", "enrolled"):
+        ss = starts(held, variant)
+        for lo, hi in zip(RELIABILITY_EDGES[:-1], RELIABILITY_EDGES[1:]):
+            sel = [s for s in ss if lo <= s[1] < hi]
+            if sel:
+                rows.append({"variant": variant, "confidence": [lo, min(hi, 1.0)], "starts": len(sel),
+                             "mean_confidence": float(np.mean([s[1] for s in sel])),
+                             "observed_precision": float(np.mean([s[3] for s in sel]))})
+    return {"fitted_on_seeds": [r["seed"] for r in fit], "held_out_seeds": [r["seed"] for r in held],
+            "table_fitted_here": fit_table((s[0], s[2], s[3]) for s in starts(fit, "default")) if fit else None,
+            "reliability": rows}
+
+
+# -- presenting ---------------------------------------------------------------------------------------
+
+def _ms(v: float) -> str:
+    return "-" if not np.isfinite(v) else f"{1e3 * v:.0f}"
+
+
+def table(result: dict, wall_s: float) -> str:
+    v = result["variants"]
+    d = v["default"]
+    lines = [f"# Gesture benchmark: {result['trials']} trial(s), {result['scored_minutes']:.1f} scored minutes, "
+             f"'{result['noise']}' IMU errors; onset window ±{1e3 * result['window_s']:.0f} ms; wall time {wall_s:.0f} s", "",
+             "## Default estimator, default thresholds", "",
+             "| gesture | intents | detected | matched | precision | recall | F1 | onset p50 / p95 ms | release p50 / p95 ms |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for g, r in d["gestures"].items():
+        lines.append(f"| {g} | {r['intents']} | {r['detected']} | {r['matched']} | {r['precision']:.3f} | {r['recall']:.3f} | "
+                     f"{r['f1']:.3f} | {_ms(r['onset_p50_s'])} / {_ms(r['onset_p95_s'])} | "
+                     f"{_ms(r['release_p50_s'])} / {_ms(r['release_p95_s'])} |")
+    lines += ["", "Confusion (rows: what the visitor meant; columns: the gesture shown for most of that interval):", "",
+              "| meant \\ shown | " + " | ".join(INTENTS) + " |", "|---|" + "---|" * len(INTENTS)]
+    for r in INTENTS:
+        lines.append(f"| {r} | " + " | ".join(str(d["confusion"][r][c]) for c in INTENTS) + " |")
+    a = result["alignment_delay_s"]
+    lines += ["", f"Pipeline alignment delay (frame emitted on the arrival clock minus its timestamp; adds to every "
+              f"latency above): p50 {_ms(a['p50'])} ms, p95 {_ms(a['p95'])} ms.", "",
+              "## Every variant on the same trials", "",
+              "| variant | point F1 | grasp F1 | pinch F1 | open F1 | misses + false starts | agreement | false act./min rest | "
+              "/min distractors | /min in gestures | onset p50 / p95 ms | ray median / p95 deg | chatter short / restarts |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for name, r in v.items():
+        fa = r["false_activations"]
+        ray = "-" if not np.isfinite(r["ray_error_deg"]["median"]) else \
+            f"{r['ray_error_deg']['median']:.2f} / {r['ray_error_deg']['p95']:.2f}"
+        lines.append(f"| {name} | " + " | ".join(f"{r['gestures'][g]['f1']:.3f}" for g in GESTURE_NAMES) +
+                     f" | {r['errors']} | {r['agreement']:.3f} | {fa['rest']['per_min']:.2f} | {fa['distractor']['per_min']:.2f} | "
+                     f"{fa['gesture']['per_min']:.2f} | {_ms(r['onset_s']['p50'])} / {_ms(r['onset_s']['p95'])} | {ray} | "
+                     f"{r['chatter']['short']} / {r['chatter']['restarts']} |")
+    c = result["confidence"]
+    lines += ["", f"Reliability of the start confidence on trials {c['held_out_seeds']} (the table was fitted on trials "
+              f"{list(_fit_seeds())}):", "",
+              "| thresholds | confidence | starts | mean confidence | observed precision |", "|---|---|---|---|---|"]
+    for row in c["reliability"]:
+        lo, hi = row["confidence"]
+        lines.append(f"| {row['variant']} | {lo:.2f}-{hi:.2f} | {row['starts']} | {row['mean_confidence']:.3f} | "
+                     f"{row['observed_precision']:.3f} |")
+    fa = d["false_activations"]
+    lines += ["", f"Time base: rest {fa['rest']['minutes']:.1f} min, distractors {fa['distractor']['minutes']:.1f} min, "
+              f"gestures {fa['gesture']['minutes']:.1f} min.", ""]
     return "\n".join(lines)
 
 
+def _fit_seeds() -> tuple[int, ...]:
+    from gestures.confidence import FIT_SEEDS
+    return FIT_SEEDS
+
+
 def _job(args):
-    return run_session(*args)
+    return run_trial(*args)
 
 
-QUICK_SESSIONS = ((1,), 40.0)
-"""--quick: (seeds, session length in s)."""
-FULL_SESSIONS = ((1, 2, 3, 4, 5, 6), 120.0)
-"""The full run: (seeds, session length in s)."""
-
-
-def run(out_dir: str | Path, quick: bool = False, workers: int = 2, progress: bool = True) -> str:
+def run(out_dir: str | Path, quick: bool = False, workers: int = 2, progress: bool = True,
+        cache_dir: str | Path | None = None, trials: int | None = None) -> str:
     from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    seeds, duration = QUICK_SESSIONS if quick else FULL_SESSIONS
+    plan = dict(QUICK if quick else FULL)
+    if trials is not None:
+        plan["seeds"] = plan["seeds"][:trials]
     start = time.perf_counter()
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        sessions = list(tqdm(pool.map(_job, [(s, duration) for s in seeds]), total=len(seeds),
-                             desc="bench gestures", unit="session", disable=not progress))
-    result = score(sessions)
-    (out / "results.json").write_text(json.dumps(result, indent=2))
-    text = table(result, len(seeds), duration, time.perf_counter() - start)
+        records = list(tqdm(pool.map(_job, [(s, plan["duration_s"], cache_dir) for s in plan["seeds"]]),
+                            total=len(plan["seeds"]), desc="bench gestures", unit="trial", disable=not progress))
+    result = score(records)
+    for r in result["variants"].values():
+        r.pop("starts")
+    (out / "results.json").write_text(json.dumps(result, indent=2, default=str))
+    text = table(result, time.perf_counter() - start)
     (out / "summary.md").write_text(text)
     return text
