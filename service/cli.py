@@ -262,7 +262,10 @@ def _cmd_worker(args: argparse.Namespace) -> int:
     from .bus.worker import run_worker
 
     settings = ServiceSettings.load(args.config, bus=args.bus)
-    asyncio.run(run_worker(args.bus, settings, args.id))
+    try:
+        asyncio.run(run_worker(args.bus, settings, args.id))
+    except ConnectionError as err:
+        raise SystemExit(f"fingertrack worker: {err}") from None
     return 0
 
 

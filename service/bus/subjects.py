@@ -28,6 +28,7 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import re
 
@@ -47,6 +48,8 @@ owner that is alive but stuck or cut off: a dead owner is found at once by the l
 enough that a worker starved of CPU on a busy machine keeps its sessions."""
 REPLY_WAIT_S = 0.3
 """how long a gateway waits for a worker's reply to one source message before it checks the owner, s"""
+CONNECT_TIMEOUT_S = 10.0
+"""how long a worker or gateway tries to reach the NATS server at start, s (later: for ever)"""
 PROBE_TIMEOUT_S = 0.2
 """how long a worker waits for another worker's liveness answer before it relies on the lease, s"""
 _SAFE = re.compile(r"[A-Za-z0-9_-]+")
@@ -90,8 +93,13 @@ async def connect(url: str, name: str):
     async def on_disconnect():
         log.warning("nats %s: disconnected; reconnecting", url)
 
-    return await nats.connect(url, name=name, max_reconnect_attempts=-1, reconnect_time_wait=0.2,
-                              error_cb=on_error, disconnected_cb=on_disconnect)
+    try:
+        return await asyncio.wait_for(nats.connect(url, name=name, max_reconnect_attempts=-1, reconnect_time_wait=0.2,
+                                                   error_cb=on_error, disconnected_cb=on_disconnect),
+                                      CONNECT_TIMEOUT_S)
+    except asyncio.TimeoutError:
+        raise ConnectionError(f"cannot reach the NATS server at {url} within {CONNECT_TIMEOUT_S:g} s "
+                              "(is nats-server running, with -js?)") from None
 
 
 async def close(nc) -> None:
