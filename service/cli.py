@@ -11,14 +11,23 @@ from .sim.errors import NOISE_KINDS
 from .sim.motions import FINGER_MOTIONS, HAND_MOTIONS
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not np.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive finite number, got {text!r}")
-    return value
+def _number(cast: type, low: float, strict: bool, expected: str):
+    """An argparse type: a finite ``cast`` (``int`` or ``float``) at or above ``low`` (above, if
+    ``strict``); the error names what was expected and what was given."""
+    def parse(text: str):
+        try:
+            value = cast(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'a whole number' if cast is int else 'a number'}, got {text!r}") from None
+        if not np.isfinite(value) or value < low or (strict and value == low):
+            raise argparse.ArgumentTypeError(f"expected {expected}, got {text!r}")
+        return value
+    return parse
+
+
+_positive_float = _number(float, 0.0, True, "a positive finite number")
+_non_negative_float = _number(float, 0.0, False, "a non-negative finite number")
+_positive_int = _number(int, 1, False, "a positive whole number")
 
 
 def _interval(text: str) -> tuple[float, float]:
@@ -31,32 +40,12 @@ def _interval(text: str) -> tuple[float, float]:
     return a, b
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive whole number, got {text!r}")
-    return value
-
-
 def _count_list(text: str) -> tuple[int, ...]:
     """``1,2,4`` -> (1, 2, 4): positive whole numbers."""
     try:
         return tuple(_positive_int(x.strip()) for x in text.split(","))
     except argparse.ArgumentTypeError:
         raise argparse.ArgumentTypeError(f"expected comma-separated positive whole numbers like 1,2,4, got {text!r}") from None
-
-
-def _non_negative_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not np.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a non-negative finite number, got {text!r}")
-    return value
 
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
@@ -119,7 +108,7 @@ def _parse_params(pairs: list[str], beta: float | None) -> dict:
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
-    from .estimators.registry import REGISTRY, estimator_class
+    from .estimators.registry import REGISTRY, EstimatorSpec, make_estimator
 
     if args.list:
         for name, cls in REGISTRY.items():
@@ -135,9 +124,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     from .pipeline.hand import PipelineSettings
     from .pipeline.offline import load_recording, run_with_references
 
-    cls = estimator_class(args.estimator)
     try:
-        settings = cls.Settings(**_parse_params(args.param, args.beta))
+        spec = EstimatorSpec.of(args.estimator, _parse_params(args.param, args.beta))
     except ValidationError as err:
         raise ValueError(f"estimator {args.estimator!r} settings: {err}") from None
     rec = load_recording(args.recording)
@@ -154,7 +142,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
             if truth is None:
                 raise ValueError("--init-from-truth: the recording has no truth for every sample")
             initial = joint_to_phalanx_angles(truth[0])
-        track = run_with_references(cls(geom, settings=settings, initial_theta=initial), samples, finger,
+        track = run_with_references(make_estimator(spec, geom, initial_theta=initial), samples, finger,
                                     rec.references, PipelineSettings().reference_pose_std_rad)
         for k in range(len(track.t)):
             phi = track.phi[k]
@@ -185,14 +173,14 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
     from pydantic import ValidationError
 
+    from .estimators.registry import EstimatorSpec
     from .pipeline.hand import PipelineSettings
     from .pipeline.tracked import replay
     from .protocol import read_recording
 
     try:
         settings = PipelineSettings(estimator=args.estimator, estimator_params=_parse_params(args.param, None))
-        from .estimators.registry import estimator_class
-        estimator_class(args.estimator).Settings(**settings.estimator_params)
+        EstimatorSpec.of(settings.estimator, settings.estimator_params)
     except ValidationError as err:
         raise ValueError(f"replay settings: {err}") from None
     bad = 0

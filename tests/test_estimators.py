@@ -196,6 +196,19 @@ def test_unknown_settings_are_errors():
         REGISTRY["madgwick"].Settings(beta=-1.0)
 
 
+def test_an_estimator_spec_is_validated_once_and_builds_the_named_estimator():
+    from pydantic import ValidationError
+    from service.estimators.registry import EstimatorSpec, make_estimator
+    spec = EstimatorSpec.of("madgwick", {"beta": "0.05"})               # strings from the edge are converted
+    assert spec.settings == REGISTRY["madgwick"].Settings(beta=0.05)
+    est = make_estimator(spec, default_calibration().finger("index"), batch_shape=(2,))
+    assert isinstance(est, REGISTRY["madgwick"]) and est.settings is spec.settings and est.batch_shape == (2,)
+    with pytest.raises(ValueError, match="unknown estimator 'kalman'"):
+        EstimatorSpec.of("kalman")
+    with pytest.raises(ValidationError, match="bta"):
+        EstimatorSpec.of("madgwick", {"bta": 0.1})
+
+
 def test_chain_closure_rejects_unobservable_placements():
     geom = default_calibration().finger("index")
     from dataclasses import replace

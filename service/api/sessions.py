@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from gestures.recognizer import GestureSettings
-from ..estimators.registry import estimator_class
+from ..estimators.registry import EstimatorSpec
 from ..pipeline.hand import Dropped, PipelineSettings
 from ..pipeline.tracked import TrackedHand
 from .config import ServiceSettings
@@ -148,12 +148,12 @@ class LiveSession:
         gestures = self.config.gestures
         if "gestures" in change:
             gestures = GestureSettings(**{**self.config.gestures.model_dump(), **change["gestures"]})
-        estimator_class(estimator).Settings(**params)
+        spec = EstimatorSpec.of(estimator, params)
         record = bool(change.get("record", self.config.record))
         if record and self.settings.record_dir is None:
             raise ValueError("record: the service has no record_dir; start it with one to record sessions")
         if (estimator, params) != (self.config.estimator, self.config.estimator_params):
-            self.hand.set_estimator(estimator, params)
+            self.hand.set_estimator(spec)
         self.config.estimator, self.config.estimator_params = estimator, params
         self.config.gestures = gestures
         self.hand.set_gesture_settings(gestures)

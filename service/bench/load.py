@@ -32,7 +32,6 @@ import numpy as np
 from ..sim.session import SimConfig
 from .process import service_process
 
-FRAME_FIELDS = ("t", "seq", "hand")
 
 
 async def _level(url: str, source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..estimators.base import FingerSamples
-from ..estimators.registry import REGISTRY
+from ..estimators.registry import EstimatorSpec, make_estimator
 from ..model.hand import joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
 from ..sim.motions import grasp_motion
@@ -42,8 +42,8 @@ class Method:
     params: tuple[tuple[str, object], ...] = ()
 
     def build(self, geom, theta0, batch_shape):
-        cls = REGISTRY[self.estimator]
-        return cls(geom, settings=cls.Settings(**dict(self.params)), initial_theta=theta0, batch_shape=batch_shape)
+        return make_estimator(EstimatorSpec.of(self.estimator, dict(self.params)), geom, initial_theta=theta0,
+                              batch_shape=batch_shape)
 
 
 METHODS = (
@@ -250,13 +250,6 @@ def write_summary(rows: list[dict], times: list[dict], out_dir: Path, quick: boo
     text = "\n".join(lines)
     (out_dir / "summary.md").write_text(text)
     return text
-
-
-def read_results(path: Path) -> list[dict]:
-    """Rows of a ``results.csv`` with numbers as numbers (to replot without rerunning)."""
-    with open(path) as fh:
-        return [{k: (v if k in ("series", "estimator") else (int(v) if k == "seed" else float(v))) for k, v in r.items()}
-                for r in csv.DictReader(fh)]
 
 
 def plot_fig10(rows: list[dict], out_dir: Path) -> None:

@@ -1,4 +1,5 @@
 """Finger estimators: one module per method, one shared interface (``base.FingerEstimator``).
 
-``REGISTRY`` maps the command-line names to the classes; ``make_estimator`` builds one.
+``registry``: ``REGISTRY`` maps the command-line names to the classes, ``EstimatorSpec`` is a validated
+choice of one, ``make_estimator`` builds it for a finger.
 """

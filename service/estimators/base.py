@@ -1,4 +1,4 @@
-"""The shared estimator interface, input containers, validation and the chain closure.
+"""The shared estimator interface, input containers, validation and the lost-optics policy.
 
 Every finger estimator estimates the phalanx angles ``θ`` of one finger (relative to the
 metacarpus, paper section 2.1) from that finger's IMU samples and the metacarpus kinematics, and
@@ -26,7 +26,7 @@ from pydantic import BaseModel, ConfigDict, model_validator
 from ..model.frames import DEFAULT_GRAVITY_WORLD
 from ..model.hand import FingerGeometry
 from ..model.kinematics import BaseMotion
-from .observations import FingerObservations
+from .observations import ChainClosure, FingerObservations
 
 MODE_SLOW, MODE_FAST, MODE_FUSED, MODE_NO_INFO = 0, 1, 2, 3
 OBSERVE_BLOCK_SENSOR_SAMPLES = 200_000
@@ -106,45 +106,6 @@ class FingerTrack:
     mode: np.ndarray
 
 
-class ChainClosure:
-    """Joint angles from the measured phalanx angles plus the coupling (DESIGN.md, paper section 2.2).
-
-    Sensor ``k`` on phalanx ``i_k`` measures ``θ_{i_k} = Σ_{j<=i_k} φ_j``. Where that leaves a long
-    finger's joints undetermined, the coupling ``φ_DIP = c φ_PIP`` is added; ``extra_couplings``
-    ``[(j, c_j), ...]`` (meaning ``φ_{j+1} = c_j φ_j``) may add more, e.g. as a fallback when a sensor
-    is silent. The least-squares solution is used when sensors are redundant.
-    ``phi = theta_sensors @ matrix.T``.
-    """
-
-    def __init__(self, geom: FingerGeometry, phalanx_of_sensor: list[int] | None = None,
-                 extra_couplings: list[tuple[int, float]] = ()):
-        n = geom.n_phalanges
-        phalanges = [s.phalanx for s in geom.sensors] if phalanx_of_sensor is None else phalanx_of_sensor
-        rows = [np.array([1.0 if j <= i else 0.0 for j in range(n)]) for i in phalanges]
-        a = np.array(rows).reshape(len(rows), n)
-        couplings = ([(1, geom.coupling)] if n == 3 else []) + list(extra_couplings)
-        for j, c in couplings:                               # φ_{j+1} - c φ_j = 0
-            if np.linalg.matrix_rank(a) >= n:
-                break
-            row = np.zeros(n)
-            row[j + 1], row[j] = 1.0, -c
-            a = np.vstack([a, row])
-        if np.linalg.matrix_rank(a) < n:
-            raise ValueError(
-                f"finger {geom.name!r}: sensors on phalanges {sorted(phalanges)} with the coupling cannot "
-                f"determine its {n} joint angles; add a sensor")
-        self.matrix = np.linalg.pinv(a)[:, : len(phalanges)]
-        self.phalanges = phalanges
-
-    def joint_angles(self, theta_sensors: np.ndarray) -> np.ndarray:
-        """``θ`` per sensor (..., S) to joint angles ``φ`` (..., n)."""
-        return theta_sensors @ self.matrix.T
-
-    @staticmethod
-    def phalanx_angles(phi: np.ndarray) -> np.ndarray:
-        return np.cumsum(phi, axis=-1)
-
-
 def lost_optics_variance(duration_s: float) -> float:
     """Variance, rad², to add to an angle estimate after the optics were lost for ``duration_s``:
     ``min(LOST_RATE_RAD_S · duration, LOST_MAX_STD_RAD)²``."""
@@ -183,7 +144,6 @@ class FingerEstimator:
             raise ValueError(f"finger {geom.name!r} has no sensors")
         self.closure = ChainClosure(geom, extra_couplings=list(extra_couplings))
         self.obs = FingerObservations(geom)          # the finger's observation constants, shared by every method
-        self._branch_low = self.obs.branch_low
         self.gravity_world = np.asarray(gravity_world, dtype=float)
         self._initial_theta = None if initial_theta is None else np.broadcast_to(
             np.asarray(initial_theta, dtype=float), self.batch_shape + (geom.n_phalanges,)).copy()
@@ -360,7 +320,7 @@ class FingerEstimator:
         """Reported angles lie on each phalanx's anatomical 2π branch (``FingerObservations.to_branch``):
         a filter that has lost track never reports a joint turned by whole revolutions. Internal states
         (an integrator's running angle) are not wrapped."""
-        return self._branch_low + np.mod(theta_sensors - self._branch_low, 2.0 * np.pi)
+        return self.obs.to_branch(theta_sensors)
 
     def _track(self, t: np.ndarray, theta_sensors: np.ndarray, mode: np.ndarray) -> FingerTrack:
         phi = self.closure.joint_angles(self._branch(theta_sensors))

@@ -16,8 +16,8 @@ import numpy as np
 from pydantic import Field
 
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
-from .integration import initial_sensor_theta, rk4_step_linear_rate
-from .vector import VectorObservation
+from .integration import rk4_step_linear_rate
+from .observations import ChainClosure, initial_sensor_theta, vector_observation
 
 
 class ComplementarySettings(EstimatorSettings):
@@ -31,14 +31,14 @@ class Complementary(FingerEstimator):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.vector = VectorObservation(self.geom, batch_shape=self.batch_shape, gravity_world=self.gravity_world)
+        self._vector_closure = ChainClosure(self.geom)      # the vector observation's, without fallback couplings
 
     def _init_state(self, gyr, acc, hand, theta0):
-        return {"theta": initial_sensor_theta(self, acc, hand, theta0), "rate": self.obs.relative_rate(gyr, hand)}
+        return {"theta": initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world), "rate": self.obs.relative_rate(gyr, hand)}
 
     def _observe(self, gyr, acc, hand, prev_rate=None, dt=None):
         rate = self.obs.relative_rate(gyr, hand)
-        theta_obs, inplane = self.vector.observe(acc, hand)
+        theta_obs, inplane = vector_observation(self.obs, self._vector_closure, acc, hand, self.gravity_world)
         return rate, theta_obs, inplane >= self.settings.min_inplane_m_s2
 
     def _blend(self, state, dt, rate, theta_obs, informative):

@@ -43,7 +43,7 @@ from pydantic import Field
 from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
 from . import kalman
 from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimator, lost_optics_variance
-from .integration import initial_sensor_theta
+from .observations import initial_sensor_theta
 
 N_STATE = 5
 
@@ -78,7 +78,7 @@ class Chain(FingerEstimator):
 
     def _init_state(self, gyr, acc, hand, theta0):
         s = self.settings
-        theta = initial_sensor_theta(self, acc, hand, theta0)
+        theta = initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world)
         P = np.zeros(theta.shape + (N_STATE, N_STATE))
         known_std = getattr(self, "_known_std_rad", None) or s.initial_angle_std_rad
         P[..., 0, 0] = (known_std if theta0 is not None else s.unknown_angle_std_rad) ** 2

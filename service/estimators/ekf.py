@@ -22,7 +22,7 @@ from pydantic import Field
 from ..model import quaternion as quat
 from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack, lost_optics_variance
-from .integration import initial_sensor_theta
+from .observations import initial_sensor_theta
 from .rigid.ekf import BatchedKalman, FilterpyKalman, inject, measurement_model, process_model
 
 
@@ -49,7 +49,7 @@ class Ekf(FingerEstimator):
 
     def _init_state(self, gyr, acc, hand, theta0):
         s = self.settings
-        theta = initial_sensor_theta(self, acc, hand, theta0)
+        theta = initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world)
         q = quat.from_matrix(self.obs.sensor_theta_to_rotation(hand, theta))
         att = s.initial_angle_std_rad if theta0 is not None else s.unknown_angle_std_rad
         P = np.zeros(theta.shape + (6, 6))

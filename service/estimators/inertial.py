@@ -23,7 +23,7 @@ from pydantic import Field
 
 from ..model import quaternion as quat
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator
-from .integration import initial_sensor_theta
+from .observations import initial_sensor_theta
 from .rigid import inertial as rigid_inertial
 from .rigid import inertial_kernel as K
 
@@ -48,7 +48,7 @@ class InertialFinger(FingerEstimator):
     Settings = InertialFingerSettings
 
     def _init_state(self, gyr, acc, hand, theta0):
-        theta = initial_sensor_theta(self, acc, hand, theta0)
+        theta = initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world)
         to_world = rigid_inertial.world_rotation(-self.gravity_world / np.linalg.norm(self.gravity_world))
         q_world = quat.from_matrix(self.obs.sensor_theta_to_rotation(hand, theta))          # (*B, S, 4)
         rows = rigid_inertial.initial_state(self.settings.core, int(np.prod(theta.shape, dtype=int)),

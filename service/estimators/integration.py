@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from .base import MODE_FAST, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
-from .vector import VectorObservation
+from .observations import initial_sensor_theta
 
 
 def rk4_step_linear_rate(theta: np.ndarray, rate_prev: np.ndarray, rate: np.ndarray, dt: float) -> np.ndarray:
@@ -26,20 +26,12 @@ class IntegrationSettings(EstimatorSettings):
     pass
 
 
-def initial_sensor_theta(estimator: FingerEstimator, acc, hand, theta0) -> np.ndarray:
-    """Per-sensor phalanx angles to start from: ``theta0`` (*B, n) if known, else a vector observation."""
-    if theta0 is not None:
-        return np.array(theta0[..., [s.phalanx for s in estimator.geom.sensors]], dtype=float)
-    vo = VectorObservation(estimator.geom, batch_shape=estimator.batch_shape, gravity_world=estimator.gravity_world)
-    return vo.observe(acc, hand)[0]
-
-
 class GyroIntegration(FingerEstimator):
     name = "integration"
     Settings = IntegrationSettings
 
     def _init_state(self, gyr, acc, hand, theta0):
-        return {"theta": initial_sensor_theta(self, acc, hand, theta0), "rate": self.obs.relative_rate(gyr, hand)}
+        return {"theta": initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world), "rate": self.obs.relative_rate(gyr, hand)}
 
     def _step(self, state, dt, gyr, acc, hand):
         rate = self.obs.relative_rate(gyr, hand)
@@ -62,7 +54,7 @@ class GyroIntegration(FingerEstimator):
         t = np.asarray(samples.t, dtype=float)
         dt = np.diff(t, prepend=t[0] - dt0).reshape((n,) + (1,) * (rate.ndim - 1))
         prev = np.concatenate([self._state["rate"][None], rate[:-1]], axis=0)
-        increments = dt / 6.0 * (prev + 4.0 * (0.5 * (prev + rate)) + rate)
+        increments = rk4_step_linear_rate(0.0, prev, rate, dt)                      # the same step, from 0
         theta = np.cumsum(np.concatenate([self._state["theta"][None], increments], axis=0), axis=0)[1:]
         self._state = {"theta": theta[-1].copy(), "rate": rate[-1].copy()}
         self._t_last = float(t[-1])

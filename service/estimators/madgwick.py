@@ -18,7 +18,7 @@ from pydantic import Field
 
 from ..model import quaternion as quat
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator
-from .integration import initial_sensor_theta
+from .observations import initial_sensor_theta
 from .rigid.madgwick import madgwick_step
 
 
@@ -35,7 +35,7 @@ class Madgwick(FingerEstimator):
     Settings = MadgwickSettings
 
     def _init_state(self, gyr, acc, hand, theta0):
-        theta = initial_sensor_theta(self, acc, hand, theta0)
+        theta = initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world)
         q = quat.from_matrix(self.obs.sensor_theta_to_rotation(hand, theta))
         return {"q": q, "theta": theta, "rate": self.obs.relative_rate(gyr, hand)}
 

@@ -9,6 +9,7 @@
   ``u_k = R_Bᵀ R_Mᵀ (a_k - g)`` with ``a_k`` the sensor's world acceleration. With ``finger_rates``
   it includes the finger's own acceleration (the paper's ``g_k`` of eq. 11); without, only the
   hand's (the paper's ``a_0`` of 2.2.2, plus the hand's rotation terms at the sensor's position).
+* ``ChainClosure``: joint angles from per-sensor phalanx angles plus the coupling.
 * ``vector_angle`` (2.2.2): ``f_k ≈ R_x(θ)ᵀ u_k`` gives ``θ = atan2(u_z, u_y) - atan2(f_z, f_y)``.
   The in-plane magnitude ``|u_yz|`` measures how much information it carries (eq. 7): zero when the
   flexion plane is horizontal.
@@ -18,8 +19,46 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.frames import apply_transpose
-from ..model.hand import FingerGeometry, joint_limits
+from ..model.hand import FingerGeometry, joint_limits, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
+
+
+class ChainClosure:
+    """Joint angles from the measured phalanx angles plus the coupling (DESIGN.md, paper section 2.2).
+
+    Sensor ``k`` on phalanx ``i_k`` measures ``θ_{i_k} = Σ_{j<=i_k} φ_j``. Where that leaves a long
+    finger's joints undetermined, the coupling ``φ_DIP = c φ_PIP`` is added; ``extra_couplings``
+    ``[(j, c_j), ...]`` (meaning ``φ_{j+1} = c_j φ_j``) may add more, e.g. as a fallback when a sensor
+    is silent. The least-squares solution is used when sensors are redundant.
+    ``phi = theta_sensors @ matrix.T``.
+    """
+
+    def __init__(self, geom: FingerGeometry, phalanx_of_sensor: list[int] | None = None,
+                 extra_couplings: list[tuple[int, float]] = ()):
+        n = geom.n_phalanges
+        phalanges = [s.phalanx for s in geom.sensors] if phalanx_of_sensor is None else phalanx_of_sensor
+        rows = [np.array([1.0 if j <= i else 0.0 for j in range(n)]) for i in phalanges]
+        a = np.array(rows).reshape(len(rows), n)
+        couplings = ([(1, geom.coupling)] if n == 3 else []) + list(extra_couplings)
+        for j, c in couplings:                               # φ_{j+1} - c φ_j = 0
+            if np.linalg.matrix_rank(a) >= n:
+                break
+            row = np.zeros(n)
+            row[j + 1], row[j] = 1.0, -c
+            a = np.vstack([a, row])
+        if np.linalg.matrix_rank(a) < n:
+            raise ValueError(
+                f"finger {geom.name!r}: sensors on phalanges {sorted(phalanges)} with the coupling cannot "
+                f"determine its {n} joint angles; add a sensor")
+        self.matrix = np.linalg.pinv(a)[:, : len(phalanges)]
+        self.phalanges = phalanges
+
+    def joint_angles(self, theta_sensors: np.ndarray) -> np.ndarray:
+        """``θ`` per sensor (..., S) to joint angles ``φ`` (..., n)."""
+        return theta_sensors @ self.matrix.T
+
+    phalanx_angles = staticmethod(joint_to_phalanx_angles)
+    """Joint angles ``φ`` (..., n) to phalanx angles ``θ`` (``model.hand``)."""
 
 
 def wrap_angle(a: np.ndarray) -> np.ndarray:
@@ -163,3 +202,26 @@ class FingerObservations:
         """Per-sensor quantities (..., S) (angles, rates, rate changes) to every phalanx (..., n)
         through the chain closure (linear, so rates and accelerations close like angles)."""
         return tuple(np.cumsum(closure.joint_angles(x), axis=-1) for x in per_sensor)
+
+
+def vector_observation(obs: FingerObservations, closure: ChainClosure, acc: np.ndarray, hand: BaseMotion,
+                       gravity_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(θ per sensor, in-plane magnitude)`` (2.2.2) for samples (..., S, 3), vectorised over ``...``.
+    The hand's rotation terms at the sensor need the sensor's position, which needs ``θ``: two
+    passes, the first with the finger straight, the second at the first pass's angles."""
+    theta_all = np.zeros(acc.shape[:-2] + (obs.geom.n_phalanges,))
+    f = obs.phalanx_force(acc)
+    for _ in range(2):
+        u = obs.reference_force(hand, theta_all, gravity_world)
+        theta_s, inplane = obs.vector_angle(f, u)
+        theta_all = ChainClosure.phalanx_angles(closure.joint_angles(theta_s))
+    return theta_s, inplane
+
+
+def initial_sensor_theta(obs: FingerObservations, acc: np.ndarray, hand: BaseMotion, theta0: np.ndarray | None,
+                         gravity_world: np.ndarray) -> np.ndarray:
+    """Per-sensor phalanx angles (*B, S) to start from: ``theta0`` (*B, n) if known, else the first
+    sample's vector observation (closed by the finger's own coupling only)."""
+    if theta0 is not None:
+        return np.array(theta0[..., obs.phalanx], dtype=float)
+    return vector_observation(obs, ChainClosure(obs.geom), acc, hand, gravity_world)[0]

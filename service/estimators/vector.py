@@ -16,7 +16,8 @@ import numpy as np
 from pydantic import Field
 
 from ..model.kinematics import BaseMotion
-from .base import MODE_NO_INFO, MODE_SLOW, ChainClosure, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from .base import MODE_NO_INFO, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
+from .observations import vector_observation
 
 
 class VectorSettings(EstimatorSettings):
@@ -30,14 +31,7 @@ class VectorObservation(FingerEstimator):
 
     def observe(self, acc: np.ndarray, hand: BaseMotion) -> tuple[np.ndarray, np.ndarray]:
         """``(θ per sensor, in-plane magnitude)`` for samples (..., S, 3); vectorised over ``...``."""
-        f = self.obs.phalanx_force(acc)
-        n = self.geom.n_phalanges
-        theta_all = np.zeros(acc.shape[:-2] + (n,))
-        for _ in range(2):
-            u = self.obs.reference_force(hand, theta_all, self.gravity_world)
-            theta_s, inplane = self.obs.vector_angle(f, u)
-            theta_all = ChainClosure.phalanx_angles(self.closure.joint_angles(theta_s))
-        return theta_s, inplane
+        return vector_observation(self.obs, self.closure, acc, hand, self.gravity_world)
 
     def _init_state(self, gyr, acc, hand, theta0):
         held = np.zeros(self.batch_shape + (self.n_sensors,)) if theta0 is None else theta0[..., self.obs.phalanx]

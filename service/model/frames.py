@@ -76,12 +76,6 @@ def matrix_to_quat(mats: np.ndarray) -> np.ndarray:
     return q.reshape(m.shape[:-2] + (4,))
 
 
-def is_unit_quaternion(q: np.ndarray, tol: float = 1e-3) -> bool:
-    """True if every quaternion in ``q`` has norm within ``tol`` of one."""
-    n = np.linalg.norm(np.asarray(q, dtype=float), axis=-1)
-    return bool(np.all(np.abs(n - 1.0) <= tol))
-
-
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices ``[v]×`` of vectors ``(..., 3)``, shape ``(..., 3, 3)``."""
     v = np.asarray(v, dtype=float)

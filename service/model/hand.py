@@ -22,7 +22,7 @@ convention (``x = y × z``) is the same for both hands, so flexion stays positiv
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Literal, Mapping, Sequence
+from typing import Literal, Mapping
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -257,13 +257,3 @@ def joint_to_phalanx_angles(phi: np.ndarray) -> np.ndarray:
     """Joint angles ``φ`` ``(..., n)`` to phalanx angles ``θ_i = Σ_{j<=i} φ_j`` (paper section 2.1)."""
     return np.cumsum(phi, axis=-1)
 
-
-def phalanx_to_joint_angles(theta: np.ndarray) -> np.ndarray:
-    """Phalanx angles ``θ`` ``(..., n)`` to joint angles ``φ_i = θ_i - θ_{i-1}``, ``θ_{-1} = 0``."""
-    theta = np.asarray(theta, dtype=float)
-    return np.diff(theta, axis=-1, prepend=0.0)
-
-
-def sensor_ids_sorted(ids: Sequence[str]) -> list[str]:
-    """Sensor ids in finger order (thumb..little), then phalanx."""
-    return sorted(ids, key=lambda s: (FINGERS.index(s.split(".")[0]), int(s.split(".")[1])))

@@ -34,7 +34,7 @@ from scipy.spatial.transform import Rotation
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..estimators.base import FingerEstimator, finger_mode
-from ..estimators.registry import estimator_class
+from ..estimators.registry import EstimatorSpec, make_estimator
 from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
@@ -187,19 +187,16 @@ class HandSession:
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
         self._dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)      # this message's drops (``accept``)
-        self.estimator_name = self.settings.estimator
-        self._estimator_params = dict(self.settings.estimator_params)
-        self._check_estimator(self.estimator_name, self._estimator_params)
+        self._estimator = EstimatorSpec.of(self.settings.estimator, self.settings.estimator_params)
         self._build_fingers()
 
     # -- configuration ---------------------------------------------------------------------------
-    def _check_estimator(self, name: str, params: dict) -> None:
-        cls = estimator_class(name)
-        cls.Settings(**params)
-
     def _make_estimator(self, geom: FingerGeometry, theta0: np.ndarray | None, extra=()) -> FingerEstimator:
-        cls = estimator_class(self.estimator_name)
-        return cls(geom, settings=cls.Settings(**self._estimator_params), initial_theta=theta0, extra_couplings=extra)
+        return make_estimator(self._estimator, geom, initial_theta=theta0, extra_couplings=tuple(extra))
+
+    @property
+    def estimator_name(self) -> str:
+        return self._estimator.name
 
     def _build_fingers(self) -> None:
         new = {}
@@ -218,12 +215,11 @@ class HandSession:
             new[name] = FingerState(geom, estimator, sensors, phi, old.mode if old is not None else "none")
         self._fingers = new
 
-    def set_estimator(self, name: str, params: dict | None = None) -> None:
-        """Switch the estimator of every finger live; each starts from the current estimate.
-        Raises ``ValueError``/``ValidationError`` for an unknown name or bad settings (nothing changes)."""
-        params = dict(params or {})
-        self._check_estimator(name, params)
-        self.estimator_name, self._estimator_params = name, params
+    def set_estimator(self, spec: EstimatorSpec | str, params: dict | None = None) -> None:
+        """Switch the estimator of every finger live; each starts from the current estimate. A name
+        and settings are validated first (``EstimatorSpec.of``): ``ValueError``/``ValidationError`` for
+        an unknown name or bad settings, and nothing changes."""
+        self._estimator = spec if isinstance(spec, EstimatorSpec) else EstimatorSpec.of(spec, params)
         self._build_fingers()
 
     def apply_calibration(self, overrides: dict) -> None:

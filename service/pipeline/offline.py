@@ -1,4 +1,6 @@
-"""Whole recordings as arrays, for the ``estimate`` command and benchmarks.
+"""Whole recordings as arrays, for the ``estimate`` command and benchmarks: offline, so the hand's
+motion comes from all of a recording's poses at once (``optical.hand_kinematics_acausal``), not from
+the causal ``OpticalTrack`` of the live pipeline and ``replay``.
 
 A recording (DESIGN.md) is read with the protocol models; every line must be valid. IMU samples
 are grouped by timestamp: a finger's sample at time ``t`` needs all of that finger's sensors (a tick
@@ -15,7 +17,7 @@ from ..estimators.base import FingerEstimator, FingerSamples, FingerTrack
 from ..model.hand import HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth, read_recording
-from .optical import hand_kinematics_offline
+from .optical import hand_kinematics_acausal
 
 
 @dataclass
@@ -54,7 +56,7 @@ class Recording:
         valid = np.array(self.pose_valid)
         pos = np.array([p if v else [0.0, 0.0, 0.0] for p, v in zip(self.pose_position, valid)])
         ori = np.array([o if v else [0.0, 0.0, 0.0, 1.0] for o, v in zip(self.pose_orientation, valid)])
-        return hand_kinematics_offline(np.array(self.pose_t), pos, ori, valid, t)
+        return hand_kinematics_acausal(np.array(self.pose_t), pos, ori, valid, t)
 
     def truth_angles(self, finger: str, t: np.ndarray) -> np.ndarray | None:
         names = self.calibration.finger(finger).joint_names

@@ -1,6 +1,11 @@
-"""Metacarpus kinematics at IMU times from the optical pose stream.
+"""Metacarpus kinematics at IMU times from the optical pose stream, two ways:
 
-Offline (whole recordings): each position axis and each quaternion component (signs made continuous)
+* ``OpticalTrack``: causal, from the poses received so far; the live pipeline (and so ``replay``)
+  uses it;
+* ``hand_kinematics_acausal``: from a whole recording, past and future poses alike; ``estimate`` and
+  the benchmarks use it. The two give different angles for one recording, by design.
+
+Acausal (whole recordings): each position axis and each quaternion component (signs made continuous)
 is fitted with a cubic smoothing spline (``scipy.interpolate.make_smoothing_spline``, smoothing
 chosen by generalised cross-validation), so the derivatives are smooth instead of a double difference
 of jittery samples. With ``q(t)`` the unit quaternion (metacarpus to world):
@@ -13,8 +18,11 @@ Poses marked ``valid: false`` are left out; the splines bridge the gaps.
 """
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 from scipy.interpolate import make_smoothing_spline
+from scipy.spatial.transform import Rotation
 
 from ..model import quaternion as quat
 from ..model.kinematics import BaseMotion
@@ -31,7 +39,7 @@ def _continuous_signs(q: np.ndarray) -> np.ndarray:
     return q
 
 
-def hand_kinematics_offline(pose_t: np.ndarray, position: np.ndarray, orientation_xyzw: np.ndarray,
+def hand_kinematics_acausal(pose_t: np.ndarray, position: np.ndarray, orientation_xyzw: np.ndarray,
                             valid: np.ndarray, query_t: np.ndarray) -> BaseMotion:
     """Metacarpus kinematics at ``query_t`` from the valid poses (module docstring)."""
     pose_t = np.asarray(pose_t, dtype=float)
@@ -79,7 +87,6 @@ class OpticalTrack:
     """
 
     def __init__(self, window_s: float = 0.15, timeout_s: float = 0.1, max_poses: int = 512):
-        from collections import deque
         self.window_s = window_s
         self.timeout_s = timeout_s
         self._poses: deque = deque(maxlen=max_poses)      # (t, valid, position, quaternion xyzw)
@@ -116,7 +123,6 @@ class OpticalTrack:
 
     def at(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``(kinematics, tracking)``; ``None`` before the first valid pose."""
-        from scipy.spatial.transform import Rotation
 
         poses = self._relevant(t)
         valid = [p for p in poses if p[1]] or ([self._pruned_valid] if self._pruned_valid is not None else [])

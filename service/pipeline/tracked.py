@@ -12,6 +12,8 @@ from typing import Iterable, Iterator
 
 from gestures.recognizer import GestureRecognizer, GestureSettings
 
+from ..estimators.registry import EstimatorSpec
+
 from .hand import Counters, Dropped, HandSession, PipelineSettings
 
 
@@ -35,9 +37,9 @@ class TrackedHand:
         """The pipeline's running counts of dropped input, clock steps and reference poses."""
         return self._session.counters
 
-    def set_estimator(self, name: str, params: dict | None = None) -> None:
+    def set_estimator(self, spec: EstimatorSpec | str, params: dict | None = None) -> None:
         """Switch every finger's estimator live (``HandSession.set_estimator``)."""
-        self._session.set_estimator(name, params)
+        self._session.set_estimator(spec, params)
 
     def set_gesture_settings(self, settings: GestureSettings) -> None:
         self.recognizer.settings = settings
