@@ -14,6 +14,7 @@ from service.cli import main
 from service.model.hand import default_calibration
 from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig, simulate, write_recording
+from test_service import ADMIN, _wait_for, _wait_for_last_frame
 
 SOURCE, VIEWER = "src-partial", "view-partial"
 BARE = ("thumb", "ring", "little")
@@ -66,7 +67,7 @@ def test_replay_runs_and_marks_them(recording, tmp_path, capsys):
 
 
 def test_live_server_streams_it(tmp_path):
-    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token="admin-partial")
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
     with ServerThread(settings) as srv:
         async def go():
             received = []
@@ -74,19 +75,17 @@ def test_live_server_streams_it(tmp_path):
 
             async def collect():
                 async for m in sub:
-                    received.append(m)
+                    received.append((None, m))
 
             task = asyncio.create_task(collect())
-            while sub.server_hello is None:
-                await asyncio.sleep(0.02)
+            await _wait_for(lambda: sub.server_hello is not None, "the subscription's hello")
             pub = await stream_glove(srv.url, "partial", SOURCE, _config(), speed=4.0)
             await pub.close()
-            while not any(m["type"] == "frame" for m in received[-5:]):
-                await asyncio.sleep(0.05)
+            await _wait_for_last_frame(srv, "partial", received)
             await sub.close()
             task.cancel()
             await asyncio.gather(task, return_exceptions=True)
-            return received, pub
+            return [m for _, m in received], pub
 
         received, pub = asyncio.run(go())
     assert not pub.errors, list(pub.errors)
