@@ -138,3 +138,31 @@ def test_a_killed_worker_s_session_moves_to_the_other_worker(bus):
     # the session continued from its state: the calibration's hand and the frame rate held
     alpha = received["alpha"]
     assert sum(1 for f in alpha if f["seq"] > last_seq) >= 45
+
+
+def test_a_worker_that_cannot_reach_the_server_logs_the_url_without_its_password():
+    """The bus URL's credentials never reach the log: a worker pointed at a closed port with a
+    password in the URL logs its failed connection attempts with the password replaced."""
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:                      # a free port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    url = f"nats://user:pw-not-for-logs@127.0.0.1:{port}"
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "worker", "--bus", url],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in proc.stdout:                    # the first failed attempt is an event, not a window
+            lines.append(line)
+            if f"127.0.0.1:{port}" in line:
+                break
+    finally:
+        proc.kill()
+        proc.wait()
+    text = "".join(lines)
+    assert f"nats://…@127.0.0.1:{port}" in text, text
+    assert "pw-not-for-logs" not in text
+    assert "Traceback" not in text

@@ -4,6 +4,7 @@ a default; unknown names are errors."""
 from __future__ import annotations
 
 import json
+import re
 import secrets
 from pathlib import Path
 
@@ -11,6 +12,13 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ROLES = ("source", "viewer", "admin")
+
+
+def redacted_url(url: str | None) -> str | None:
+    """The URL without its credentials (``nats://user:password@host`` → ``nats://…@host``), for logs."""
+    if url is None:
+        return None
+    return re.sub(r"^([A-Za-z][A-Za-z0-9+.-]*://)[^/@]*@", r"\1…@", url)
 
 
 class ServiceSettings(BaseSettings):
@@ -53,6 +61,7 @@ class ServiceSettings(BaseSettings):
         data = self.model_dump()
         data["tokens"] = {f"{t[:3]}…": r for t, r in self.tokens.items()}
         data["admin_token"] = "…" if self.admin_token else None
+        data["bus"] = redacted_url(self.bus)
         return data
 
     @staticmethod

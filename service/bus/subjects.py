@@ -35,6 +35,8 @@ import re
 import msgpack
 import nats
 
+from ..api.config import redacted_url
+
 log = logging.getLogger("fingertrack.bus")
 
 ASSIGN = "ft.assign"
@@ -87,11 +89,13 @@ def unpack(data: bytes):
 
 async def connect(url: str, name: str):
     """A NATS connection that reconnects for ever and reports trouble in one log line, not a traceback."""
+    shown = redacted_url(url)
+
     async def on_error(err):
-        log.warning("nats %s: %s", url, err)
+        log.warning("nats %s: %s", shown, err)
 
     async def on_disconnect():
-        log.warning("nats %s: disconnected; reconnecting", url)
+        log.warning("nats %s: disconnected; reconnecting", shown)
 
     try:
         return await asyncio.wait_for(nats.connect(url, name=name, max_reconnect_attempts=-1, reconnect_time_wait=0.2,

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from nats.js.api import KeyValueConfig, StorageType
 from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 
-from ..api.config import ServiceSettings
+from ..api.config import ServiceSettings, redacted_url
 from ..api.metrics import Metrics
 from ..api.outgoing import Outgoing
 from ..api.sessions import LiveSession
@@ -329,7 +329,7 @@ async def run_worker(url: str, settings: ServiceSettings, worker_id: str | None 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     worker = Worker(url, settings, worker_id)
     await worker.start()
-    log.info("fingertrack worker %s on %s", worker.id, url)
+    log.info("fingertrack worker %s on %s", worker.id, redacted_url(url))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
