@@ -232,7 +232,8 @@ def collect(url: str, session: str, token: str, count: int, timeout_s: float = 1
     return asyncio.run(run())
 
 
-def rest(url: str, method: str, path: str, token: str | None = None, body: Any = None) -> tuple[int, Any]:
+def rest(url: str, method: str, path: str, token: str | None = None, body: Any = None,
+         timeout_s: float = 10.0) -> tuple[int, Any]:
     """A REST call with the standard library: ``(status, decoded JSON or text)``."""
     import urllib.error
     import urllib.request
@@ -241,7 +242,7 @@ def rest(url: str, method: str, path: str, token: str | None = None, body: Any =
                                  headers={"Content-Type": "application/json",
                                           **({"Authorization": f"Bearer {token}"} if token else {})})
     try:
-        with urllib.request.urlopen(req, timeout=10) as resp:
+        with urllib.request.urlopen(req, timeout=timeout_s) as resp:
             text = resp.read().decode()
             status = resp.status
     except urllib.error.HTTPError as err:

@@ -1,1 +1,44 @@
 """fingertrack service: hand model, simulator, estimators, pipeline and API."""
+import os
+import tempfile
+from pathlib import Path
+
+
+def _writable_dir(path: Path) -> bool:
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        probe = path / f".probe-{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+        return True
+    except OSError:
+        return False
+
+
+def numba_cache_dir(environ=os.environ) -> str | None:
+    """Where compiled numba kernels are cached: ``NUMBA_CACHE_DIR`` when set, else the first writable
+    of the per-user cache (``$XDG_CACHE_HOME`` or ``~/.cache``, then ``fingertrack/numba``) and a
+    per-user folder in the temporary directory; ``None`` if none is writable (e.g. a read-only root
+    file system without a writable /tmp), in which case kernels are compiled without a cache."""
+    if environ.get("NUMBA_CACHE_DIR"):
+        return environ["NUMBA_CACHE_DIR"]
+    candidates = []
+    base = environ.get("XDG_CACHE_HOME")
+    if not base:
+        try:
+            base = str(Path.home() / ".cache")
+        except RuntimeError:                # no home directory known
+            base = None
+    if base:
+        candidates.append(Path(base) / "fingertrack" / "numba")
+    uid = os.getuid() if hasattr(os, "getuid") else "user"
+    candidates.append(Path(tempfile.gettempdir()) / f"fingertrack-numba-{uid}")
+    return next((str(c) for c in candidates if _writable_dir(c)), None)
+
+
+# numba reads its cache location when it is first imported, so this runs before any kernel module
+_cache = numba_cache_dir()
+if _cache is not None:
+    os.environ["NUMBA_CACHE_DIR"] = _cache
+JIT_CACHE = _cache is not None
+"""Whether numba kernels may use ``cache=True`` (a writable cache folder exists)."""

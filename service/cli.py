@@ -7,8 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
+from .api.config import describe_validation_error
 from .sim.errors import NOISE_KINDS
 from .sim.motions import FINGER_MOTIONS, HAND_MOTIONS
+
+REPLAY_SHOWN_ERRORS = 10
+"""Bad lines of a recording printed one by one; the rest are counted."""
 
 
 def _number(cast: type, low: float, strict: bool, expected: str):
@@ -127,7 +131,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     try:
         spec = EstimatorSpec.of(args.estimator, _parse_params(args.param, args.beta))
     except ValidationError as err:
-        raise ValueError(f"estimator {args.estimator!r} settings: {err}") from None
+        raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
     rec = load_recording(args.recording)
     rows = []
     report = []
@@ -182,16 +186,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         settings = PipelineSettings(estimator=args.estimator, estimator_params=_parse_params(args.param, None))
         EstimatorSpec.of(settings.estimator, settings.estimator_params)
     except ValidationError as err:
-        raise ValueError(f"replay settings: {err}") from None
-    bad = 0
+        raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
+    bad = good = 0
 
     def skipped(number, err) -> None:
         nonlocal bad
         bad += 1
-        print(f"{args.recording}:{number}: skipped: {err.code}: {err.detail}", file=sys.stderr)
+        if bad <= REPLAY_SHOWN_ERRORS:
+            print(f"{args.recording}:{number}: skipped: {err.code}: {err.detail[:200]}", file=sys.stderr)
 
     def messages():
+        nonlocal good
         for _, message in read_recording(args.recording, on_error="skip", skipped=skipped):
+            good += 1
             yield message
 
     counts: dict[str, int] = {}
@@ -207,6 +214,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     finally:
         if out:
             out.close()
+    if bad > REPLAY_SHOWN_ERRORS:
+        print(f"{args.recording}: ... and {bad - REPLAY_SHOWN_ERRORS} more bad lines", file=sys.stderr)
+    if good == 0:
+        raise ValueError(f"{args.recording} is not a recording: none of its {bad} lines is a protocol-v1 message")
     print(f"replayed {args.recording} with {args.estimator}: {counts.get('frame', 0)} frames, "
           f"{len(events)} gesture events, {bad} bad lines skipped" + (f"; wrote {args.out}" if args.out else ""))
     for ev in events:
@@ -217,21 +228,23 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def _cmd_serve(args: argparse.Namespace) -> int:
     from .api.app import create_app
     from .api.config import ServiceSettings
-    from .api.server import FingertrackServer, serving_gc, uvicorn_config
+    from .api.server import FingertrackServer, listen_socket, serving_gc, uvicorn_config
 
     if args.bus is not None:
         _need_nats_extra()
     loaded = ServiceSettings.load(args.config, host=args.host, port=args.port, bus=args.bus)
+    sock = listen_socket(loaded.host, loaded.port)      # the port is checked before anything is printed
     settings = loaded.with_admin_token()
-    print("fingertrack service settings:", settings.masked())
+    print("fingertrack service settings:", settings.masked(), flush=True)
     if loaded.admin_token:
-        print("admin token: the configured one (FINGERTRACK_ADMIN_TOKEN or the settings file), not shown")
+        print("admin token: the configured one (FINGERTRACK_ADMIN_TOKEN or the settings file), not shown", flush=True)
     else:
-        print(f"admin token (generated, shown once; set FINGERTRACK_ADMIN_TOKEN to choose one): {settings.admin_token}")
-    print(f"listening on http://{settings.host}:{settings.port} (viewer at /viewer/, docs at /docs)")
+        print(f"admin token (generated, shown once; set FINGERTRACK_ADMIN_TOKEN to choose one): {settings.admin_token}",
+              flush=True)
+    print(f"listening on http://{settings.host}:{sock.getsockname()[1]} (viewer at /viewer/, docs at /docs)", flush=True)
     app = create_app(settings)
     with serving_gc():
-        FingertrackServer(uvicorn_config(settings, app)).run()
+        FingertrackServer(uvicorn_config(settings, app)).run(sockets=[sock])
     return 0
 
 
@@ -640,8 +653,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, OSError) as err:  # ProtocolError is a ValueError
-        print(f"fingertrack {args.command}: error: {err}", file=sys.stderr)
+    except KeyboardInterrupt:
+        return 130
+    except (ValueError, OSError) as err:  # ProtocolError and SettingsError are ValueErrors
+        for line in str(err).splitlines() or [type(err).__name__]:
+            print(f"fingertrack {args.command}: error: {line}", file=sys.stderr)
         return 2
 
 

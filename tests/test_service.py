@@ -512,7 +512,7 @@ def test_serve_glove_and_watch_commands(tmp_path):
     try:
         banner = [proc.stdout.readline() for _ in range(3)]
         assert banner[0].startswith("fingertrack service settings:") and SOURCE not in banner[0]
-        assert "'src…': 'source'" in banner[0]
+        assert "'tokens': {'source': 1" in banner[0]          # counts per role, no part of a token
         admin = banner[1].rsplit(": ", 1)[1].strip()
         assert banner[1].startswith("admin token (generated, shown once") and len(admin) > 20
         wait_healthy(url, 15.0, alive=lambda: proc.poll() is None)

@@ -27,6 +27,7 @@ from importlib.resources import files
 from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
+from ..estimators.warm import warm_off_loop
 from .config import ServiceSettings
 from .metrics import Metrics
 from .routes import ingest, rest, schema, stream
@@ -47,6 +48,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
             while True:
                 await asyncio.sleep(settings.flush_interval_s / 2)
                 sessions.flush_recordings()
+        await warm_off_loop(settings.estimator)      # the default estimator's kernels, before serving
         task = asyncio.create_task(flusher())
         if settings.bus is not None:                 # a gateway: sessions run in hand workers
             from ..bus.gateway import GatewayBus

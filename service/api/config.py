@@ -1,17 +1,35 @@
 """Service settings (pydantic-settings): environment variables ``FINGERTRACK_*`` and an optional
 JSON or ``.env`` file given with ``--config`` (or ``FINGERTRACK_CONFIG``). Every field has a unit and
-a default; unknown names are errors."""
+a default; unknown names are errors. ``ServiceSettings.load`` checks everything before the service
+opens its port (tokens, the default estimator, the listen address) and turns any mistake into one
+``SettingsError`` line per bad setting, naming it (never a token's value)."""
 from __future__ import annotations
 
+import hmac
 import json
 import re
 import secrets
 from pathlib import Path
+from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ROLES = ("source", "viewer", "admin")
+MIN_TOKEN_CHARS = 8
+TOKEN_PATTERN = re.compile(r"^[A-Za-z0-9._~+/=-]+$")
+"""Tokens travel in headers and query strings: printable ASCII without spaces or URL delimiters."""
+
+
+class SettingsError(ValueError):
+    """A bad setting; the message is one line per setting, naming it (never a token's value)."""
+
+
+def _check_token(token: str, what: str) -> None:
+    if len(token) < MIN_TOKEN_CHARS:
+        raise ValueError(f"{what} must have at least {MIN_TOKEN_CHARS} characters")
+    if not TOKEN_PATTERN.match(token):
+        raise ValueError(f"{what} may only use letters, digits and . _ ~ + / = -")
 
 
 def redacted_url(url: str | None) -> str | None:
@@ -27,7 +45,9 @@ class ServiceSettings(BaseSettings):
     host: str = Field("127.0.0.1", description="listen address; anything but loopback needs open_access")
     port: int = Field(8765, ge=0, le=65535, description="TCP port (0: any free port)")
     open_access: bool = Field(False, description="allow listening on non-loopback addresses")
-    tokens: dict[str, str] = Field(default_factory=dict, description="token -> role (source, viewer, admin)")
+    tokens: dict[str, Literal["source", "viewer", "admin"]] = Field(
+        default_factory=dict, description="token -> role (source, viewer, admin); tokens have at least 8 characters "
+                                          "of A-Z a-z 0-9 . _ ~ + / = -")
     admin_token: str | None = Field(None, description="admin token; generated and printed once at start when unset")
     record_dir: str | None = Field(None, description="folder for session recordings (JSON Lines); None: no recording")
     record_all: bool = Field(False, description="record every session (else per-session config)")
@@ -47,37 +67,86 @@ class ServiceSettings(BaseSettings):
     def with_admin_token(self) -> "ServiceSettings":
         return self if self.admin_token else self.model_copy(update={"admin_token": secrets.token_urlsafe(24)})
 
+    @field_validator("tokens")
+    @classmethod
+    def _valid_tokens(cls, tokens: dict) -> dict:
+        for n, token in enumerate(tokens, start=1):
+            _check_token(token, f"token #{n}")
+        return tokens
+
+    @field_validator("admin_token")
+    @classmethod
+    def _valid_admin_token(cls, token: str | None) -> str | None:
+        if token is not None:
+            _check_token(token, "admin_token")
+        return token
+
     def role_of(self, token: str | None) -> str | None:
-        if token is None:
+        """The token's role, or ``None``. Compared in constant time as UTF-8 bytes, so any input
+        (empty, non-ASCII) is simply not a match."""
+        if not token:
             return None
-        if self.admin_token and secrets.compare_digest(token, self.admin_token):
+        given = token.encode("utf-8", "replace")
+        if self.admin_token and hmac.compare_digest(given, self.admin_token.encode()):
             return "admin"
         for known, role in self.tokens.items():
-            if secrets.compare_digest(token, known):
+            if hmac.compare_digest(given, known.encode()):
                 return role
         return None
 
     def masked(self) -> dict:
+        """The settings without secrets: tokens as counts per role."""
         data = self.model_dump()
-        data["tokens"] = {f"{t[:3]}…": r for t, r in self.tokens.items()}
-        data["admin_token"] = "…" if self.admin_token else None
+        roles = list(self.tokens.values())
+        data["tokens"] = {role: roles.count(role) for role in ROLES if role in roles}
+        data["admin_token"] = "set" if self.admin_token else None
         data["bus"] = redacted_url(self.bus)
         return data
 
     @staticmethod
     def load(path: str | None = None, **overrides) -> "ServiceSettings":
-        """Environment, then the file (JSON object of fields), then explicit overrides."""
+        """Environment, then the file (JSON object of fields), then explicit overrides; every setting
+        checked (``SettingsError``, one line per bad setting)."""
         values: dict = {}
         if path:
-            text = Path(path).read_text()
-            values = json.loads(text)
+            try:
+                values = json.loads(Path(path).read_text())
+            except json.JSONDecodeError as err:
+                raise SettingsError(f"{path}: not a JSON object of settings ({err})") from None
             if not isinstance(values, dict):
-                raise ValueError(f"{path}: expected a JSON object of settings")
+                raise SettingsError(f"{path}: expected a JSON object of settings")
         values.update({k: v for k, v in overrides.items() if v is not None})
-        settings = ServiceSettings(**values)
-        for token, role in settings.tokens.items():
-            if role not in ROLES:
-                raise ValueError(f"tokens: role {role!r} of token {token[:3]}… is not one of {ROLES}")
+        try:
+            settings = ServiceSettings(**values)
+        except ValidationError as err:
+            raise SettingsError(describe_validation_error(err, "setting")) from None
+        except ValueError as err:           # pydantic-settings: an environment value that does not parse
+            field = re.search(r'field "(\w+)"', str(err))
+            if field is None:
+                raise SettingsError(f"environment: {str(err).splitlines()[0]}") from None
+            name = field.group(1)
+            raise SettingsError(f"setting '{name}' (FINGERTRACK_{name.upper()}): not a valid JSON value") from None
         if not settings.open_access and settings.host not in ("127.0.0.1", "localhost", "::1"):
-            raise ValueError(f"host {settings.host!r} is not loopback; set open_access to listen there")
+            raise SettingsError(f"setting 'host': {settings.host!r} is not loopback; set open_access "
+                                "(FINGERTRACK_OPEN_ACCESS=true) to listen there")
+        from ..estimators.registry import estimator_class
+        try:
+            estimator_class(settings.estimator)
+        except ValueError as err:
+            raise SettingsError(f"setting 'estimator': {err}") from None
         return settings
+
+
+def describe_validation_error(err: ValidationError, what: str, prefix: str = "") -> str:
+    """A pydantic error as one line per field: ``what 'prefix.a.b': message (got value)``; values
+    of token fields are never shown."""
+    lines = []
+    for e in err.errors(include_url=False):
+        loc = prefix + ".".join(str(p) for p in e["loc"])
+        secret = "token" in loc
+        if secret and e["loc"][0] == "tokens" and len(e["loc"]) > 1:
+            loc = "tokens"                   # the key of a token entry is the token itself
+        msg = e["msg"].removeprefix("Value error, ")
+        shown = "" if secret or e["type"] == "missing" else f" (got {json.dumps(e.get('input'), default=str)[:60]})"
+        lines.append(f"{what} '{loc}': {msg}{shown}" if loc else f"{what}: {msg}{shown}")
+    return "\n".join(lines)

@@ -6,9 +6,7 @@ format. Encoding used to be done per subscriber and was a measurable share of a 
 """
 from __future__ import annotations
 
-import json
-
-import msgpack
+from ..protocol.wire import encode
 
 
 class Outgoing:
@@ -28,11 +26,11 @@ class Outgoing:
     def text(self) -> str:
         """Compact JSON text (the default format)."""
         if self._text is None:
-            self._text = json.dumps(self.message, separators=(",", ":"))
+            self._text = encode(self.message, binary=False)     # never NaN or infinity
         return self._text
 
     def packed(self) -> bytes:
         """MessagePack bytes (subprotocol ``fingertrack.msgpack``)."""
         if self._packed is None:
-            self._packed = msgpack.packb(self.message)
+            self._packed = encode(self.message, binary=True)
         return self._packed

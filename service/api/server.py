@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import gc
 import socket
 import threading
@@ -50,6 +51,22 @@ def serving_gc():
         gc.set_threshold(*old)
         if not was_frozen:
             gc.unfreeze()
+
+
+def listen_socket(host: str, port: int) -> socket.socket:
+    """The bound listening socket of ``host:port``; ``OSError`` with one clear line when the port is
+    taken or the address is not local (checked before the service prints or starts anything)."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((host, port))
+    except OSError as err:
+        sock.close()
+        what = "is already in use" if err.errno == errno.EADDRINUSE else f"cannot be used ({err.strerror})"
+        raise OSError(f"port {port} on {host} {what}; stop the other service or choose another --port") from None
+    sock.set_inheritable(True)
+    return sock
 
 
 def free_port() -> int:

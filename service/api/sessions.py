@@ -19,6 +19,7 @@ from gestures.recognizer import GestureSettings
 from ..estimators.registry import EstimatorSpec
 from ..pipeline.hand import Dropped, PipelineSettings
 from ..pipeline.tracked import TrackedHand
+from ..protocol.messages import dump_message
 from .config import ServiceSettings
 from .metrics import Metrics
 from .outgoing import Outgoing
@@ -178,7 +179,7 @@ class LiveSession:
         async with self._lock:          # several sources (glove, tracker) may feed one hand: one at a time
             self.metrics.messages_in.labels(self.name).inc()
             if self.recorder is not None:
-                self.recorder.write(raw)
+                self.recorder.write(dump_message(parsed))     # as validated: unknown fields dropped
             dropped = self.hand.accept(parsed)
             for group in self.hand.outputs():
                 self._fan_out(group, t0)

@@ -130,6 +130,8 @@ class FingerEstimator:
 
     name: ClassVar[str] = ""
     Settings: ClassVar[type[EstimatorSettings]] = EstimatorSettings
+    jit_kernels: ClassVar[bool] = False
+    """True when the estimator runs numba kernels, compiled on first use (``estimators.warm``)."""
 
     def __init__(self, geom: FingerGeometry, settings: EstimatorSettings | None = None,
                  initial_theta: np.ndarray | None = None, batch_shape: tuple[int, ...] = (),
@@ -217,13 +219,12 @@ class FingerEstimator:
         return self._advance(t, gyr, acc, hand)
 
     def _advance(self, t: float, gyr: np.ndarray, acc: np.ndarray, hand: BaseMotion) -> FingerEstimate:
+        # state and time change together, after the step: a step that raises leaves both untouched
         if self._state is None:
-            theta0 = self._initial_theta
-            self._state = self._init_state(gyr, acc, hand, theta0)
-            dt = 0.0
+            state, dt = self._init_state(gyr, acc, hand, self._initial_theta), 0.0
         else:
-            dt = t - self._t_last  # type: ignore[operator]
-        self._state, theta_sensors, mode = self._step(self._state, dt, gyr, acc, hand)
+            state, dt = self._state, t - self._t_last  # type: ignore[operator]
+        self._state, theta_sensors, mode = self._step(state, dt, gyr, acc, hand)
         self._t_last = t
         phi = self.closure.joint_angles(self._branch(theta_sensors))
         return FingerEstimate(t, ChainClosure.phalanx_angles(phi), phi, mode)

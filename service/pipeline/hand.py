@@ -26,6 +26,7 @@ messages give the same frames, which is what ``fingertrack replay`` relies on.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Iterator
 
@@ -77,6 +78,7 @@ class Counters:
     unknown_sensor: int = 0
     references_applied: int = 0
     references_stale: int = 0
+    filter_resets: int = 0
 
 
 class Uninstrumented:
@@ -344,13 +346,25 @@ class HandSession:
             t = min(self._pending)
             if not self._ready(t):
                 return
-            yield from self._process_tick(t, self._pending.pop(t))
+            with np.errstate(all="ignore"):     # a diverging filter is detected and reset, not warned about
+                frames = self._process_tick(t, self._pending.pop(t))
+            yield from frames
 
     def _process_tick(self, t: float, tick: dict) -> list[HandFrame]:
-        hand, tracking = self.optics.at(t)
+        try:
+            hand, tracking = self.optics.at(t)
+            usable = hand is None or _finite_motion(hand)
+        except (ValueError, np.linalg.LinAlgError):
+            hand, tracking, usable = None, False, False
         for sid, (g, a) in tick.items():
             self._last_sample[sid] = (t, g, a)
         self._processed_t = t
+        if not usable:
+            # the optical fit failed numerically (poses too far apart for their times): restart the
+            # optics from the next pose rather than feed a non-finite hand to the estimators
+            self.counters.filter_resets += 1
+            self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+            return []
         if hand is None:
             return []                           # no pose seen yet: nothing to fuse with
         if tracking and not self._tracking and self._lost_since is not None:
@@ -419,9 +433,33 @@ class HandSession:
         if fs.estimator.started and t <= fs.estimator.last_t:   # cannot happen with increasing ticks; be safe
             self.counters.estimator_errors += 1
             return
-        est = fs.estimator.update_trusted(t, gyr, acc, hand)
+        try:
+            est = fs.estimator.update_trusted(t, gyr, acc, hand)
+            diverged = not _all_finite(est.phi)
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError):
+            diverged = True
+        if diverged:
+            self._reset_finger(fs)
+            return
         fs.phi = est.phi
         fs.mode = finger_mode(est.mode)
+
+    def _reset_finger(self, fs: FingerState) -> None:
+        """A filter that diverged (non-finite estimate, or a numerical failure) restarts from the
+        reference: the last finite angles are kept and the estimator begins again at the next tick
+        from the metacarpus pose and its own initialisation, instead of failing on every later tick.
+        Counted in the status (``filter_resets``); the finger reports mode ``none`` (no information)
+        until its estimator has a sample again."""
+        self.counters.filter_resets += 1
+        if not np.all(np.isfinite(fs.phi)):
+            fs.phi = np.zeros_like(fs.phi)
+        geom = replace(fs.geom, sensors=tuple(s for s in fs.geom.sensors if s.id in fs.active_sensors))
+        extra = [] if len(fs.active_sensors) == len(fs.geom.sensors) else [(0, self.settings.fallback_coupling)]
+        try:
+            fs.estimator = self._make_estimator(geom, None, extra)
+        except ValueError:
+            fs.active_sensors = ()
+        fs.mode = "none"
 
     def _reconfigure(self, name: str, fs: FingerState, live: tuple[str, ...]) -> None:
         fs.active_sensors = live
@@ -446,7 +484,12 @@ class HandSession:
         if t + 1e-9 < self._next_frame_t:
             return []
         while self._next_frame_t <= t + 1e-9:
-            self._next_frame_t += step
+            following = self._next_frame_t + step
+            if following == self._next_frame_t:     # no float64 progress at this magnitude: resume from now
+                following = t + step
+                if following == t:
+                    break
+            self._next_frame_t = following
         return [self._frame(t)]
 
     def _frame(self, t: float) -> HandFrame:
@@ -476,4 +519,15 @@ class HandSession:
                         "overflow": self.counters.overflow, "unknown_sensor": self.counters.unknown_sensor},
             "clock_steps": self.counters.clock_steps,
             "reference_poses": {"applied": self.counters.references_applied, "stale": self.counters.references_stale},
+            "filter_resets": self.counters.filter_resets,
         }
+
+
+def _all_finite(*arrays: np.ndarray) -> bool:
+    # a sum is non-finite if any term is (NaN and infinities propagate); cheaper than isfinite per element
+    return math.isfinite(sum(float(a.sum()) for a in arrays if a is not None))
+
+
+def _finite_motion(hand: BaseMotion) -> bool:
+    return _all_finite(hand.rotation, hand.position, hand.velocity, hand.acceleration, hand.angular_velocity,
+                       hand.angular_acceleration)

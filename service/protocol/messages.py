@@ -3,9 +3,22 @@
 Source messages (what gloves and trackers send; ``outgoing`` has what the service sends).
 
 Rules (DESIGN.md "Wire protocol v1"): every message is a JSON object with a ``type``; unknown fields
-are ignored; unknown types, missing fields, non-finite numbers, wrong shapes and non-unit
-quaternions raise ``ProtocolError`` with a ``code`` and a ``detail`` naming the field, the value and
-what was expected. Callers turn it into an ``error`` reply and drop the message.
+are ignored (and dropped: a message is recorded as its validated model, ``dump_message``); unknown
+types, missing fields, non-finite numbers, wrong shapes, non-unit quaternions and numbers outside
+their physical range raise ``ProtocolError`` with a ``code`` and a ``detail`` naming the field, the
+value and what was expected. Callers turn it into an ``error`` reply and drop the message.
+
+Physical ranges (every number is checked before it reaches a filter):
+
+* times ``|t| <= MAX_TIME_S`` (1e10 s: any monotonic or Unix clock in seconds; float64 then still
+  resolves 2 us, far below one tick at the highest output rate);
+* gyroscope ``|gyr_i| <= MAX_GYRO_RAD_S`` (100 rad/s, 1.4 x the largest MEMS range of 4000 deg/s);
+* accelerometer ``|acc_i| <= MAX_ACC_M_S2`` (2000 m/s^2, 1.25 x the 160 g of the highest-range
+  MEMS parts; hand impacts stay far below);
+* positions of the hand ``|p_i| <= MAX_POSITION_M`` (1000 m: a venue, in stage space);
+* calibration: phalanx lengths ``MIN_PHALANX_M .. MAX_PHALANX_M`` (5-120 mm, adult and child hands
+  with margin), finger bases within ``MAX_BASE_OFFSET_M`` (0.25 m) of the metacarpus frame, sensor
+  offsets along the phalanx 0..0.2 m.
 """
 from __future__ import annotations
 
@@ -23,7 +36,26 @@ MAX_BATCH_SAMPLES = 4096
 
 SENSOR_ID_PATTERN = r"^(thumb|index|middle|ring|little)\.[0-2]$"
 
+MAX_TIME_S = 1e10
+MAX_GYRO_RAD_S = 100.0
+MAX_ACC_M_S2 = 2000.0
+MAX_POSITION_M = 1000.0
+MIN_PHALANX_M = 0.005
+MAX_PHALANX_M = 0.12
+MAX_BASE_OFFSET_M = 0.25
+
+
+def _bounded_vec3(limit: float, unit: str):
+    return Annotated[list[Annotated[float, Field(ge=-limit, le=limit)]],
+                     Field(min_length=3, max_length=3, description=f"[x, y, z], {unit}, each within +-{limit:g}")]
+
+
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Time = Annotated[float, Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description="source clock, s")]
+GyroVec = _bounded_vec3(MAX_GYRO_RAD_S, "rad/s")
+AccVec = _bounded_vec3(MAX_ACC_M_S2, "m/s^2")
+PositionVec = _bounded_vec3(MAX_POSITION_M, "m")
+BaseOffsetVec = _bounded_vec3(MAX_BASE_OFFSET_M, "m")
 Quat = Annotated[list[float], Field(min_length=4, max_length=4, description="[x, y, z, w], unit norm")]
 
 
@@ -57,7 +89,7 @@ class Hello(_Message):
 
 
 class BaseFrame(_Message):
-    position: Vec3 | None = None
+    position: BaseOffsetVec | None = None
     orientation: Quat | None = None
 
     @field_validator("orientation")
@@ -79,7 +111,7 @@ class SensorCalibration(_Message):
 
 
 class FingerCalibration(_Message):
-    lengths: Annotated[list[Annotated[float, Field(gt=0.0, lt=0.2)]], Field(min_length=2, max_length=3)] | None = None
+    lengths: Annotated[list[Annotated[float, Field(ge=MIN_PHALANX_M, le=MAX_PHALANX_M)]], Field(min_length=2, max_length=3)] | None = None
     base: BaseFrame | None = None
     coupling: Annotated[float, Field(ge=0.0, le=2.0)] | None = None
     sensors: list[SensorCalibration] | None = None
@@ -96,8 +128,8 @@ class Calibration(_Message):
 
 class Pose(_Message):
     type: Literal["pose"]
-    t: float
-    position: Vec3 | None = None
+    t: Time
+    position: PositionVec | None = None
     orientation: Quat | None = None
     valid: bool = True
 
@@ -114,10 +146,10 @@ class Pose(_Message):
 
 
 class ImuSample(_Message):
-    t: float
+    t: Time
     id: Annotated[str, Field(pattern=SENSOR_ID_PATTERN)]
-    gyr: Vec3
-    acc: Vec3
+    gyr: GyroVec
+    acc: AccVec
 
 
 class Imu(ImuSample):
@@ -150,8 +182,8 @@ class ReferencePose(_Message):
     the estimators take it as a measurement of the configuration at ``t1``."""
 
     type: Literal["reference_pose"]
-    t0: float
-    t1: float
+    t0: Time
+    t1: Time
     pose: Union[Literal["flat"], dict[Literal["thumb", "index", "middle", "ring", "little"], dict[str, float]]]
 
     @model_validator(mode="after")
@@ -182,7 +214,7 @@ class Truth(_Message):
     """Simulator ground truth; the pipeline ignores it."""
 
     type: Literal["truth"]
-    t: float
+    t: Time
     fingers: dict[str, dict[str, float]]
     position: Vec3
     orientation: Quat
@@ -216,3 +248,9 @@ def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | 
     except ValidationError as err:
         code = "non_unit_quaternion" if "unit quaternion" in str(err) else "invalid_message"
         raise ProtocolError(code, f"{kind}: {_describe(err)}") from None
+
+
+def dump_message(msg: _Message) -> dict:
+    """A validated message as a JSON-safe dict with only its known fields, as the client set them:
+    what a recording stores, so that a replay parses exactly what was processed live."""
+    return msg.model_dump(mode="json", exclude_unset=True)

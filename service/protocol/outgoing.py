@@ -128,6 +128,8 @@ class FrameStatus(_Message):
     dropped: DroppedCounts
     clock_steps: int = Field(ge=0, description="jumps of the source clock seen so far")
     reference_poses: Optional[ReferencePoseCounts] = None
+    filter_resets: Optional[int] = Field(None, ge=0, description="estimators and optical fits restarted from the "
+                                         "reference after diverging (a non-finite estimate or a numerical failure)")
 
 
 class Ray(_Message):

@@ -9,6 +9,7 @@ are refused (DESIGN.md: non-finite numbers are an error).
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Callable, Iterator, Literal
 
@@ -24,9 +25,38 @@ def _reject_constant(name: str):
     raise ValueError(f"non-finite number {name} is not allowed")
 
 
+def finite_copy(message: dict) -> dict:
+    """``message`` unchanged if every number in it is finite; else a copy with each non-finite number
+    replaced by ``None`` and their paths listed in ``invalid`` (strict JSON parsers, a browser's
+    ``JSON.parse`` among them, reject NaN and infinity)."""
+    bad: list[str] = []
+
+    def clean(value, path: str):
+        if isinstance(value, float) and not math.isfinite(value):
+            bad.append(path)
+            return None
+        if isinstance(value, dict):
+            return {k: clean(v, f"{path}.{k}" if path else str(k)) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [clean(v, f"{path}[{i}]") for i, v in enumerate(value)]
+        return value
+
+    cleaned = clean(message, "")
+    if not bad:
+        return message
+    cleaned["invalid"] = bad
+    return cleaned
+
+
 def encode(message: dict, binary: bool) -> str | bytes:
-    """One message as compact JSON text, or MessagePack bytes when ``binary``."""
-    return msgpack.packb(message) if binary else json.dumps(message, separators=(",", ":"))
+    """One message as compact JSON text, or MessagePack bytes when ``binary``; never with NaN or
+    infinity (``finite_copy``)."""
+    if binary:
+        return msgpack.packb(finite_copy(message))
+    try:
+        return json.dumps(message, separators=(",", ":"), allow_nan=False)
+    except ValueError:
+        return json.dumps(finite_copy(message), separators=(",", ":"), allow_nan=False)
 
 
 def decode(data: str | bytes, binary: bool = False) -> object:
@@ -34,11 +64,14 @@ def decode(data: str | bytes, binary: bool = False) -> object:
     bytes when ``binary``; raises ``ProtocolError`` naming the encoding and the problem."""
     if binary:
         try:
-            return msgpack.unpackb(data)
-        except (ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as err:
-            raise ProtocolError("invalid_msgpack", f"not valid MessagePack: {err}") from None
+            # protocol v1 has no bin or ext values (they could not be recorded as JSON)
+            return msgpack.unpackb(data, max_bin_len=0, max_ext_len=0)
+        except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as err:
+            raise ProtocolError("invalid_msgpack", f"not valid MessagePack: {err or type(err).__name__}") from None
     try:
         return json.loads(data, parse_constant=_reject_constant)
+    except RecursionError:
+        raise ProtocolError("invalid_json", "not valid JSON: nested too deeply") from None
     except (ValueError, UnicodeDecodeError) as err:
         raise ProtocolError("invalid_json", f"not valid JSON: {err}") from None
 

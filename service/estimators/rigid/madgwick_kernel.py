@@ -13,8 +13,10 @@ import math
 import numpy as np
 from numba import njit
 
+from ... import JIT_CACHE
 
-@njit(cache=True)
+
+@njit(cache=JIT_CACHE)
 def _pair_gradient(q, d, s):
     """``(usable, Jᵀ F)`` of one normalised reference pair, as scalars (no allocation per sample)."""
     dn = math.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
@@ -37,7 +39,7 @@ def _pair_gradient(q, d, s):
     return True, g0, g1, g2, g3
 
 
-@njit(cache=True)
+@njit(cache=JIT_CACHE)
 def _step_one(q, w, acc, dt, beta, up, ref_w, ref_s, use_ref):
     """One sensor, one sample, in place: eqs. 9, 11, 12, 18, 15, 19."""
     qd0 = 0.5 * (-q[1] * w[0] - q[2] * w[1] - q[3] * w[2])
@@ -60,7 +62,7 @@ def _step_one(q, w, acc, dt, beta, up, ref_w, ref_s, use_ref):
     q[0], q[1], q[2], q[3] = q0 / n, q1 / n, q2 / n, q3 / n
 
 
-@njit(cache=True)
+@njit(cache=JIT_CACHE)
 def madgwick_batch(q, gyr, acc, dt, beta, up, ref_w, ref_s, use_ref):
     """All samples: ``q`` (B, 4) ``[w,x,y,z]`` updated in place; ``gyr``/``acc``/refs (N, B, 3);
     returns (N, B, 4)."""
@@ -74,7 +76,7 @@ def madgwick_batch(q, gyr, acc, dt, beta, up, ref_w, ref_s, use_ref):
     return out
 
 
-@njit(cache=True)
+@njit(cache=JIT_CACHE)
 def madgwick_sample(q, gyr, acc, dt, beta, up, ref_w, ref_s, use_ref):
     """One sample of every sensor of a stack: ``q`` (B, 4) in place, ``gyr``/``acc``/refs (B, 3)."""
     for j in range(q.shape[0]):

@@ -1,0 +1,335 @@
+"""The reliability and security findings against the service, each reproduced against a real server
+(``ServerThread``: uvicorn on a free localhost port, real WebSocket clients): hostile or absurd input,
+diverging filters, NaN on the wire, recordings, tokens and settings, compiled kernels, and the command
+line's errors."""
+import asyncio
+import json
+import math
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import msgpack
+import pytest
+from websockets.asyncio.client import connect
+from websockets.exceptions import InvalidStatus
+
+from clients.client import Subscription, rest
+from clients.glove import source_messages
+from service import numba_cache_dir
+from service.api.config import ServiceSettings, SettingsError
+from service.api.server import ServerThread
+from service.pipeline.hand import HandSession
+from service.pipeline.tracked import TrackedHand
+from service.protocol import parse_line, parse_message
+from service.protocol.messages import Imu, ImuBatch, ImuSample, Pose
+from service.protocol.wire import encode
+from service.sim.session import SimConfig
+
+SOURCE, VIEWER, ADMIN = "src-token-1", "view-token-1", "admin-token-1"
+HELLO = {"type": "hello", "protocol": 1, "hand": "right"}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    rec = tmp_path_factory.mktemp("recordings")
+    settings = ServiceSettings.load(port=0, admin_token=ADMIN, record_dir=str(rec),
+                                    tokens={SOURCE: "source", VIEWER: "viewer"})
+    with ServerThread(settings) as srv:
+        yield srv
+
+
+def _messages(seed=1, motion="grasp"):
+    return [m for _, m in source_messages(SimConfig(motion=motion, noise="white", seed=seed, t_m_s=1.0))]
+
+
+async def _replies(ws, messages, sentinel=True):
+    """Send each message, then a sentinel (an unknown type, always answered): the replies of each
+    message are the ones before its sentinel's reply."""
+    out = []
+    for m in messages:
+        await ws.send(m if isinstance(m, (str, bytes)) else json.dumps(m))
+        await ws.send(json.dumps({"type": "__sentinel__"}))
+        got = []
+        while True:
+            data = await ws.recv()
+            reply = msgpack.unpackb(data) if isinstance(data, bytes) else json.loads(data)
+            if reply.get("code") == "unknown_type" and "__sentinel__" in reply.get("detail", ""):
+                break
+            got.append(reply)
+        out.append(got)
+    return out
+
+
+def _sessions(server, token=ADMIN):
+    return {s["session"]: s for s in rest(server.url, "GET", "/v1/sessions", token)[1]}
+
+
+# -- F1, F2, F8: absurd but schema-valid numbers ---------------------------------------------------------
+
+def test_huge_timestamps_are_refused_and_the_service_keeps_answering(server):
+    t0 = 2.0 ** 47          # where t + 1/90 == t in float64: the frame schedule used to loop forever
+
+    def batch(t):
+        return {"type": "imu_batch", "samples": [{"t": t, "id": s, "gyr": [0, 0, 0], "acc": [0, 9.81, 0]}
+                                                 for s in ("index.1", "index.2")]}
+
+    async def go():
+        async with connect(f"{server.ws_url}/v1/ingest/hang?token={SOURCE}") as ws:
+            return await _replies(ws, [HELLO, {"type": "pose", "t": t0, "position": [0, 1, 0], "orientation": [0, 0, 0, 1]},
+                                       batch(t0), {"type": "pose", "t": t0 + 0.0625, "position": [0, 1, 0],
+                                                   "orientation": [0, 0, 0, 1]}, batch(t0 + 0.0625)])
+    replies = asyncio.run(go())
+    assert [r[0]["type"] for r in replies] == ["hello", "error", "error", "error", "error"]
+    assert all(r[0]["code"] == "invalid_message" and "t: Input should be less than or equal to" in r[0]["detail"]
+               for r in replies[1:])
+    assert rest(server.url, "GET", "/health")[0] == 200
+
+
+def test_the_frame_schedule_ends_where_float64_cannot_step(tmp_path):
+    """Past the protocol's range check (messages built without validation), the pipeline itself must
+    not loop: at 2**47 s one frame step does not change the time."""
+    hand = HandSession()
+    t0 = 2.0 ** 47
+    done = threading.Event()
+
+    def feed():
+        for k in range(4):
+            t = t0 + 0.0625 * k
+            hand.handle(Pose.model_construct(type="pose", t=t, position=[0, 1, 0], orientation=[0, 0, 0, 1], valid=True))
+            hand.handle(ImuBatch.model_construct(type="imu_batch", samples=[
+                ImuSample.model_construct(t=t, id=s, gyr=[0, 0, 0], acc=[0, 9.81, 0]) for s in ("index.1", "index.2")]))
+        done.set()
+    worker = threading.Thread(target=feed, daemon=True)
+    worker.start()
+    assert done.wait(120), "the pipeline hangs on timestamps of 2**47 s"
+
+
+@pytest.mark.parametrize("bad, field", [
+    ({"type": "imu", "t": 0.0, "id": "index.1", "gyr": [1e300, 0, 0], "acc": [0, 9.81, 0]}, "gyr.0"),
+    ({"type": "imu", "t": 0.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 5e3]}, "acc.2"),
+    ({"type": "pose", "t": 0.0, "position": [1e300, 0, 0], "orientation": [0, 0, 0, 1]}, "position.0"),
+    ({"type": "calibration", "fingers": {"index": {"base": {"position": [1e300, 0, 0]}}}}, "fingers.index.base.position.0"),
+    ({"type": "calibration", "fingers": {"index": {"lengths": [1e-300, 1e-300, 1e-300]}}}, "fingers.index.lengths.0"),
+])
+def test_physically_impossible_values_are_refused_naming_the_field(bad, field):
+    with pytest.raises(Exception) as err:
+        parse_message(bad)
+    assert err.value.code == "invalid_message" and field in err.value.detail
+
+
+def test_one_absurd_sample_does_not_poison_a_session(server):
+    """A source sends one out-of-range gyro sample mid-stream: it gets an error naming the field, and
+    the session keeps producing frames for the well-formed messages after it."""
+    msgs = _messages(seed=2)
+    half = len(msgs) // 2
+    t_bad = next(m for m in msgs[half:] if m["type"] == "imu_batch")["samples"][0]["t"]
+    bad = {"type": "imu", "t": t_bad + 1e-4, "id": "index.1", "gyr": [1e300, 0, 0], "acc": [0, 9.81, 0]}
+
+    async def go():
+        frames = []
+        sub = Subscription(server.ws_url, "poison", VIEWER)
+
+        async def collect():
+            async for m in sub:
+                if m["type"] == "frame":
+                    frames.append(m)
+        task = asyncio.create_task(collect())
+        while sub.server_hello is None:
+            await asyncio.sleep(0.02)
+        async with connect(f"{server.ws_url}/v1/ingest/poison?token={SOURCE}") as ws:
+            # in lockstep: when a message's reply has come, the frames it made are in the subscriber's queue
+            replies = await _replies(ws, [HELLO, *msgs[2:half], bad, *msgs[half:]])
+        produced = _sessions(server)["poison"]["frames_out"]
+        while len(frames) < produced:
+            await asyncio.sleep(0.02)
+        await sub.close()
+        task.cancel()
+        return replies, frames
+    replies, frames = asyncio.run(go())
+    bad_reply = replies[half - 1]
+    assert bad_reply and bad_reply[0]["code"] == "invalid_message" and "gyr.0" in bad_reply[0]["detail"]
+    assert not [r for r in replies[half:] for r in r]            # the well-formed rest: accepted in silence
+    after = [f for f in frames if f["t"] > t_bad]
+    assert len(after) > 20
+    for f in after:
+        assert all(math.isfinite(v) for fi in f["fingers"].values() for k, v in fi.items() if k != "mode")
+
+
+def test_a_diverged_filter_resets_and_the_frames_stay_finite():
+    """Past the protocol's checks (a sample built without validation), a non-finite gyro makes the
+    estimator diverge: the pipeline resets it, says so in the status, and every later frame is finite."""
+    msgs = [parse_message(m) for m in _messages(seed=3)]
+    hand = TrackedHand()
+    out = []
+    injected = False
+    for m in msgs:
+        out += hand.handle(m)
+        if not injected and isinstance(m, ImuBatch) and len(out) > 20:
+            t = m.samples[0].t + 1e-4
+            out += hand.handle(Imu.model_construct(type="imu", t=t, id="index.1", gyr=[1e300, 0, 0], acc=[0, 9.81, 0]))
+            injected = True
+    frames = [m for m in out if m["type"] == "frame"]
+    assert frames[-1]["status"]["filter_resets"] >= 1
+    later = [f for f in frames if f["status"]["filter_resets"] >= 1]
+    assert len(later) > 20
+    for f in later:
+        json.dumps(f, allow_nan=False)          # raises on NaN or infinity anywhere
+
+
+def test_nothing_sent_contains_nan():
+    message = {"type": "gesture", "t": 1.0, "ray": {"origin": [0.0, 1.0, 0.0], "direction": [math.nan, math.inf, 0.0]}}
+    text = encode(message, binary=False)
+    back = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} on the wire"))
+    assert back["ray"]["direction"] == [None, None, 0.0]
+    assert back["invalid"] == ["ray.direction[0]", "ray.direction[1]"]
+    packed = msgpack.unpackb(encode(message, binary=True))
+    assert packed["invalid"] == back["invalid"]
+
+
+# -- F6, F7, F13: messages that used to drop the connection or differ on replay ------------------------------
+
+def test_hostile_encodings_get_error_replies_and_the_connection_stays(server):
+    async def go():
+        async with connect(f"{server.ws_url}/v1/ingest/hostile?token={SOURCE}") as ws:
+            return await _replies(ws, [
+                HELLO,
+                "[" * 970 + "]" * 970,                                        # depth bomb (RecursionError)
+                msgpack.packb({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0],
+                               "blob": b"\x00\x01"}),                          # bin value in an unknown field
+                msgpack.packb({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0],
+                               "x": msgpack.ExtType(5, b"zz")}),
+            ])
+    replies = asyncio.run(go())
+    assert [[r["code"] for r in rs] for rs in replies[1:]] == [["invalid_json"], ["invalid_msgpack"], ["invalid_msgpack"]]
+
+
+def test_a_recording_holds_what_was_processed_and_replays_without_skips(server, tmp_path):
+    rest(server.url, "PUT", "/v1/sessions/rec7/config", ADMIN, {"record": True})
+    msgs = _messages(seed=4)
+
+    async def go():
+        async with connect(f"{server.ws_url}/v1/ingest/rec7?token={SOURCE}") as ws:
+            lines = [json.dumps(HELLO)] + [json.dumps(m) for m in msgs[2:]]
+            # an unknown field with a literal that parses to infinity, and a MessagePack NaN in one
+            lines[5] = lines[5][:-1] + ',"note":1e400}'
+            replies = await _replies(ws, lines)
+            mp = dict(msgs[-1], t=msgs[-1].get("t", 0), q=float("nan"))
+            replies += await _replies(ws, [msgpack.packb(mp)])
+            return replies
+    asyncio.run(go())
+    path = _sessions(server)["rec7"]["recording"]
+    assert path
+    rest(server.url, "PUT", "/v1/sessions/rec7/config", ADMIN, {"record": False})       # closes the file
+    text = open(path, encoding="utf-8").read()
+    assert "Infinity" not in text and "NaN" not in text and '"note"' not in text
+    for line in text.splitlines():
+        parse_line(line)                    # every recorded line replays
+
+
+# -- F9, F10, F11: tokens and what each role sees ----------------------------------------------------------
+
+def test_any_token_text_is_compared_safely(server):
+    for token in ("tökén", "", " ", "a" * 5000):
+        assert rest(server.url, "GET", "/v1/sessions", token)[0] == 401
+    assert rest(server.url, "GET", "/v1/sessions?token=")[0] == 401
+
+    async def handshake(token):
+        try:
+            async with connect(f"{server.ws_url}/v1/stream/x?token={token}"):
+                return 101
+        except InvalidStatus as err:
+            return err.response.status_code
+    assert asyncio.run(handshake("t%C3%B6k%C3%A9n")) in (401, 403)       # refused, not a server error
+
+
+@pytest.mark.parametrize("values, setting", [
+    ({"tokens": {"": "source"}}, "tokens"), ({"tokens": {"short": "viewer"}}, "tokens"),
+    ({"admin_token": "a"}, "admin_token"), ({"tokens": {"has space 123": "source"}}, "tokens"),
+    ({"tokens": {"valid-token-1": "root"}}, "tokens"), ({"estimator": "nosuch"}, "estimator"),
+])
+def test_bad_settings_are_refused_at_start_naming_the_setting(values, setting):
+    with pytest.raises(SettingsError) as err:
+        ServiceSettings.load(**values)
+    lines = str(err.value).splitlines()
+    assert len(lines) == 1 and f"'{setting}" in lines[0]
+    for token in values.get("tokens", {}):
+        if token.strip():
+            assert token not in str(err.value)
+
+
+# -- item 4: kernels and their cache -------------------------------------------------------------------------
+
+def test_the_kernel_cache_is_a_writable_per_user_folder(tmp_path):
+    assert numba_cache_dir({"NUMBA_CACHE_DIR": "/set/by/operator"}) == "/set/by/operator"
+    assert numba_cache_dir({"XDG_CACHE_HOME": str(tmp_path)}) == str(tmp_path / "fingertrack" / "numba")
+    blocked = tmp_path / "a-file"
+    blocked.write_text("")
+    # an unwritable home cache (a read-only root file system): the temporary folder instead
+    chosen = numba_cache_dir({"XDG_CACHE_HOME": str(blocked)})
+    assert chosen is not None and chosen.startswith(__import__("tempfile").gettempdir())
+
+
+def test_switching_to_a_compiled_estimator_warms_it_off_the_loop(server):
+    """The PUT compiles the kernels in another process and a worker thread; meanwhile the event loop
+    keeps answering (``/health`` answered while the PUT is pending)."""
+    from service.estimators import warm
+    warm._WARM.discard("inertial")          # as in a fresh service process
+    result = {}
+
+    def put():
+        # answered once the kernels are compiled: tens of seconds on a busy machine with a cold cache
+        result["put"] = rest(server.url, "PUT", "/v1/sessions/warm/config", ADMIN, {"estimator": "inertial"},
+                             timeout_s=900)
+    worker = threading.Thread(target=put)
+    worker.start()
+    answered = 0
+    while worker.is_alive():
+        answered += rest(server.url, "GET", "/health")[0] == 200
+    worker.join()
+    assert result["put"][0] == 200 and result["put"][1]["estimator"] == "inertial"
+    assert answered >= 1
+
+
+# -- item 7: errors a person can act on ------------------------------------------------------------------------
+
+def _cli(*args, env=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300,
+                          env=env)
+
+
+def test_serve_checks_the_port_first_and_prints_a_configured_admin_token_never(tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = _cli("serve", "--port", str(port))
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().splitlines() == [f"fingertrack serve: error: port {port} on 127.0.0.1 is already in use; "
+                                                "stop the other service or choose another --port"]
+    config = tmp_path / "cfg.json"
+    config.write_text(json.dumps({"admin_token": "configured-admin-secret", "tokens": {SOURCE: "source"}}))
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0", "--config", str(config)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        while not lines or not lines[-1].startswith("listening on"):
+            line = proc.stdout.readline()
+            assert line, "".join(lines)
+            lines.append(line)
+    finally:
+        proc.terminate()
+        proc.wait(60)
+    text = "".join(lines)
+    assert "configured-admin-secret" not in text and SOURCE not in text and "src" not in text
+    assert "admin token: the configured one" in text and "not shown" in text
+
+
+def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
+    path = tmp_path / "notes.txt"
+    path.write_text("\n".join(f"line {i}" for i in range(50)))
+    done = _cli("replay", str(path))
+    assert done.returncode == 2 and "is not a recording" in done.stderr
+    assert len(done.stderr.splitlines()) <= 12 and "Traceback" not in done.stderr
