@@ -262,6 +262,36 @@ def test_bad_settings_are_refused_at_start_naming_the_setting(values, setting):
             assert token not in str(err.value)
 
 
+def test_each_role_sees_only_what_it_needs(server):
+    rest(server.url, "PUT", "/v1/sessions/seen/config", ADMIN, {"record": True})
+    viewer = _sessions(server, VIEWER)["seen"]
+    admin = _sessions(server, ADMIN)["seen"]
+    assert viewer["recording"] is True and admin["recording"].endswith(".jsonl")
+    for token in (SOURCE, VIEWER):
+        status, text = rest(server.url, "GET", "/metrics", token)
+        assert status == 200 and "fingertrack_sessions" in text and 'session="' not in text
+    assert 'session="' in rest(server.url, "GET", "/metrics", ADMIN)[1]
+    rest(server.url, "PUT", "/v1/sessions/seen/config", ADMIN, {"record": False})
+
+
+def test_the_docs_page_loads_nothing_from_elsewhere(server):
+    status, page = rest(server.url, "GET", "/docs")
+    assert status == 200 and "swagger-ui-bundle.js" in page
+    assert "http://" not in page.replace(server.url, "") and "https://" not in page
+    script = page.split('src="')[1].split('"')[0]
+    assert rest(server.url, "GET", script)[0] == 200
+
+
+def test_a_full_session_table_is_not_ready():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    max_sessions=1)
+    with ServerThread(settings) as srv:
+        assert rest(srv.url, "GET", "/ready")[0] == 200
+        assert rest(srv.url, "PUT", "/v1/sessions/only/config", ADMIN, {"record": False})[0] == 200
+        status, body = rest(srv.url, "GET", "/ready")
+        assert status == 503 and body["ready"] is False and "full" in body["reason"]
+
+
 # -- item 4: kernels and their cache -------------------------------------------------------------------------
 
 def test_the_kernel_cache_is_a_writable_per_user_folder(tmp_path):

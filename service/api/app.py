@@ -25,6 +25,7 @@ from contextlib import asynccontextmanager
 from importlib.resources import files
 
 from fastapi import FastAPI
+from fastapi_offline import FastAPIOffline
 from fastapi.staticfiles import StaticFiles
 
 from ..estimators.warm import warm_off_loop
@@ -59,7 +60,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         if sessions.bus is not None:
             await sessions.bus.close()
 
-    app = FastAPI(title="fingertrack", version="0.1.0", lifespan=lifespan,
+    app = FastAPIOffline(title="fingertrack", version="0.1.0", lifespan=lifespan,
                   description="Finger tracking for VR hand interaction: protocol v1 over WebSocket, REST config.")
     app.state.settings, app.state.sessions, app.state.metrics = settings, sessions, metrics
     app.state.drain = sessions.drain

@@ -1,8 +1,9 @@
 """Prometheus metrics of one service instance (its own registry, so several apps can live in one
-process, as the tests do)."""
+process, as the tests do). Series labelled by session are shown to admins only (``render``)."""
 from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client.registry import Collector
 
 
 class Metrics:
@@ -19,5 +20,17 @@ class Metrics:
                                  buckets=(0.0005, 0.001, 0.0015, 0.002, 0.0025, 0.003, 0.0035, 0.004, 0.0045, 0.005,
                                           0.006, 0.0075, 0.01, 0.015, 0.02, 0.05, 0.1, 0.5))
 
-    def render(self) -> bytes:
-        return generate_latest(self.registry)
+    def render(self, admin: bool = True) -> bytes:
+        """The exposition text; without ``admin``, series labelled by session are left out (session
+        names are not every role's business)."""
+        return generate_latest(self.registry if admin else _WithoutSessions(self.registry))
+
+
+class _WithoutSessions(Collector):
+    def __init__(self, registry: CollectorRegistry):
+        self.registry = registry
+
+    def collect(self):
+        for family in self.registry.collect():
+            family.samples = [s for s in family.samples if "session" not in s.labels]
+            yield family

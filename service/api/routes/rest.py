@@ -6,7 +6,7 @@ import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Security
-from fastapi.responses import HTMLResponse, Response
+from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ...estimators.warm import warm_ahead
@@ -48,12 +48,20 @@ def health():
 def ready(sessions: SessionsDep):
     if sessions.closing:
         raise HTTPException(503, "shutting down")
+    if len(sessions) >= sessions.settings.max_sessions:     # a new session would be refused
+        return JSONResponse({"ready": False, "reason": f"session table full ({len(sessions)} of "
+                             f"{sessions.settings.max_sessions})", "sessions": len(sessions)}, status_code=503)
     return {"ready": True, "sessions": len(sessions), "protocol": PROTOCOL_VERSION}
 
 
-@router.get("/v1/sessions", dependencies=[Security(Role("read"))])
-def list_sessions(sessions: SessionsDep):
-    return [live.summary() for live in sessions]
+@router.get("/v1/sessions")
+def list_sessions(sessions: SessionsDep, role: Annotated[str, Security(Role("read"))]):
+    """Every live session; where its recording is only to an admin (others see whether it records)."""
+    out = [live.summary() for live in sessions]
+    if role != "admin":
+        for summary in out:
+            summary["recording"] = summary["recording"] is not None
+    return out
 
 
 @router.get("/v1/sessions/{session}/config", dependencies=[Security(Role("read"))])
@@ -94,6 +102,7 @@ def post_enrolment(body: EnrolmentRequest, live: Annotated[LiveSession, Depends(
         raise HTTPException(422, str(err)) from None
 
 
-@router.get("/metrics", dependencies=[Security(Role("metrics"))])
-def get_metrics(metrics: MetricsDep):
-    return Response(metrics.render(), media_type="text/plain; version=0.0.4")
+@router.get("/metrics")
+def get_metrics(metrics: MetricsDep, role: Annotated[str, Security(Role("metrics"))]):
+    """Prometheus text; series labelled by session to admins only."""
+    return Response(metrics.render(admin=role == "admin"), media_type="text/plain; version=0.0.4")
