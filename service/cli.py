@@ -234,6 +234,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         _need_nats_extra()
     loaded = ServiceSettings.load(args.config, host=args.host, port=args.port, bus=args.bus)
     sock = listen_socket(loaded.host, loaded.port)      # the port is checked before anything is printed
+    if loaded.bus is not None and not _wait_for_bus(loaded.bus):
+        return 130
     settings = loaded.with_admin_token()
     print("fingertrack service settings:", settings.masked(), flush=True)
     if loaded.admin_token:
@@ -246,6 +248,23 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     with serving_gc():
         FingertrackServer(uvicorn_config(settings, app)).run(sockets=[sock])
     return 0
+
+
+def _wait_for_bus(url: str) -> bool:
+    """Wait until the NATS server answers (each failed attempt is one log line), before uvicorn takes
+    over SIGINT and SIGTERM: its startup would wait for the connection for ever and ignore both. False
+    if interrupted."""
+    import asyncio
+
+    from .bus.subjects import close, connect
+
+    async def probe():
+        await close(await connect(url, "fingertrack-gateway"))
+    try:
+        asyncio.run(probe())
+    except KeyboardInterrupt:
+        return False
+    return True
 
 
 def _need_nats_extra() -> None:

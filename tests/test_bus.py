@@ -166,3 +166,32 @@ def test_a_worker_that_cannot_reach_the_server_logs_the_url_without_its_password
     assert f"nats://…@127.0.0.1:{port}" in text, text
     assert "pw-not-for-logs" not in text
     assert "Traceback" not in text
+
+
+def test_a_gateway_waiting_for_an_unreachable_server_stops_on_sigterm():
+    """``serve --bus`` waits for the NATS server before the web server starts: SIGTERM ends that wait
+    (under uvicorn's signal handlers it was ignored while the startup waited for the connection)."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", "0",
+                             "--bus", f"nats://127.0.0.1:{port}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        lines = []
+        for line in proc.stdout:                    # waiting: its first failed attempt
+            lines.append(line)
+            if f"nats nats://127.0.0.1:{port}" in line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        rest, _ = proc.communicate(timeout=120)     # bounds a failure
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode != 0
+    assert "Traceback" not in "".join(lines) + rest
