@@ -14,9 +14,8 @@ from service.cli import main
 from service.model.hand import default_calibration
 from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig, simulate, write_recording
-from test_service import ADMIN, _wait_for, _wait_for_last_frame
+from test_service import ADMIN, SOURCE, VIEWER, _wait_for, _wait_for_last_frame
 
-SOURCE, VIEWER = "src-partial", "view-partial"
 BARE = ("thumb", "ring", "little")
 
 
