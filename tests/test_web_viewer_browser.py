@@ -121,7 +121,10 @@ async def _scenario(server, exe, tmp_path):
         bone, _ = await page.evaluate(f"{COUNT_COLOURS}('hand3d', {json.dumps([BONE, RAY])}, 12)")
         assert bone > 100, "no hand drawn"
         per_finger = await page.evaluate(f"{COUNT_COLOURS}('plot', {json.dumps(FINGER_COLOURS)}, 40)")
-        assert min(per_finger) > 50, per_finger
+        # the script curls middle, ring and little together (grasp, open, point), so their lines
+        # coincide and the last one drawn (little) may cover the other two entirely
+        thumb, index, middle, ring, little = per_finger
+        assert thumb > 50 and index > 50 and middle + ring + little > 150, per_finger
 
         # the source left: said so, and nothing is redrawn while no data comes
         await page.wait_for(_state("br1", "waiting"), "br1 waiting again after the glove left")
