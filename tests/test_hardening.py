@@ -262,6 +262,13 @@ def test_bad_settings_are_refused_at_start_naming_the_setting(values, setting):
             assert token not in str(err.value)
 
 
+def test_a_bad_bus_url_is_named_without_its_password():
+    with pytest.raises(SettingsError) as err:
+        ServiceSettings.load(bus="http://user:pw-not-shown@bus.example:4222")
+    assert "'bus'" in str(err.value) and "bus.example:4222" in str(err.value)
+    assert "pw-not-shown" not in str(err.value)
+
+
 def test_each_role_sees_only_what_it_needs(server):
     rest(server.url, "PUT", "/v1/sessions/seen/config", ADMIN, {"record": True})
     viewer = _sessions(server, VIEWER)["seen"]

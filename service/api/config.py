@@ -147,6 +147,9 @@ def describe_validation_error(err: ValidationError, what: str, prefix: str = "")
         if secret and e["loc"][0] == "tokens" and len(e["loc"]) > 1:
             loc = "tokens"                   # the key of a token entry is the token itself
         msg = e["msg"].removeprefix("Value error, ")
-        shown = "" if secret or e["type"] == "missing" else f" (got {json.dumps(e.get('input'), default=str)[:60]})"
+        value = e.get("input")
+        if isinstance(value, str) and "://" in value:
+            value = redacted_url(value)      # a URL's user and password are never shown either
+        shown = "" if secret or e["type"] == "missing" else f" (got {json.dumps(value, default=str, ensure_ascii=False)[:60]})"
         lines.append(f"{what} '{loc}': {msg}{shown}" if loc else f"{what}: {msg}{shown}")
     return "\n".join(lines)
