@@ -25,7 +25,10 @@ SOURCE, VIEWER, ADMIN = "src-lsl-1", "view-lsl-1", "admin-lsl-1"
 
 @pytest.fixture(scope="module")
 def server():
-    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
+    # every frame is compared: subscribers that fall behind an unpaced source on a busy machine must
+    # not lose their oldest frames (a few hundred here, far below the queue)
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    subscriber_queue_frames=10000)
     with ServerThread(settings) as srv:
         yield srv
 
