@@ -407,7 +407,7 @@ def _need_bench_extra() -> None:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    if args.which in ("paper", "peers", "gestures", "load"):
+    if args.which in ("paper", "peers", "gestures", "load", "accuracy"):
         _need_bench_extra()
     if args.which == "paper":
         from .bench import paper
