@@ -34,6 +34,18 @@ _non_negative_float = _number(float, 0.0, False, "a non-negative finite number")
 _positive_int = _number(int, 1, False, "a positive whole number")
 
 
+def _service_url(text: str) -> str:
+    """The service's address: http(s) or ws(s) with a host (the clients derive the WebSocket URLs)."""
+    from urllib.parse import urlsplit
+    try:
+        parts = urlsplit(text)
+    except ValueError:
+        parts = None
+    if parts is None or parts.scheme not in ("http", "https", "ws", "wss") or not parts.hostname:
+        raise argparse.ArgumentTypeError(f"expected the service's URL, e.g. http://127.0.0.1:8765, got {text!r}")
+    return text
+
+
 def _interval(text: str) -> tuple[float, float]:
     try:
         a, b = (float(x) for x in text.split(":"))
@@ -517,7 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
     wrk.set_defaults(func=_cmd_worker)
 
     glv = sub.add_parser("glove", help="stream a simulated glove + optical tracker to a service in real time")
-    glv.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
+    glv.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
     glv.add_argument("--token", required=True, help="a token with the source role")
     glv.add_argument("--session", default="default", help="session to stream into (default default)")
     glv.add_argument("--motion", choices=sorted(FINGER_MOTIONS), default="sequence",
@@ -535,7 +547,7 @@ def build_parser() -> argparse.ArgumentParser:
     glv.set_defaults(func=_cmd_glove)
 
     wat = sub.add_parser("watch", help="subscribe and print gesture events and live joint angles")
-    wat.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
+    wat.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
     wat.add_argument("--token", required=True, help="a token with the viewer role")
     wat.add_argument("--session", default="default", help="session to watch (default default)")
     wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines (default 0.25)")
@@ -547,7 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "stream (type MoCap, one channel per joint angle in radians, stable source_id) "
                                      "and its gesture events as an LSL marker stream, for LabRecorder and any LSL "
                                      "inlet. Needs pylsl: pip install 'fingertrack[lsl]'. Runs until Ctrl-C.")
-    lsl.add_argument("--url", required=True, help="service URL, e.g. http://127.0.0.1:8765")
+    lsl.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
     lsl.add_argument("--token", required=True, help="a token with the viewer role")
     lsl.add_argument("--session", type=_session_hand, action="append", required=True, metavar="NAME[:HAND]",
                      help="a session to republish, with the hand its source is (right or left; default right); "

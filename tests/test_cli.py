@@ -151,3 +151,13 @@ def test_quick_descriptions_say_what_quick_runs(capsys):
             f"{f['connects']} connects, three kills and a {f['soak_seconds']:g} s soak") in text
     assert f"default {f['soak_seconds']:g}; {q['soak_seconds']:g} with --quick" in text
     assert f"default {f['messages']}; {q['messages']} with --quick" in text
+
+
+@pytest.mark.parametrize("command", [["lsl", "--session", "a"], ["watch"], ["glove"]])
+def test_a_bad_service_url_is_refused_by_name_without_a_traceback(command, capsys):
+    with pytest.raises(SystemExit) as err:
+        main([*command, "--url", "notaurl", "--token", "tok-not-shown"])
+    assert err.value.code == 2
+    text = capsys.readouterr().err
+    assert "--url" in text and "notaurl" in text
+    assert "tok-not-shown" not in text and "Traceback" not in text
