@@ -74,7 +74,6 @@ class Counters:
     late: int = 0
     overflow: int = 0
     clock_steps: int = 0
-    estimator_errors: int = 0
     unknown_sensor: int = 0
     references_applied: int = 0
     references_stale: int = 0
@@ -431,7 +430,6 @@ class HandSession:
         gyr = np.array([self._last_sample[s][1] for s in fs.active_sensors])
         acc = np.array([self._last_sample[s][2] for s in fs.active_sensors])
         if fs.estimator.started and t <= fs.estimator.last_t:   # cannot happen with increasing ticks; be safe
-            self.counters.estimator_errors += 1
             return
         try:
             est = fs.estimator.update_trusted(t, gyr, acc, hand)
