@@ -16,7 +16,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from clients.client import Subscription, rest
+from clients.client import Publisher, Subscription, rest
 from clients.glove import source_messages
 from service import numba_cache_dir
 from service.api.config import ServiceSettings, SettingsError
@@ -297,6 +297,47 @@ def test_a_full_session_table_is_not_ready():
         assert rest(srv.url, "PUT", "/v1/sessions/only/config", ADMIN, {"record": False})[0] == 200
         status, body = rest(srv.url, "GET", "/ready")
         assert status == 503 and body["ready"] is False and "full" in body["reason"]
+
+
+def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    subscriber_send_timeout_s=1.0)
+    with ServerThread(settings, send_buffer_bytes=8192) as srv:
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 2048)
+        sock.connect(("127.0.0.1", srv.settings.port))
+        sock.sendall((f"GET /v1/stream/stall?token={VIEWER} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+                      "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+        head = b""
+        while b"\r\n\r\n" not in head:
+            head += sock.recv(1)
+        assert b" 101 " in head
+
+        async def stream_until_dropped():
+            # frames until the service let the stalled subscriber go (its send blocked on the full
+            # socket for subscriber_send_timeout_s), or to the end of the recording and then wait
+            pub = Publisher(srv.url, "stall", SOURCE)
+            for m in _messages(seed=6, motion="sequence")[2:]:
+                await pub.send(m)
+                await asyncio.sleep(0)
+                sessions = await asyncio.to_thread(_sessions, srv)
+                if sessions["stall"]["subscribers"] == 0 and sessions["stall"]["frames_out"] > 0:
+                    break
+            else:
+                while (await asyncio.to_thread(_sessions, srv))["stall"]["subscribers"]:
+                    await asyncio.sleep(0.1)
+            await pub.close()
+        asyncio.run(stream_until_dropped())
+        assert _sessions(srv)["stall"]["subscribers"] == 0
+        assert 'fingertrack_disconnects_total{reason="send_timeout"} 1.0' in rest(srv.url, "GET", "/metrics", ADMIN)[1]
+        assert not srv.app.state.sessions.sending          # nothing of it is held
+        sock.settimeout(30)
+        try:
+            while sock.recv(65536):              # what was buffered, then the end: the server let go
+                pass
+        except ConnectionResetError:
+            pass
+        sock.close()
 
 
 # -- item 4: kernels and their cache -------------------------------------------------------------------------

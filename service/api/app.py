@@ -1,7 +1,7 @@
 """The FastAPI application, assembled: settings, sessions and metrics on ``app.state``, the routes
-(``routes/``: ``rest``, ``ingest``, ``stream``), the lifespan (recordings flushed periodically, a
-graceful drain at shutdown; with ``settings.bus`` the connection to the hand workers) and the web
-viewer.
+(``routes/``: ``rest``, ``ingest``, ``stream``), the lifespan (recordings flushed periodically,
+connections stuck in a send dropped, a graceful drain at shutdown; with ``settings.bus`` the
+connection to the hand workers) and the web viewer.
 
 Endpoints:
 
@@ -21,6 +21,7 @@ Tokens with roles (``deps``): without one no session data is served and no confi
 from __future__ import annotations
 
 import asyncio
+import time
 from contextlib import asynccontextmanager
 from importlib.resources import files
 
@@ -32,6 +33,7 @@ from ..estimators.warm import warm_off_loop
 from .config import ServiceSettings
 from .metrics import Metrics
 from .routes import ingest, rest, schema, stream
+from .routes.socket import drop_stuck
 from .sessions import Sessions
 
 WEB_VIEWER = files("clients") / "web"
@@ -45,12 +47,15 @@ def create_app(settings: ServiceSettings) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        async def flusher():
+        async def housekeeping():
+            """Flush recordings; drop connections stuck in a send (``routes.socket.drop_stuck``)."""
+            period = min(settings.flush_interval_s / 2, settings.subscriber_send_timeout_s / 4)
             while True:
-                await asyncio.sleep(settings.flush_interval_s / 2)
+                await asyncio.sleep(period)
                 sessions.flush_recordings()
+                drop_stuck(sessions, metrics, settings.subscriber_send_timeout_s, time.monotonic())
         await warm_off_loop(settings.estimator)      # the default estimator's kernels, before serving
-        task = asyncio.create_task(flusher())
+        task = asyncio.create_task(housekeeping())
         if settings.bus is not None:                 # a gateway: sessions run in hand workers
             from ..bus.gateway import GatewayBus
             sessions.bus = await GatewayBus.connect(settings.bus)

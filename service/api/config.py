@@ -57,6 +57,8 @@ class ServiceSettings(BaseSettings):
     rate_limit_msgs_per_s: float = Field(20000.0, gt=0, description="per-connection message rate limit, messages/s")
     subscriber_queue_frames: int = Field(64, ge=1, le=10000, description="frames buffered per subscriber before the oldest is dropped")
     subscriber_queue_events: int = Field(1024, ge=1, description="gesture events buffered per subscriber (never dropped: a client this far behind is closed)")
+    subscriber_send_timeout_s: float = Field(10.0, gt=0, le=600, description="a connection that takes no data for "
+                                             "this long (a send stuck on a full socket) is dropped and its buffers freed, s")
     ping_interval_s: float = Field(10.0, gt=0, description="WebSocket keepalive ping interval, s")
     ping_timeout_s: float = Field(20.0, gt=0, description="WebSocket keepalive timeout, s")
     flush_interval_s: float = Field(1.0, gt=0, le=1.0, description="recordings are flushed at least this often, s")

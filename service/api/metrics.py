@@ -13,6 +13,8 @@ class Metrics:
         self.messages_out = Counter("fingertrack_messages_out", "messages sent to subscribers", ["session"], registry=self.registry)
         self.errors = Counter("fingertrack_errors", "error replies by code", ["code"], registry=self.registry)
         self.dropped_frames = Counter("fingertrack_dropped_frames", "frames dropped for slow subscribers", ["session"], registry=self.registry)
+        self.disconnects = Counter("fingertrack_disconnects", "connections the service dropped, by reason", ["reason"],
+                                   registry=self.registry)
         self.sessions = Gauge("fingertrack_sessions", "live sessions", registry=self.registry)
         self.subscribers = Gauge("fingertrack_subscribers", "connected subscribers", registry=self.registry)
         self.latency = Histogram("fingertrack_ingest_to_send_seconds", "time from receiving a source message to sending "

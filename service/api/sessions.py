@@ -240,6 +240,9 @@ class Sessions:
         self.closing = False
         self.bus = None
         """A ``bus.gateway.GatewayBus`` when the hands run in workers (``settings.bus``), else None."""
+        self.sending: dict[Any, float] = {}
+        """Connections in a send, since when (monotonic s): ``routes.socket.drop_stuck`` aborts the
+        ones stuck longer than ``subscriber_send_timeout_s``."""
 
     def __len__(self) -> int:
         return len(self.by_name)

@@ -1,6 +1,14 @@
 """What the two WebSockets share: the accepted connection's encoding, sending, error replies and
-the session lookup after the handshake."""
+the session lookup after the handshake.
+
+Every send is watched (``Sessions.sending``): a connection whose peer stopped reading blocks in a send
+once its socket buffers are full, and a closing handshake cannot pass it either; ``drop_stuck`` (run
+by the app's housekeeping) aborts the transport of a connection stuck longer than
+``subscriber_send_timeout_s``, so the connection ends and its buffers are freed."""
 from __future__ import annotations
+
+import logging
+import time
 
 from fastapi import WebSocket
 
@@ -9,6 +17,8 @@ from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER
 from ..metrics import Metrics
 from ..outgoing import Outgoing
 from ..sessions import LiveSession, SessionFull, Sessions
+
+log = logging.getLogger("fingertrack")
 
 
 async def accept(ws: WebSocket) -> None:
@@ -39,10 +49,47 @@ async def send(ws: WebSocket, message: dict | Outgoing) -> None:
         data = message.packed() if binary else message.text()
     else:
         data = encode(message, binary)
-    if isinstance(data, bytes):
-        await ws.send_bytes(data)
-    else:
-        await ws.send_text(data)
+    sending = ws.app.state.sessions.sending
+    sending[ws] = time.monotonic()
+    try:
+        if isinstance(data, bytes):
+            await ws.send_bytes(data)
+        else:
+            await ws.send_text(data)
+    finally:
+        sending.pop(ws, None)
+
+
+def drop_stuck(sessions: Sessions, metrics: Metrics, timeout_s: float, now: float) -> None:
+    """Abort every connection that has been in one send for more than ``timeout_s``."""
+    for ws, since in list(sessions.sending.items()):
+        if now - since > timeout_s:
+            sessions.sending.pop(ws, None)
+            metrics.disconnects.labels("send_timeout").inc()
+            _abort(ws)
+
+
+def _abort(ws: WebSocket) -> bool:
+    """Drop the connection at once (TCP reset), without waiting for buffered data to drain (ASGI has no
+    message for this). The server's protocol object, which owns the transport, is the owner of the
+    ASGI ``send`` callable, possibly behind wrappers (Starlette wraps it in a closure)."""
+    stack, looked = [getattr(ws, "_send", None)], 0
+    while stack and looked < 16:
+        fn = stack.pop()
+        looked += 1
+        transport = getattr(getattr(fn, "__self__", None), "transport", None)
+        if transport is not None:
+            transport.abort()
+            return True
+        for cell in getattr(fn, "__closure__", None) or ():
+            try:
+                inner = cell.cell_contents
+            except ValueError:
+                continue
+            if callable(inner):
+                stack.append(inner)
+    log.warning("cannot drop a stalled connection: no transport found behind the ASGI send")
+    return False
 
 
 async def send_error(ws: WebSocket, metrics: Metrics, code: str, detail: str) -> None:
