@@ -27,6 +27,15 @@ def test_quick_writes_every_output(quick):
     rows = (out / "results.csv").read_text().splitlines()
     # 1 trial x 2 conditions x 3 estimators x 8 joints (thumb 2, index 3, middle 3)
     assert len(rows) == 1 + 2 * 3 * 8
+    assert "(seeds 0-0)" in summary
+    assert {row.split(",")[0] for row in rows[1:]} == {"0"}
+
+
+def test_first_seed_must_be_a_whole_number_not_below_zero(tmp_path, capsys):
+    from service.cli import main
+    with pytest.raises(SystemExit):
+        main(["bench", "accuracy", "--out", str(tmp_path), "--first-seed", "-1"])
+    assert "--first-seed" in capsys.readouterr().err
 
 
 def test_quick_discriminates_the_crude_baseline(quick):
