@@ -38,11 +38,21 @@ variance shrinks far below the few degrees these terms leave in the acceleromete
 reference pose (±3 deg per joint) or a slower correction by the gyro can no longer move it. The
 per-sample std is therefore ``acc_scale_uncertainty`` = 0.3 of the force, the white-noise equivalent of
 those errors over a correlation time of a few samples. The value was chosen on tuning trials of
-``bench accuracy`` disjoint from its scored ones (``--first-seed 500 --trials 3 --seconds 8``, chain:
-0.05 -> 4.35 deg mean joint RMS with a reference pose, 0.1 -> 4.15, 0.25 -> 3.85, 0.4 -> 3.71,
+``bench accuracy`` disjoint from its scored ones (chain's rows of ``--first-seed 500 --trials 3
+--seconds 8``, mean joint RMS with the reference pose: 0.05 -> 4.35 deg, 0.1 -> 4.15, 0.25 -> 3.85, 0.4 -> 3.71,
 0.6 -> 3.68; p95 lowest at 0.25-0.4); not on the scored seeds. The hinge-axis part of the mounting
 stays unobservable without a reference (the accelerometer sees only ``θ + δ``, the gyro only changes
-of ``θ``), and with the default placement it is amplified into the MCP angle (next paragraph).
+of ``θ``), and with the default placement it is amplified into the MCP angle: with the coupling
+``φ_2 = c φ_1`` (the paper's first approximation, DIP = PIP, section 2) the joints follow from the
+two observed phalanx angles as ``φ_1 = (θ_2 - θ_1) / c``, ``φ_0 = θ_1 - φ_1``, so phalanx errors
+``e_1, e_2`` become an MCP error ``(1 + 1/c) e_1 - e_2 / c`` (``2 e_1 - e_2`` at ``c = 1``).
+
+What the placement makes observable: sensors on phalanges 1 and 2 (the paper's placement, section 2)
+observe ``θ_1 = φ_0 + φ_1`` and ``θ_2 = φ_0 + φ_1 + φ_2``, two numbers for three unknowns
+``φ_0, φ_1, c``; the optics give only the metacarpus. So the coupling ``c`` is not observable from
+the orientations (only weakly, through the accelerations the unmeasured proximal phalanx adds in fast
+motion, eq. 2); a flat reference pose does not reveal it either (every joint near 0). It needs a known configuration with a bent PIP (a reference pose other than flat) or a
+sensor on phalanx 0, and is not estimated here.
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
