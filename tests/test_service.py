@@ -44,7 +44,9 @@ async def _wait_for(condition, what: str, timeout_s: float = 120.0, interval_s: 
 
 
 async def _session_summary(server, session: str) -> dict:
-    _, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER)
+    """The session's summary, read with the server's own admin token (any test server's fixture)."""
+    status, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", server.settings.admin_token)
+    assert status == 200, f"GET /v1/sessions answered {status}: {sessions}"
     return next(s for s in sessions if s["session"] == session)
 
 
