@@ -299,6 +299,48 @@ def test_a_full_session_table_is_not_ready():
         assert status == 503 and body["ready"] is False and "full" in body["reason"]
 
 
+def test_a_viewer_creates_no_session_and_waits_for_its_source():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    max_sessions=2, idle_timeout_s=0.5)
+    with ServerThread(settings) as srv:
+        async def go():
+            hellos = []
+            for i in range(8):                       # typo names: no table entries
+                async with connect(f"{srv.ws_url}/v1/stream/typo{i}?token={VIEWER}") as ws:
+                    hellos.append(json.loads(await ws.recv()))
+            assert _sessions(srv) == {}
+            # a viewer waiting for "later" gets the session's frames from the first on once a source starts it
+            frames = []
+            sub = Subscription(srv.ws_url, "later", VIEWER)
+
+            async def collect():
+                async for m in sub:
+                    frames.append(m)
+                    return
+            task = asyncio.create_task(collect())
+            while sub.server_hello is None:
+                await asyncio.sleep(0.02)
+            pub = Publisher(srv.url, "later", SOURCE)
+            for m in _messages(seed=5)[2:]:
+                await pub.send(m)
+                if task.done():
+                    break
+            await task
+            await pub.close()
+            await sub.close()
+            return hellos, frames, sub.server_hello
+        hellos, frames, hello = asyncio.run(go())
+        assert all(h["waiting"] is True for h in hellos) and hello["waiting"] is True
+        assert frames and frames[0]["type"] == "frame" and frames[0]["seq"] == 1
+        # both clients gone: the session is removed after the idle timeout (bounded wait)
+        deadline = time.monotonic() + 120
+        while "later" in _sessions(srv):
+            assert time.monotonic() < deadline, "an idle session was never removed"
+            time.sleep(0.1)
+        assert not srv.app.state.sessions.waiting
+        assert rest(srv.url, "GET", "/ready")[0] == 200
+
+
 def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
                                     subscriber_send_timeout_s=1.0)

@@ -1,6 +1,7 @@
 """The LSL bridge with a real LSL inlet on the loopback, fed by a real service and a streaming source."""
 import asyncio
 import json
+import re
 import threading
 
 import numpy as np
@@ -102,8 +103,9 @@ def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
                     (frames if m["type"] == "frame" else events).append(m)
             task = asyncio.create_task(collect())
             while True:                              # the bridge and this subscriber are both listening
-                status, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER)
-                if any(s["session"] == session and s["subscribers"] >= 2 for s in sessions):
+                # (waiting for the session's source, which creates it: the subscriber gauge counts them)
+                status, text = await asyncio.to_thread(rest, server.url, "GET", "/metrics", VIEWER)
+                if float(re.search(r"^fingertrack_subscribers (\S+)$", text, re.M).group(1)) >= 2:
                     break
                 await asyncio.sleep(0.05)
             pub = Publisher(server.url, session, SOURCE)

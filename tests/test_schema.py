@@ -154,8 +154,7 @@ async def _live_session(server):
 
     task = asyncio.create_task(collect())
     await raw_subscriber()
-    while not any(s["session"] == "schema-live" and s["subscribers"]
-                  for s in (await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER))[1]):
+    while sub.server_hello is None:             # subscribed (waiting for the session's source)
         await asyncio.sleep(0.05)
     replies = []
     async with connect(f"{server.ws_url}/v1/ingest/schema-bad?token={SOURCE}") as ws:

@@ -223,8 +223,8 @@ def test_a_full_service_says_try_again_later_and_a_bad_session_name_is_refused(t
             return ws.close_code, ws.close_reason
     with ServerThread(settings) as srv:
         async def full():
-            async with connect(f"{srv.ws_url}/v1/stream/one?token={VIEWER}"):   # holds session "one"
-                return await close_of(f"{srv.ws_url}/v1/stream/two?token={VIEWER}")
+            async with connect(f"{srv.ws_url}/v1/ingest/one?token={SOURCE}"):   # creates session "one"
+                return await close_of(f"{srv.ws_url}/v1/ingest/two?token={SOURCE}")
         code, reason = asyncio.run(full())
         # temporary: 1013, so clients retry (1008 would tell them they are refused for good)
         assert code == 1013 and "session limit 1 reached" in reason

@@ -1,6 +1,6 @@
 """The FastAPI application, assembled: settings, sessions and metrics on ``app.state``, the routes
 (``routes/``: ``rest``, ``ingest``, ``stream``), the lifespan (recordings flushed periodically,
-connections stuck in a send dropped, a graceful drain at shutdown; with ``settings.bus`` the
+idle sessions removed, connections stuck in a send dropped, a graceful drain at shutdown; with ``settings.bus`` the
 connection to the hand workers) and the web viewer.
 
 Endpoints:
@@ -48,11 +48,14 @@ def create_app(settings: ServiceSettings) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI):
         async def housekeeping():
-            """Flush recordings; drop connections stuck in a send (``routes.socket.drop_stuck``)."""
-            period = min(settings.flush_interval_s / 2, settings.subscriber_send_timeout_s / 4)
+            """Flush recordings, remove idle sessions, drop connections stuck in a send
+            (``routes.socket.drop_stuck``)."""
+            period = min(settings.flush_interval_s / 2, settings.subscriber_send_timeout_s / 4,
+                         settings.idle_timeout_s / 4)
             while True:
                 await asyncio.sleep(period)
                 sessions.flush_recordings()
+                sessions.evict_idle(time.monotonic())
                 drop_stuck(sessions, metrics, settings.subscriber_send_timeout_s, time.monotonic())
         await warm_off_loop(settings.estimator)      # the default estimator's kernels, before serving
         task = asyncio.create_task(housekeeping())

@@ -22,6 +22,14 @@ class Metrics:
                                  buckets=(0.0005, 0.001, 0.0015, 0.002, 0.0025, 0.003, 0.0035, 0.004, 0.0045, 0.005,
                                           0.006, 0.0075, 0.01, 0.015, 0.02, 0.05, 0.1, 0.5))
 
+    def forget_session(self, name: str) -> None:
+        """Drop the series of a removed session (a name may come back as a new session)."""
+        for family in (self.messages_in, self.messages_out, self.dropped_frames, self.latency):
+            try:
+                family.remove(name)
+            except KeyError:
+                pass
+
     def render(self, admin: bool = True) -> bytes:
         """The exposition text; without ``admin``, series labelled by session are left out (session
         names are not every role's business)."""

@@ -1,5 +1,10 @@
 """Live sessions: one tracked hand per session name, its subscribers and its recording.
 
+Lifecycle (``Sessions``): only a source (or an admin changing a session's configuration) creates a
+session; a viewer subscribing to a name that does not exist yet waits for it without creating
+anything (its subscriber joins the session the moment a source creates it, before any frame). A
+session with no source and no subscriber for ``idle_timeout_s`` is removed and its recording closed.
+
 Backpressure: every subscriber has its own bounded queue. Frames beyond ``subscriber_queue_frames``
 push out the subscriber's oldest frame (counted per session and in the metrics); gesture events are
 kept in order and never dropped (a subscriber more than ``subscriber_queue_events`` events behind is
@@ -130,8 +135,14 @@ class LiveSession:
         self.frames_out = 0
         self.dropped_frames = 0
         self.created = time.time()
+        self.idle_since: float | None = time.monotonic()
+        """Since when nobody (source or subscriber) is connected; ``None`` while somebody is."""
         self._lock = asyncio.Lock()
         self._apply_recording()
+
+    def touch(self) -> None:
+        """Note a connection coming or going: idle from now if nobody is left."""
+        self.idle_since = None if (self.sources or self.subscribers) else time.monotonic()
 
     def _apply_recording(self) -> None:
         want = self.config.record and self.settings.record_dir is not None
@@ -240,6 +251,8 @@ class Sessions:
         self.closing = False
         self.bus = None
         """A ``bus.gateway.GatewayBus`` when the hands run in workers (``settings.bus``), else None."""
+        self.waiting: dict[str, set[Subscriber]] = {}
+        """Subscribers of sessions no source has created yet, by name."""
         self.sending: dict[Any, float] = {}
         """Connections in a send, since when (monotonic s): ``routes.socket.drop_stuck`` aborts the
         ones stuck longer than ``subscriber_send_timeout_s``."""
@@ -260,8 +273,44 @@ class Sessions:
                 raise SessionFull(f"session limit {self.settings.max_sessions} reached")
             live = self.by_name[name] = (LiveSession(name, self.settings, self.metrics) if self.bus is None
                                          else self.bus.session(name, self.settings, self.metrics))
+            live.subscribers.update(self.waiting.pop(name, ()))   # its waiting viewers, before any frame
+            live.touch()
             self.metrics.sessions.set(len(self.by_name))
         return live
+
+    def subscribe(self, name: str, sub: Subscriber) -> LiveSession | None:
+        """Add a subscriber to the session ``name``; ``None`` if there is none yet: then it waits (it
+        joins the session when a source creates it). A bad name raises ``ValueError``."""
+        live = self.get(name, create=False)
+        if live is None:
+            self.waiting.setdefault(name, set()).add(sub)
+        else:
+            live.subscribers.add(sub)
+            live.touch()
+        return live
+
+    def unsubscribe(self, name: str, sub: Subscriber) -> None:
+        live = self.by_name.get(name)
+        if live is not None and sub in live.subscribers:
+            live.subscribers.discard(sub)
+            live.touch()
+        waiting = self.waiting.get(name)
+        if waiting is not None:
+            waiting.discard(sub)
+            if not waiting:
+                del self.waiting[name]
+
+    def evict_idle(self, now: float) -> list[str]:
+        """Remove the sessions idle (no source, no subscriber) for ``idle_timeout_s``, closing their
+        recordings; returns their names."""
+        gone = [name for name, live in self.by_name.items()
+                if live.idle_since is not None and now - live.idle_since >= self.settings.idle_timeout_s]
+        for name in gone:
+            self.by_name.pop(name).close()
+            self.metrics.forget_session(name)
+        if gone:
+            self.metrics.sessions.set(len(self.by_name))
+        return gone
 
     def flush_recordings(self) -> None:
         for live in self:
@@ -278,4 +327,7 @@ class Sessions:
             for sub in live.subscribers:
                 sub.close()
             live.close()
+        for waiting in self.waiting.values():
+            for sub in waiting:
+                sub.close()
         await asyncio.sleep(0.1)            # let the stream handlers send their close frames

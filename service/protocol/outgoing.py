@@ -54,6 +54,8 @@ class ServerHello(_Message):
     protocol: int = Field(description=f"protocol version the service speaks ({PROTOCOL_VERSION})")
     server: str = Field("", description="server name")
     session: str = Field("", description="the session this connection belongs to")
+    waiting: Optional[bool] = Field(None, description="on /v1/stream: true while no source has created the session "
+                                    "yet (the subscriber waits for it and gets its frames from its start; it creates nothing)")
 
 
 class SyncReply(_Message):

@@ -60,6 +60,7 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
     if live is None:
         return
     live.sources += 1
+    live.touch()
     live.attach_source(lambda code, detail: send_error(ws, metrics, code, detail))
     bucket = TokenBucket(settings.rate_limit_msgs_per_s)
     greeted = False
@@ -105,3 +106,4 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         pass
     finally:
         live.sources -= 1
+        live.touch()

@@ -38,8 +38,13 @@ async def open_session(ws: WebSocket, sessions: Sessions, name: str) -> LiveSess
     except (SessionFull, ValueError) as err:
         # a full service may take the session later (1013 "try again later"); a bad name will not
         code = WS_TRY_AGAIN_LATER if isinstance(err, SessionFull) else WS_POLICY_VIOLATION
-        await ws.close(code=code, reason=str(err)[:120])
+        await ws.close(code=code, reason=close_reason(str(err)))
         return None
+
+
+def close_reason(text: str) -> str:
+    """A WebSocket close reason fits in 123 bytes: cut at 120 UTF-8 bytes, on a character boundary."""
+    return text.encode()[:120].decode("utf-8", "ignore")
 
 
 async def send(ws: WebSocket, message: dict | Outgoing) -> None:
@@ -97,5 +102,5 @@ async def send_error(ws: WebSocket, metrics: Metrics, code: str, detail: str) ->
     await send(ws, {"type": "error", "code": code, "detail": detail})
 
 
-def server_hello(session: str) -> dict:
-    return {"type": "hello", "protocol": PROTOCOL_VERSION, "server": "fingertrack", "session": session}
+def server_hello(session: str, **extra) -> dict:
+    return {"type": "hello", "protocol": PROTOCOL_VERSION, "server": "fingertrack", "session": session, **extra}

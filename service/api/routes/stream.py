@@ -1,6 +1,8 @@
-"""``WS /v1/stream/{session}`` (role ``viewer``): the server's hello, then ``frame`` and ``gesture``
-messages from the subscriber's own bounded queue (``sessions.Subscriber``). A subscriber that fell
-too far behind is closed with 1013 (it may reconnect); shutdown closes with 1001."""
+"""``WS /v1/stream/{session}`` (role ``viewer``): the server's hello (``"waiting": true`` while no
+source has created the session: the viewer waits for it and creates nothing), then ``frame`` and
+``gesture`` messages from the subscriber's own bounded queue (``sessions.Subscriber``). A subscriber
+that fell too far behind is closed with 1013 (it may reconnect); one whose connection takes no data
+for ``subscriber_send_timeout_s`` is dropped (``socket.drop_stuck``); shutdown closes with 1001."""
 from __future__ import annotations
 
 import asyncio
@@ -8,9 +10,9 @@ import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
-from ..deps import WS_GOING_AWAY, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
+from ..deps import WS_GOING_AWAY, WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..sessions import Subscriber
-from .socket import open_session, send, server_hello
+from .socket import accept, close_reason, send, server_hello
 
 router = APIRouter()
 
@@ -27,15 +29,17 @@ async def _until_disconnect(ws: WebSocket) -> None:
 
 @router.websocket("/v1/stream/{session}", dependencies=[Security(Role("stream"))])
 async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: SettingsDep, metrics: MetricsDep):
-    live = await open_session(ws, sessions, session)
-    if live is None:
-        return
+    await accept(ws)
     sub = Subscriber(settings.subscriber_queue_frames, settings.subscriber_queue_events, binary=ws.state.binary)
-    live.subscribers.add(sub)
+    try:
+        live = sessions.subscribe(session, sub)       # None: no source has created it yet; the viewer waits
+    except ValueError as err:                         # a bad name
+        await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(str(err)))
+        return
     metrics.subscribers.inc()
     closer = asyncio.create_task(_until_disconnect(ws))
     try:
-        await send(ws, server_hello(session))
+        await send(ws, server_hello(session, waiting=live is None))
         while not closer.done():
             if not sub.queue:
                 waiter = asyncio.create_task(sub.wake.wait())
@@ -55,5 +59,5 @@ async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         pass
     finally:
         closer.cancel()
-        live.subscribers.discard(sub)
+        sessions.unsubscribe(session, sub)
         metrics.subscribers.dec()
