@@ -28,7 +28,7 @@ from service.protocol.messages import Imu, ImuBatch, ImuSample, Pose
 from service.protocol.wire import encode
 from service.sim.session import SimConfig
 
-SOURCE, VIEWER, ADMIN = "src-token-1", "view-token-1", "admin-token-1"
+SOURCE, SOURCE2, VIEWER, ADMIN = "src-token-1", "src-token-2", "view-token-1", "admin-token-1"
 HELLO = {"type": "hello", "protocol": 1, "hand": "right"}
 
 
@@ -339,6 +339,54 @@ def test_a_viewer_creates_no_session_and_waits_for_its_source():
             time.sleep(0.1)
         assert not srv.app.state.sessions.waiting
         assert rest(srv.url, "GET", "/ready")[0] == 200
+
+
+def _gauge(server, name):
+    text = rest(server.url, "GET", "/metrics", ADMIN)[1]
+    return float(next(line.split()[1] for line in text.splitlines() if line.startswith(name + " ")))
+
+
+def test_a_token_has_quotas_of_sessions_and_connections():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", SOURCE2: "source", VIEWER: "viewer"},
+                                    admin_token=ADMIN, max_sessions=3, max_sessions_per_token=2,
+                                    max_connections_per_token=3)
+    with ServerThread(settings) as srv:
+        async def go():
+            async def close_of(ws):
+                try:
+                    await ws.recv()
+                except Exception:
+                    pass
+                return ws.close_code, ws.close_reason
+            a = await connect(f"{srv.ws_url}/v1/ingest/a?token={SOURCE}")
+            b = await connect(f"{srv.ws_url}/v1/ingest/b?token={SOURCE}")
+            for ws in (a, b):
+                await ws.send(json.dumps(HELLO))
+                await ws.recv()
+            c = await connect(f"{srv.ws_url}/v1/ingest/c?token={SOURCE}")     # a third session for this token
+            quota = await close_of(c)
+            d = await connect(f"{srv.ws_url}/v1/ingest/d?token={SOURCE2}")     # another token still may
+            await d.send(json.dumps(HELLO))
+            other = json.loads(await d.recv())["type"]
+            streams = [await connect(f"{srv.ws_url}/v1/stream/a?token={VIEWER}") for _ in range(3)]
+            try:
+                await connect(f"{srv.ws_url}/v1/stream/a?token={VIEWER}")
+                fourth = None
+            except InvalidStatus as err:
+                fourth = err.response.status_code, json.loads(err.response.body)["detail"]
+            await streams[0].close()
+            while _gauge(srv, "fingertrack_subscribers") != 2:   # its handler has ended (and released it)
+                await asyncio.sleep(0.05)
+            async with connect(f"{srv.ws_url}/v1/stream/a?token={VIEWER}") as again:   # a closed one frees its place
+                again_hello = json.loads(await again.recv())["type"]
+            for ws in (a, b, d, *streams[1:]):
+                await ws.close()
+            return quota, other, fourth, again_hello
+        quota, other, fourth, again_hello = asyncio.run(go())
+        assert quota[0] == 1013 and "limit per token" in quota[1]
+        assert other == "hello"
+        assert fourth is not None and fourth[0] == 429 and "open connections" in fourth[1]
+        assert again_hello == "hello"
 
 
 def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():

@@ -63,6 +63,8 @@ class ServiceSettings(BaseSettings):
     ping_timeout_s: float = Field(20.0, gt=0, description="WebSocket keepalive timeout, s")
     flush_interval_s: float = Field(1.0, gt=0, le=1.0, description="recordings are flushed at least this often, s")
     max_sessions: int = Field(64, ge=1, description="largest number of live sessions")
+    max_sessions_per_token: int = Field(8, ge=1, description="live sessions one (non-admin) token may have created")
+    max_connections_per_token: int = Field(32, ge=1, description="open WebSockets per (non-admin) token")
     idle_timeout_s: float = Field(300.0, gt=0, description="a session with no source and no subscriber for this long "
                                   "is removed and its recording closed, s")
     bus: str | None = Field(None, pattern=r"^(nats|tls)://\S+$", description="NATS URL (nats://HOST:PORT): run as a gateway whose sessions run in "

@@ -43,6 +43,8 @@ class Role(HTTPBearer):
             _refuse(connection, 401, "a valid token is required (Authorization: Bearer TOKEN or ?token=TOKEN)")
         if role not in CAN[self.action]:
             _refuse(connection, 403, f"role {role!r} may not {self.action}; needs one of {list(CAN[self.action])}")
+        # the key of the token's quotas (sessions created, open connections); an admin has none
+        connection.state.quota_key = None if role == "admin" else _token(connection)
         return role
 
 

@@ -135,6 +135,8 @@ class LiveSession:
         self.frames_out = 0
         self.dropped_frames = 0
         self.created = time.time()
+        self.owner: str | None = None
+        """The token that created it (its quota key; ``None``: an admin)."""
         self.idle_since: float | None = time.monotonic()
         """Since when nobody (source or subscriber) is connected; ``None`` while somebody is."""
         self._lock = asyncio.Lock()
@@ -251,6 +253,8 @@ class Sessions:
         self.closing = False
         self.bus = None
         """A ``bus.gateway.GatewayBus`` when the hands run in workers (``settings.bus``), else None."""
+        self.connections: dict[str, int] = {}
+        """Open WebSockets per (non-admin) token."""
         self.waiting: dict[str, set[Subscriber]] = {}
         """Subscribers of sessions no source has created yet, by name."""
         self.sending: dict[Any, float] = {}
@@ -263,16 +267,21 @@ class Sessions:
     def __iter__(self):
         return iter(list(self.by_name.values()))
 
-    def get(self, name: str, create: bool) -> LiveSession | None:
-        """The session ``name``; a new one when ``create`` (``SessionFull`` at the limit), else ``None``
-        if there is none. A bad name raises ``ValueError``."""
+    def get(self, name: str, create: bool, owner: str | None = None) -> LiveSession | None:
+        """The session ``name``; a new one when ``create``, created by ``owner`` (a token; ``None``: an
+        admin), else ``None`` if there is none. ``SessionFull`` at the limit of the service or of the
+        owner (``max_sessions_per_token``); a bad name raises ``ValueError``."""
         check_session_name(name)
         live = self.by_name.get(name)
         if live is None and create:
             if len(self.by_name) >= self.settings.max_sessions:
                 raise SessionFull(f"session limit {self.settings.max_sessions} reached")
+            mine = 0 if owner is None else sum(1 for x in self.by_name.values() if x.owner == owner)
+            if mine >= self.settings.max_sessions_per_token:
+                raise SessionFull(f"this token already has {mine} live sessions (the limit per token)")
             live = self.by_name[name] = (LiveSession(name, self.settings, self.metrics) if self.bus is None
                                          else self.bus.session(name, self.settings, self.metrics))
+            live.owner = owner
             live.subscribers.update(self.waiting.pop(name, ()))   # its waiting viewers, before any frame
             live.touch()
             self.metrics.sessions.set(len(self.by_name))

@@ -12,7 +12,7 @@ from ...pipeline.hand import Dropped
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
-from .socket import open_session, send, send_error, server_hello
+from .socket import open_session, release, send, send_error, server_hello
 
 router = APIRouter()
 
@@ -105,5 +105,6 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
     except WebSocketDisconnect:
         pass
     finally:
+        release(ws)
         live.sources -= 1
         live.touch()

@@ -11,6 +11,7 @@ import logging
 import time
 
 from fastapi import WebSocket
+from fastapi.responses import JSONResponse
 
 from ...protocol import MSGPACK_SUBPROTOCOL, PROTOCOL_VERSION, encode
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER
@@ -21,22 +22,45 @@ from ..sessions import LiveSession, SessionFull, Sessions
 log = logging.getLogger("fingertrack")
 
 
-async def accept(ws: WebSocket) -> None:
-    """Accept the handshake (the token was checked by the route's ``Security`` dependency); the
-    connection speaks MessagePack when the client asks with the subprotocol or ``?format=msgpack``."""
+async def accept(ws: WebSocket) -> bool:
+    """Accept the handshake (the token was checked by the route's ``Security`` dependency) unless the
+    token has ``max_connections_per_token`` open already (then HTTP 429 with a JSON ``detail``,
+    ``False``); a connection counted here is ``release``d by its route. It speaks MessagePack when
+    the client asks with the subprotocol or ``?format=msgpack``."""
+    sessions: Sessions = ws.app.state.sessions
+    key, limit = getattr(ws.state, "quota_key", None), sessions.settings.max_connections_per_token
+    if key is not None and sessions.connections.get(key, 0) >= limit:
+        await ws.send_denial_response(JSONResponse(
+            {"detail": f"this token already has {limit} open connections (the limit per token)"}, status_code=429))
+        return False
     offered = MSGPACK_SUBPROTOCOL in ws.scope.get("subprotocols", [])
     await ws.accept(subprotocol=MSGPACK_SUBPROTOCOL if offered else None)
     ws.state.binary = offered or ws.query_params.get("format") == "msgpack"
+    if key is not None:
+        sessions.connections[key] = sessions.connections.get(key, 0) + 1
+    return True
+
+
+def release(ws: WebSocket) -> None:
+    """The end of a connection ``accept`` counted."""
+    key, connections = getattr(ws.state, "quota_key", None), ws.app.state.sessions.connections
+    if key is not None and key in connections:
+        connections[key] -= 1
+        if not connections[key]:
+            del connections[key]
 
 
 async def open_session(ws: WebSocket, sessions: Sessions, name: str) -> LiveSession | None:
-    """Accept and find (or create) the session; ``None`` after closing the connection with the reason:
-    1013 (try again later) when the service is full, 1008 for a bad name."""
-    await accept(ws)
+    """Accept and find (or create, owned by the caller's token) the session; ``None`` if refused: HTTP
+    429 over the token's connection quota, or after closing the connection with the reason: 1013
+    (try again later) when the service or the token's session quota is full, 1008 for a bad name."""
+    if not await accept(ws):
+        return None
     try:
-        return sessions.get(name, create=True)
+        return sessions.get(name, create=True, owner=getattr(ws.state, "quota_key", None))
     except (SessionFull, ValueError) as err:
         # a full service may take the session later (1013 "try again later"); a bad name will not
+        release(ws)
         code = WS_TRY_AGAIN_LATER if isinstance(err, SessionFull) else WS_POLICY_VIOLATION
         await ws.close(code=code, reason=close_reason(str(err)))
         return None

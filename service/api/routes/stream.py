@@ -12,7 +12,7 @@ from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
 from ..deps import WS_GOING_AWAY, WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..sessions import Subscriber
-from .socket import accept, close_reason, send, server_hello
+from .socket import accept, close_reason, release, send, server_hello
 
 router = APIRouter()
 
@@ -29,11 +29,13 @@ async def _until_disconnect(ws: WebSocket) -> None:
 
 @router.websocket("/v1/stream/{session}", dependencies=[Security(Role("stream"))])
 async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: SettingsDep, metrics: MetricsDep):
-    await accept(ws)
+    if not await accept(ws):                          # over the token's connection quota (HTTP 429)
+        return
     sub = Subscriber(settings.subscriber_queue_frames, settings.subscriber_queue_events, binary=ws.state.binary)
     try:
         live = sessions.subscribe(session, sub)       # None: no source has created it yet; the viewer waits
     except ValueError as err:                         # a bad name
+        release(ws)
         await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(str(err)))
         return
     metrics.subscribers.inc()
@@ -61,3 +63,4 @@ async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         closer.cancel()
         sessions.unsubscribe(session, sub)
         metrics.subscribers.dec()
+        release(ws)
