@@ -85,7 +85,7 @@ def test_compose_takes_its_settings_from_a_file_the_service_accepts(monkeypatch)
         monkeypatch.setenv(key, value)
     settings = ServiceSettings.load()
     assert settings.admin_token == values["FINGERTRACK_ADMIN_TOKEN"]
-    assert sorted(settings.tokens.values()) == ["source", "viewer"]
+    assert sorted(grant.role for grant in settings.tokens.values()) == ["source", "viewer"]
     assert "docker/fingertrack.env" in (ROOT / ".gitignore").read_text().splitlines()   # secrets stay out of git
 
 

@@ -389,6 +389,49 @@ def test_a_token_has_quotas_of_sessions_and_connections():
         assert again_hello == "hello"
 
 
+def test_one_source_per_session_and_tokens_scoped_to_names():
+    scoped = "booth-token-1"
+    settings = ServiceSettings.load(port=0, admin_token=ADMIN, tokens={
+        SOURCE: "source", SOURCE2: "source", VIEWER: "viewer", scoped: {"role": "source", "sessions": ["booth-*"]},
+        "booth-viewer-1": {"role": "viewer", "sessions": ["booth-*"]}})
+    with ServerThread(settings) as srv:
+        async def go():
+            first = await connect(f"{srv.ws_url}/v1/ingest/glove1?token={SOURCE}")
+            await first.send(json.dumps(HELLO))
+            await first.recv()
+            other = await connect(f"{srv.ws_url}/v1/ingest/glove1?token={SOURCE2}")
+            try:
+                await other.recv()
+            except Exception:
+                pass
+            refused = other.close_code, other.close_reason
+            again = await connect(f"{srv.ws_url}/v1/ingest/glove1?token={SOURCE}")   # the same glove reconnecting
+            await again.send(json.dumps(HELLO))
+            await again.recv()
+            try:
+                await first.recv()
+            except Exception:
+                pass
+            replaced = first.close_code, first.close_reason
+            await again.close()
+            names = []
+            for name in ("booth-1", "lobby"):
+                try:
+                    async with connect(f"{srv.ws_url}/v1/ingest/{name}?token={scoped}") as ws:
+                        await ws.send(json.dumps(HELLO))
+                        names.append(json.loads(await ws.recv())["type"])
+                except InvalidStatus as err:
+                    names.append(err.response.status_code)
+            return refused, replaced, names
+        refused, replaced, names = asyncio.run(go())
+        assert refused[0] == 1008 and "already has a source" in refused[1]
+        assert replaced[0] == 1008 and "replaced" in replaced[1]
+        assert names == ["hello", 403]
+        assert set(_sessions(srv)) == {"glove1", "booth-1"}
+        assert set(_sessions(srv, "booth-viewer-1")) == {"booth-1"}        # a scoped viewer lists its sessions only
+        assert settings.masked()["tokens"] == {"source": 3, "viewer": 2}
+
+
 def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
                                     subscriber_send_timeout_s=1.0)

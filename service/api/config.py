@@ -5,6 +5,7 @@ opens its port (tokens, the default estimator, the listen address) and turns any
 ``SettingsError`` line per bad setting, naming it (never a token's value)."""
 from __future__ import annotations
 
+import fnmatch
 import hmac
 import json
 import re
@@ -12,7 +13,7 @@ import secrets
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 ROLES = ("source", "viewer", "admin")
@@ -23,6 +24,19 @@ TOKEN_PATTERN = re.compile(r"^[A-Za-z0-9._~+/=-]+$")
 
 class SettingsError(ValueError):
     """A bad setting; the message is one line per setting, naming it (never a token's value)."""
+
+
+class TokenGrant(BaseModel):
+    """A token's role, optionally limited to session names matching one of ``sessions``
+    (shell-style patterns, e.g. ``"booth-*"``; empty: every session)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    role: Literal["source", "viewer", "admin"]
+    sessions: tuple[str, ...] = ()
+
+    def allows(self, session: str | None) -> bool:
+        return session is None or not self.sessions or any(fnmatch.fnmatchcase(session, p) for p in self.sessions)
 
 
 def _check_token(token: str, what: str) -> None:
@@ -45,9 +59,10 @@ class ServiceSettings(BaseSettings):
     host: str = Field("127.0.0.1", description="listen address; anything but loopback needs open_access")
     port: int = Field(8765, ge=0, le=65535, description="TCP port (0: any free port)")
     open_access: bool = Field(False, description="allow listening on non-loopback addresses")
-    tokens: dict[str, Literal["source", "viewer", "admin"]] = Field(
-        default_factory=dict, description="token -> role (source, viewer, admin); tokens have at least 8 characters "
-                                          "of A-Z a-z 0-9 . _ ~ + / = -")
+    tokens: dict[str, TokenGrant] = Field(
+        default_factory=dict, description="token -> role (source, viewer, admin) or {\"role\": ..., \"sessions\": "
+                                          "[patterns]} (the token is valid for matching session names only); tokens "
+                                          "have at least 8 characters of A-Z a-z 0-9 . _ ~ + / = -")
     admin_token: str | None = Field(None, description="admin token; generated and printed once at start when unset")
     record_dir: str | None = Field(None, description="folder for session recordings (JSON Lines); None: no recording")
     record_all: bool = Field(False, description="record every session (else per-session config)")
@@ -73,6 +88,13 @@ class ServiceSettings(BaseSettings):
     def with_admin_token(self) -> "ServiceSettings":
         return self if self.admin_token else self.model_copy(update={"admin_token": secrets.token_urlsafe(24)})
 
+    @field_validator("tokens", mode="before")
+    @classmethod
+    def _roles_as_grants(cls, tokens):
+        if isinstance(tokens, dict):
+            return {t: {"role": g} if isinstance(g, str) else g for t, g in tokens.items()}
+        return tokens
+
     @field_validator("tokens")
     @classmethod
     def _valid_tokens(cls, tokens: dict) -> dict:
@@ -87,23 +109,27 @@ class ServiceSettings(BaseSettings):
             _check_token(token, "admin_token")
         return token
 
-    def role_of(self, token: str | None) -> str | None:
-        """The token's role, or ``None``. Compared in constant time as UTF-8 bytes, so any input
-        (empty, non-ASCII) is simply not a match."""
+    def grant_of(self, token: str | None) -> TokenGrant | None:
+        """The token's role and scope, or ``None``. Compared in constant time as UTF-8 bytes, so any
+        input (empty, non-ASCII) is simply not a match."""
         if not token:
             return None
         given = token.encode("utf-8", "replace")
         if self.admin_token and hmac.compare_digest(given, self.admin_token.encode()):
-            return "admin"
-        for known, role in self.tokens.items():
+            return TokenGrant(role="admin")
+        for known, grant in self.tokens.items():
             if hmac.compare_digest(given, known.encode()):
-                return role
+                return grant
         return None
+
+    def role_of(self, token: str | None) -> str | None:
+        grant = self.grant_of(token)
+        return None if grant is None else grant.role
 
     def masked(self) -> dict:
         """The settings without secrets: tokens as counts per role."""
         data = self.model_dump()
-        roles = list(self.tokens.values())
+        roles = [grant.role for grant in self.tokens.values()]
         data["tokens"] = {role: roles.count(role) for role in ROLES if role in roles}
         data["admin_token"] = "set" if self.admin_token else None
         data["bus"] = redacted_url(self.bus)

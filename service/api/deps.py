@@ -38,13 +38,19 @@ class Role(HTTPBearer):
 
     async def __call__(self, connection: HTTPConnection) -> str:          # type: ignore[override]
         settings: ServiceSettings = connection.app.state.settings
-        role = settings.role_of(_token(connection))
+        token = _token(connection)
+        grant = settings.grant_of(token)
+        role = None if grant is None else grant.role
         if role is None:
             _refuse(connection, 401, "a valid token is required (Authorization: Bearer TOKEN or ?token=TOKEN)")
         if role not in CAN[self.action]:
             _refuse(connection, 403, f"role {role!r} may not {self.action}; needs one of {list(CAN[self.action])}")
+        session = connection.path_params.get("session")
+        if not grant.allows(session):
+            _refuse(connection, 403, f"this token is not valid for session {session!r}")
+        connection.state.grant, connection.state.token = grant, token
         # the key of the token's quotas (sessions created, open connections); an admin has none
-        connection.state.quota_key = None if role == "admin" else _token(connection)
+        connection.state.quota_key = None if role == "admin" else token
         return role
 
 

@@ -1,5 +1,8 @@
 """Live sessions: one tracked hand per session name, its subscribers and its recording.
 
+One source per session: a new connection of the same token takes over (the older one is closed with
+1008, e.g. after a network change left it half-open); another token is refused with 1008.
+
 Lifecycle (``Sessions``): only a source (or an admin changing a session's configuration) creates a
 session; a viewer subscribing to a name that does not exist yet waits for it without creating
 anything (its subscriber joins the session the moment a source creates it, before any frame). A
@@ -130,7 +133,9 @@ class LiveSession:
         self.hand = TrackedHand(settings=PipelineSettings(estimator=settings.estimator, output_rate_hz=settings.output_rate_hz))
         self.subscribers: set[Subscriber] = set()
         self.recorder: Recorder | None = None
-        self.sources = 0
+        self.source: Any = None
+        """The connection feeding the session (one at a time), and its token."""
+        self.source_token: str | None = None
         self.last_status: dict = {}
         self.frames_out = 0
         self.dropped_frames = 0
@@ -141,6 +146,10 @@ class LiveSession:
         """Since when nobody (source or subscriber) is connected; ``None`` while somebody is."""
         self._lock = asyncio.Lock()
         self._apply_recording()
+
+    @property
+    def sources(self) -> int:
+        return int(self.source is not None)
 
     def touch(self) -> None:
         """Note a connection coming or going: idle from now if nobody is left."""

@@ -1,9 +1,12 @@
 """``WS /v1/ingest/{session}`` (role ``source``): ``hello`` first (answered with the server's hello, or
 refused with a clear reason when its protocol is not this server's), then ``calibration``, ``pose``,
 ``imu``, ``imu_batch``, ``reference_pose`` and ``sync`` barriers. Bad input gets an ``error`` reply
-(code and detail) and is dropped; the connection and every other session go on."""
+(code and detail) and is dropped; the connection and every other session go on. One source per
+session (``claim_source``)."""
 from __future__ import annotations
 
+import asyncio
+import hmac
 import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
@@ -12,7 +15,9 @@ from ...pipeline.hand import Dropped
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
-from .socket import open_session, release, send, send_error, server_hello
+from ..metrics import Metrics
+from ..sessions import LiveSession
+from .socket import close_reason, open_session, release, send, send_error, server_hello
 
 router = APIRouter()
 
@@ -54,13 +59,31 @@ def _drop_error(msg, dropped: Dropped | None) -> tuple[str, str] | None:
     return None
 
 
+async def claim_source(ws: WebSocket, live: LiveSession, metrics: Metrics) -> bool:
+    """Make this connection the session's source. One source per session: a connection of the same
+    token takes over (the older one is closed), another token is refused (1008 with the reason)."""
+    token = ws.state.token
+    old = live.source
+    if old is not None:
+        if not hmac.compare_digest(token.encode(), (live.source_token or "").encode()):
+            release(ws)
+            await ws.close(code=WS_POLICY_VIOLATION,
+                           reason=close_reason(f"session {live.name!r} already has a source; one source per session"))
+            return False
+        metrics.disconnects.labels("replaced").inc()
+        asyncio.create_task(old.close(code=WS_POLICY_VIOLATION, reason="replaced by a newer connection of the same token"))
+    live.source, live.source_token = ws, token
+    live.touch()
+    return True
+
+
 @router.websocket("/v1/ingest/{session}", dependencies=[Security(Role("ingest"))])
 async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: SettingsDep, metrics: MetricsDep):
     live = await open_session(ws, sessions, session)
     if live is None:
         return
-    live.sources += 1
-    live.touch()
+    if not await claim_source(ws, live, metrics):
+        return
     live.attach_source(lambda code, detail: send_error(ws, metrics, code, detail))
     bucket = TokenBucket(settings.rate_limit_msgs_per_s)
     greeted = False
@@ -106,5 +129,6 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         pass
     finally:
         release(ws)
-        live.sources -= 1
-        live.touch()
+        if live.source is ws:
+            live.source = live.source_token = None
+            live.touch()

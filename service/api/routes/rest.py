@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, HTTPException, Security
+from fastapi import APIRouter, Depends, HTTPException, Request, Security
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -55,9 +55,10 @@ def ready(sessions: SessionsDep):
 
 
 @router.get("/v1/sessions")
-def list_sessions(sessions: SessionsDep, role: Annotated[str, Security(Role("read"))]):
-    """Every live session; where its recording is only to an admin (others see whether it records)."""
-    out = [live.summary() for live in sessions]
+def list_sessions(request: Request, sessions: SessionsDep, role: Annotated[str, Security(Role("read"))]):
+    """Every live session the token may see; where its recording is only to an admin (others see
+    whether it records)."""
+    out = [live.summary() for live in sessions if request.state.grant.allows(live.name)]
     if role != "admin":
         for summary in out:
             summary["recording"] = summary["recording"] is not None
