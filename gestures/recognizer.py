@@ -18,27 +18,40 @@ Discrete gestures, at most one at a time, priority grasp > point > pinch > open:
 * ``pinch``: thumb and index tips within ``pinch_enter_m`` (stays until beyond ``pinch_exit_m``)
   while middle, ring and little are not curled into a fist (mean curl at most
   ``pinch_others_curl_max``: when a pointing hand closes into a fist the index tip sweeps past the
-  thumb tip, which is not a pinch);
+  thumb tip, which is not a pinch) and not closing fast (their mean curl rising by at most
+  ``pinch_others_rate_max`` per second: a fist whose index and thumb close first passes through a
+  pinch-like pose);
 * ``open``: every long finger's curl at most ``open_curl_enter`` and the thumb's at most
   ``open_thumb_enter``.
 
 Separate enter and exit thresholds (hysteresis) and dwell times make the events steady: a gesture
 starts once its enter condition has held for ``start_dwell_s`` and ends once its stay condition has
-failed for ``end_dwell_s`` (or a higher-priority gesture starts). The confidence is how far inside
-its band the decisive quantity is, in [0, 1]. While pointing, every frame carries the pointing ray:
+failed for ``end_dwell_s`` (or a higher-priority gesture starts). Each gesture is one ``GestureRule``
+(``RULES``): thresholded conditions on named quantities, which enrolment (``gestures.enrolment``)
+fits per user. A start's confidence is calibrated (``gestures.confidence``): the precision observed
+on the intent-labelled benchmark for starts of that gesture and raw strength; its end carries the
+same confidence. While pointing, every frame carries the pointing ray:
 origin at the index fingertip, direction from the index MCP joint to the fingertip (world frame).
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from .confidence import calibrated_confidence
+
 GESTURES = ("grasp", "point", "pinch", "open")   # priority order
+FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
 LONG = ("index", "middle", "ring", "little")
 OTHERS = ("middle", "ring", "little")
+RATE_TAU_S = 0.03
+"""Time constant of the low-pass on the other fingers' curl rate, s."""
+HISTORY_FRAMES = 6000
+"""Frames of features kept for enrolment (``gestures.enrolment``): about 66 s at 90 Hz."""
 
 
 class GestureSettings(BaseModel):
@@ -62,6 +75,9 @@ class GestureSettings(BaseModel):
     open_curl_exit: float = Field(0.2, ge=0.0, le=1.0, description="open ends when one long finger's curl exceeds this")
     open_thumb_enter: float = Field(0.2, ge=0.0, le=1.0, description="thumb curl at most this to start open")
     open_thumb_exit: float = Field(0.35, ge=0.0, le=1.0, description="open ends above this thumb curl")
+    pinch_others_rate_max: float = Field(2.0, gt=0.0, description="a pinch starts only while the mean curl of middle, "
+                                         "ring and little rises no faster than this, 1/s (a hand closing into a fist "
+                                         "passes through a pinch-like pose)")
     pinch_full_m: float = Field(0.015, gt=0.0, description="pinch strength 1 at this tip distance or closer, m")
     pinch_zero_m: float = Field(0.07, gt=0.0, description="pinch strength 0 from this tip distance on, m")
     start_dwell_s: float = Field(0.02, ge=0.0, le=1.0, description="an enter condition must hold this long, s")
@@ -83,6 +99,14 @@ class Features:
     curl: dict[str, float]
     pinch_distance_m: float
     grab_strength: float
+    others_curl_rate: float = 0.0
+    """Rate of the mean curl of middle, ring and little, 1/s (smoothed over ``RATE_TAU_S``)."""
+
+    @staticmethod
+    def from_history(entry) -> "Features":
+        _, curls, distance, rate = entry
+        curl = dict(zip(FINGER_ORDER, curls))
+        return Features(curl, distance, float(np.mean([curl[f] for f in LONG])), rate)
 
 
 QUANTITIES: dict[str, Callable[[Features], float]] = {
@@ -93,6 +117,7 @@ QUANTITIES: dict[str, Callable[[Features], float]] = {
     "others_curl_min": lambda x: min(x.curl[f] for f in OTHERS),
     "others_curl_mean": lambda x: float(np.mean([x.curl[f] for f in OTHERS])),
     "pinch_distance_m": lambda x: x.pinch_distance_m,
+    "others_curl_rate": lambda x: x.others_curl_rate,
 }
 """The scalar quantities the rules threshold, by name (curls dimensionless, distances in metres)."""
 
@@ -144,7 +169,8 @@ RULES: dict[str, GestureRule] = {
     "point": GestureRule("point", (Condition("index_curl", False, "point_index_enter", "point_index_exit", 0.0),
                                    Condition("others_curl_min", True, "point_others_enter", "point_others_exit", 1.0))),
     "pinch": GestureRule("pinch", (Condition("pinch_distance_m", False, "pinch_enter_m", "pinch_exit_m", 0.0),
-                                   Condition("others_curl_mean", False, "pinch_others_curl_max", None, 0.0))),
+                                   Condition("others_curl_mean", False, "pinch_others_curl_max", None, 0.0),
+                                   Condition("others_curl_rate", False, "pinch_others_rate_max", None, 0.0))),
     "open": GestureRule("open", (Condition("long_curl_max", False, "open_curl_enter", "open_curl_exit", 0.0),
                                  Condition("thumb_curl", False, "open_thumb_enter", "open_thumb_exit", 0.0))),
 }
@@ -161,6 +187,11 @@ class GestureRecognizer:
     _candidate: str | None = None
     _candidate_since: float | None = None
     _failing_since: float | None = None
+    _confidence: float = 0.0
+    _previous: tuple[float, float] | None = None
+    _rate: float = 0.0
+    history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
+    """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
 
     def features(self, frame) -> Features:
         s = self.settings
@@ -194,6 +225,14 @@ class GestureRecognizer:
         s = self.settings
         x = self.features(frame)
         t = frame.t
+        others = QUANTITIES["others_curl_mean"](x)
+        if self._previous is not None and t > self._previous[0]:
+            dt = t - self._previous[0]
+            k = dt / (dt + RATE_TAU_S)           # first-order low-pass of the finite difference
+            self._rate += k * ((others - self._previous[1]) / dt - self._rate)
+        self._previous = (t, others)
+        x.others_curl_rate = self._rate
+        self.history.append((t, tuple(x.curl.get(f, 0.0) for f in FINGER_ORDER), x.pinch_distance_m, self._rate))
         events: list[dict] = []
         # candidates for starting: the highest-priority enter condition that holds
         candidates = [(g, RULES[g].score(x, s)) for g in GESTURES if RULES[g].enters(x, s)]
@@ -212,12 +251,13 @@ class GestureRecognizer:
                 self._failing_since = t
             takeover = higher and self._candidate_since is not None and t - self._candidate_since >= s.start_dwell_s - 1e-9
             if takeover or (self._failing_since is not None and t - self._failing_since >= s.end_dwell_s - 1e-9):
-                events.append(self._event(frame, self.active, "end", RULES[self.active].score(x, s)))
+                events.append(self._event(frame, self.active, "end", self._confidence))
                 self.active, self._failing_since = None, None
         # start the candidate once it has held long enough
         if self.active is None and self._candidate is not None and self._candidate_since is not None \
                 and t - self._candidate_since >= s.start_dwell_s - 1e-9:
-            conf = dict(candidates).get(self._candidate, 0.0)
+            conf = calibrated_confidence(self._candidate, dict(candidates).get(self._candidate, 0.0))
+            self._confidence = conf
             self.active = self._candidate
             self._candidate, self._candidate_since, self._failing_since = None, None, None
             events.append(self._event(frame, self.active, "start", conf))

@@ -15,18 +15,13 @@ from service.sim.session import SimConfig
 
 def test_one_encoding_per_message_and_format_for_many_subscribers(monkeypatch):
     calls = {"json": 0, "msgpack": 0}
-    real_dumps, real_packb = json.dumps, msgpack.packb
+    real_encode, real_dumps = outgoing.encode, json.dumps
 
-    def counting_dumps(*a, **k):
-        calls["json"] += 1
-        return real_dumps(*a, **k)
+    def counting_encode(message, binary):
+        calls["msgpack" if binary else "json"] += 1
+        return real_encode(message, binary)
 
-    def counting_packb(*a, **k):
-        calls["msgpack"] += 1
-        return real_packb(*a, **k)
-
-    monkeypatch.setattr(outgoing.json, "dumps", counting_dumps)
-    monkeypatch.setattr(outgoing.msgpack, "packb", counting_packb)
+    monkeypatch.setattr(outgoing, "encode", counting_encode)
 
     async def run():
         live = LiveSession("enc", ServiceSettings.load(port=0), Metrics())
