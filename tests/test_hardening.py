@@ -196,16 +196,49 @@ def test_nothing_sent_contains_nan():
 def test_hostile_encodings_get_error_replies_and_the_connection_stays(server):
     async def go():
         async with connect(f"{server.ws_url}/v1/ingest/hostile?token={SOURCE}") as ws:
-            return await _replies(ws, [
+            replies = await _replies(ws, [
                 HELLO,
                 "[" * 970 + "]" * 970,                                        # depth bomb (RecursionError)
                 msgpack.packb({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0],
                                "blob": b"\x00\x01"}),                          # bin value in an unknown field
                 msgpack.packb({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0],
                                "x": msgpack.ExtType(5, b"zz")}),
+                "\u00e9" * 1_000_100,                                          # 2,000,200 bytes, 1,000,100 characters
+                _messages()[1],                                     # a calibration placing index.1 and index.2
+                {"type": "imu", "t": 2.0, "id": "index.0", "gyr": [0, 0, 0], "acc": [0, 9.81, 0]},   # not placed
             ])
+            await ws.send('{"type":"hello","protocol":' + "9" * 130 + ',"hand":"right"}')
+            reply = json.loads(await ws.recv())
+            try:
+                await ws.recv()
+            except Exception:
+                pass
+            return replies, reply, ws.close_code, ws.close_reason
+    replies, reply, code, reason = asyncio.run(go())
+    assert [[r["code"] for r in rs] for rs in replies[1:]] == [["invalid_json"], ["invalid_msgpack"], ["invalid_msgpack"],
+                                                               ["message_too_large"], [], ["unknown_sensor"]]
+    assert "2000200 bytes" in replies[4][0]["detail"]
+    # a 130-digit protocol: refused with a reason that fits a close frame (it used to drop the connection)
+    assert reply["code"] == "unsupported_protocol"
+    assert code == 1008 and reason.startswith("unsupported protocol 999")
+
+
+def test_a_defect_while_processing_is_answered_and_the_connection_stays(server, monkeypatch):
+    from service.api.sessions import LiveSession
+    ingest = LiveSession.ingest
+
+    async def faulty(self, raw, parsed):            # an injected defect in this session's processing
+        if self.name == "defect" and parsed.type == "pose":
+            raise TypeError("injected")
+        return await ingest(self, raw, parsed)
+    monkeypatch.setattr(LiveSession, "ingest", faulty)
+
+    async def go():
+        async with connect(f"{server.ws_url}/v1/ingest/defect?token={SOURCE}") as ws:
+            return await _replies(ws, [HELLO, {"type": "pose", "t": 1.0, "valid": False}, _messages()[1]])
     replies = asyncio.run(go())
-    assert [[r["code"] for r in rs] for rs in replies[1:]] == [["invalid_json"], ["invalid_msgpack"], ["invalid_msgpack"]]
+    assert [[r["code"] for r in rs] for rs in replies[1:]] == [["internal_error"], []]
+    assert "TypeError while processing pose" in replies[1][0]["detail"] and "injected" not in replies[1][0]["detail"]
 
 
 def test_a_recording_holds_what_was_processed_and_replays_without_skips(server, tmp_path):

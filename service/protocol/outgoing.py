@@ -42,6 +42,8 @@ ERROR_CODES: dict[str, str] = {
     "expected_hello": "a source message came before the hello",
     "time_backwards": "a sample is older than what the session has already processed",
     "duplicate": "the same sensor and time was already received",
+    "unknown_sensor": "a sample of a sensor id the session's calibration does not place",
+    "internal_error": "processing the message failed inside the service (a defect; logged); the message is dropped",
 }
 """Every error code the service sends, with its meaning."""
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import asyncio
 import hmac
+import logging
 import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
@@ -20,6 +21,7 @@ from ..sessions import LiveSession
 from .socket import close_reason, open_session, release, send, send_error, server_hello
 
 router = APIRouter()
+log = logging.getLogger("fingertrack")
 
 
 class TokenBucket:
@@ -39,7 +41,10 @@ class TokenBucket:
 
 def _admit(data: dict, settings: ServiceSettings, bucket: TokenBucket) -> tuple[str, str] | None:
     """``(code, detail)`` if a received WebSocket message must be refused before decoding."""
-    size = len(data["bytes"]) if data.get("bytes") is not None else len(data.get("text") or "")
+    payload = data["bytes"] if data.get("bytes") is not None else data.get("text") or ""
+    # bytes as they came on the wire (a text character takes up to 4)
+    size = len(payload) if isinstance(payload, bytes) or payload.isascii() \
+        else len(payload.encode("utf-8", "surrogatepass"))
     if size > settings.max_message_bytes:
         return "message_too_large", f"{size} bytes; the limit is {settings.max_message_bytes}"
     if not bucket.take():
@@ -48,7 +53,8 @@ def _admit(data: dict, settings: ServiceSettings, bucket: TokenBucket) -> tuple[
 
 
 def _drop_error(msg, dropped: Dropped | None) -> tuple[str, str] | None:
-    """The ``error`` reply for a message the pipeline dropped as late or duplicate."""
+    """The ``error`` reply for a message the pipeline dropped as late, duplicate or of a sensor the
+    calibration does not place."""
     if dropped is None:                    # a bus session answers from its worker's reply
         return None
     when = f"{msg.type} at t={getattr(msg, 't', None)}"
@@ -56,6 +62,8 @@ def _drop_error(msg, dropped: Dropped | None) -> tuple[str, str] | None:
         return "time_backwards", f"{when} is older than what was already processed; dropped"
     if dropped.duplicate:
         return "duplicate", f"{when} was already received; dropped"
+    if dropped.unknown_sensor:
+        return "unknown_sensor", f"{when}: a sensor id the session's calibration does not place; dropped"
     return None
 
 
@@ -105,9 +113,10 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 continue
             if isinstance(msg, Hello):
                 if msg.protocol != PROTOCOL_VERSION:
+                    shown = str(msg.protocol) if len(str(msg.protocol)) <= 12 else str(msg.protocol)[:12] + "..."
                     await send_error(ws, metrics, "unsupported_protocol",
-                                     f"protocol {msg.protocol} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
-                    await ws.close(code=WS_POLICY_VIOLATION, reason=f"unsupported protocol {msg.protocol}")
+                                     f"protocol {shown} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
+                    await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(f"unsupported protocol {shown}"))
                     return
                 greeted = True
                 await send(ws, server_hello(session))
@@ -122,6 +131,12 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 dropped = await live.ingest(raw, msg)
             except ValueError as err:          # e.g. a calibration that does not fit the hand
                 await send_error(ws, metrics, "invalid_message", str(err))
+                continue
+            except Exception as err:           # a defect: answered and logged in one line, the session goes on
+                log.warning("session %s: %s while processing %s: %s; message dropped", session, type(err).__name__,
+                            msg.type, str(err)[:200])
+                await send_error(ws, metrics, "internal_error",
+                                 f"{type(err).__name__} while processing {msg.type}; message dropped")
                 continue
             if (reply := _drop_error(msg, dropped)) is not None:
                 await send_error(ws, metrics, *reply)
