@@ -7,15 +7,22 @@
   reconnects with exponential back-off and the same session, token and format: the subscription and
   its options survive a reconnect.
 
+Both report every retry through ``on_event`` (a callable taking one line of text; by default the
+``fingertrack.client`` logger), e.g. "no service at ws://host:8765/v1/ingest/s, retrying in 3.2 s". A
+refusal that retrying cannot fix (a bad token or role, a token not valid for the session, another
+source on the session, an unsupported protocol) raises ``Refused`` with the service's reason. URLs
+in these lines and errors never show the token.
+
 Messages are dicts in protocol v1; ``service.protocol`` has the typed models (``parse_message``).
 """
 from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import random
 from collections import deque
-from typing import Any, AsyncIterator, Iterable
+from typing import Any, AsyncIterator, Callable, Iterable
 
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
@@ -50,6 +57,46 @@ def _url(base: str, path: str, token: str | None, binary: bool) -> str:
     return f"{base}{path}" + ("?" + "&".join(query) if query else "")
 
 
+_log = logging.getLogger("fingertrack.client")
+FATAL_CLOSE_CODES = (1003, 1008)
+"""Close codes that mean refused for good (1013, "try again later", is retried)."""
+
+
+class Refused(PermissionError):
+    """The service refused this client for a reason retrying will not fix; ``str()`` is the reason."""
+
+
+def _shown(url: str) -> str:
+    """A URL fit to print: without its query (which holds the token)."""
+    return url.split("?", 1)[0]
+
+
+def _handshake_refusal(url: str, err: InvalidStatus) -> Refused | None:
+    """``Refused`` with the service's detail for a handshake refused for good (not 429 or 5xx)."""
+    status = err.response.status_code
+    if status == 429 or status >= 500:
+        return None
+    try:
+        detail = json.loads(err.response.body or b"{}").get("detail", "")
+    except (ValueError, AttributeError):
+        detail = ""
+    return Refused(f"{_shown(url)}: HTTP {status}" + (f": {detail}" if detail else ""))
+
+
+def _closed_for_good(url: str, ws) -> Refused | None:
+    if ws is not None and ws.close_code in FATAL_CLOSE_CODES:
+        return Refused(f"{_shown(url)}: closed by the service ({ws.close_code}: {ws.close_reason})")
+    return None
+
+
+def _retry_line(url: str, ws, err: BaseException | None, delay: float) -> str:
+    if ws is None:
+        why = f"no service at {_shown(url)}" + (f" ({type(err).__name__})" if err is not None else "")
+    else:
+        why = f"connection to {_shown(url)} closed ({ws.close_code}: {ws.close_reason or 'no reason'})"
+    return f"{why}, retrying in {delay:.1f} s"
+
+
 def _decode(data: str | bytes) -> dict:
     """A server message: MessagePack frames are binary, JSON ones text (``service.protocol.wire``)."""
     return decode(data, binary=isinstance(data, bytes))  # type: ignore[return-value]
@@ -57,8 +104,10 @@ def _decode(data: str | bytes) -> dict:
 
 class Publisher:
     def __init__(self, url: str, session: str, token: str, hand: str = "right", source: str = "python-client",
-                 binary: bool = False, backoff: Backoff | None = None, max_errors: int = 1000):
+                 binary: bool = False, backoff: Backoff | None = None, max_errors: int = 1000,
+                 on_event: Callable[[str], None] | None = None):
         self.url = _url(url, f"/v1/ingest/{session}", token, binary)
+        self.on_event = on_event or _log.warning
         self.binary = binary
         self.hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": hand, "source": source}
         self.calibration: dict | None = None
@@ -72,11 +121,17 @@ class Publisher:
         self._synced: dict[int, asyncio.Future] = {}
 
     async def connect(self) -> None:
-        self._ws = await connect(self.url, max_size=None)
+        try:
+            self._ws = await connect(self.url, max_size=None)
+        except InvalidStatus as err:
+            refused = _handshake_refusal(self.url, err)
+            if refused is not None:
+                raise refused from None
+            raise ConnectionRefusedError(f"HTTP {err.response.status_code}") from None
         await self._ws.send(encode(self.hello, self.binary))
         reply = _decode(await self._ws.recv())
         if reply.get("type") == "error":
-            raise ConnectionRefusedError(f"{reply['code']}: {reply['detail']}")
+            raise Refused(f"{_shown(self.url)}: {reply['code']}: {reply['detail']}")
         self.server_hello = reply
         if self.calibration is not None:
             await self._ws.send(encode(self.calibration, self.binary))
@@ -119,10 +174,20 @@ class Publisher:
                         return                      # connect() has just sent it
                 await self._ws.send(encode(message, self.binary))
                 return
-            except (ConnectionClosed, OSError):
-                self._ws = None
+            except Refused:
+                raise
+            except (ConnectionClosed, OSError) as err:
+                ws, self._ws = self._ws, None
+                refused = _closed_for_good(self.url, ws if isinstance(err, ConnectionClosed) else None)
+                if refused is None and isinstance(err, ConnectionClosed) and err.rcvd is not None \
+                        and err.rcvd.code in FATAL_CLOSE_CODES:
+                    refused = Refused(f"{_shown(self.url)}: closed by the service ({err.rcvd.code}: {err.rcvd.reason})")
+                if refused is not None:
+                    raise refused from None
+                delay = self.backoff.next()
                 self.reconnects += 1
-                await asyncio.sleep(self.backoff.next())
+                self.on_event(_retry_line(self.url, ws, err, delay))
+                await asyncio.sleep(delay)
 
     async def send_reference_pose(self, t0: float, t1: float, pose: str | dict = "flat") -> None:
         """Tell the service that the hand held a known configuration from ``t0`` to ``t1`` (source
@@ -159,9 +224,10 @@ class Publisher:
 
 class Subscription:
     def __init__(self, url: str, session: str, token: str, binary: bool = False, backoff: Backoff | None = None,
-                 reconnect: bool = True, typed: bool = False):
+                 reconnect: bool = True, typed: bool = False, on_event: Callable[[str], None] | None = None):
         """``typed``: yield ``service.protocol`` models (``Frame``, ``Gesture``) instead of dicts."""
         self.url = _url(url, f"/v1/stream/{session}", token, binary)
+        self.on_event = on_event or _log.warning
         self.typed = typed
         self.backoff = backoff or Backoff()
         self.reconnect = reconnect
@@ -172,6 +238,7 @@ class Subscription:
 
     async def __aiter__(self) -> AsyncIterator[dict]:
         while not self._closed:
+            ws, failure = None, None
             try:
                 async with connect(self.url, max_size=None) as ws:
                     self._ws = ws
@@ -182,15 +249,23 @@ class Subscription:
                             self.server_hello = msg
                             continue
                         yield parse_output(msg) if self.typed else msg
-                    if ws.close_code in (1008, 1003):     # refused: token, role or protocol
-                        raise PermissionError(f"stream closed by the server: {ws.close_code} {ws.close_reason}")
+            except InvalidStatus as err:
+                refused = _handshake_refusal(self.url, err)
+                if refused is not None:
+                    raise refused from None
+                failure = err
             except (ConnectionClosed, OSError) as err:
-                if isinstance(err, InvalidStatus) or not self.reconnect or self._closed:
-                    raise
+                failure = err
+            if (refused := _closed_for_good(self.url, ws)) is not None:
+                raise refused
             if not self.reconnect or self._closed:
+                if failure is not None and not self._closed:
+                    raise failure
                 return
+            delay = self.backoff.next()
             self.reconnects += 1
-            await asyncio.sleep(self.backoff.next())
+            self.on_event(_retry_line(self.url, ws, failure, delay))
+            await asyncio.sleep(delay)
 
     async def close(self) -> None:
         self._closed = True

@@ -16,7 +16,7 @@ import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
-from clients.client import Publisher, Subscription, rest
+from clients.client import Publisher, Refused, Subscription, rest
 from clients.glove import source_messages
 from service import numba_cache_dir
 from service.api.config import ServiceSettings, SettingsError
@@ -463,6 +463,47 @@ def test_one_source_per_session_and_tokens_scoped_to_names():
         assert set(_sessions(srv)) == {"glove1", "booth-1"}
         assert set(_sessions(srv, "booth-viewer-1")) == {"booth-1"}        # a scoped viewer lists its sessions only
         assert settings.masked()["tokens"] == {"source": 3, "viewer": 2}
+
+
+def test_clients_stop_on_a_refusal_with_its_reason_and_report_retries():
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", SOURCE2: "source", VIEWER: "viewer"},
+                                    admin_token=ADMIN)
+    with ServerThread(settings) as srv:
+        out = asyncio.run(_refusals_and_retries(srv))
+    assert "already has a source" in out["second"] and SOURCE2 not in out["second"]
+    assert "HTTP 403" in out["token"] and "wrong-token" not in out["token"]
+    assert all(line.startswith("no service at ws://127.0.0.1:") and "retrying in" in line and SOURCE not in line
+               for line in out["retries"])
+
+
+async def _refusals_and_retries(server):
+    """Refusals raise ``Refused`` with the reason (no token in it); retries are reported."""
+    holder = await connect(f"{server.ws_url}/v1/ingest/held?token={SOURCE}")
+    await holder.send(json.dumps(HELLO))
+    await holder.recv()
+    out = {}
+    try:                                          # another token on a session that has a source
+        await Publisher(server.url, "held", SOURCE2).send(_messages()[1])
+    except Refused as err:
+        out["second"] = str(err)
+    await holder.close()
+    try:
+        async for _ in Subscription(server.ws_url, "held", "wrong-token-1"):
+            pass
+    except Refused as err:
+        out["token"] = str(err)
+    lines = []
+    with socket.socket() as probe:                # a port with no service
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    pub = Publisher(f"http://127.0.0.1:{port}", "none", SOURCE, on_event=lines.append)
+    task = asyncio.create_task(pub.send(_messages()[1]))
+    while len(lines) < 2:
+        await asyncio.sleep(0.02)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    out["retries"] = lines
+    return out
 
 
 def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():
