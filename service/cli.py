@@ -362,6 +362,7 @@ def _cmd_lsl(args: argparse.Namespace) -> int:
 
     from websockets.exceptions import InvalidStatus
 
+    from clients.client import Refused
     from clients.lsl import LslBridge
 
     try:
@@ -377,6 +378,10 @@ def _cmd_lsl(args: argparse.Namespace) -> int:
     print(f"republishing from {args.url} (source clock: {args.source_clock}); Ctrl-C stops")
     try:
         asyncio.run(bridge.run())
+    except Refused as err:                          # "URL: HTTP 403[: detail]" or a close reason
+        reason = str(err).split(": ", 1)[-1]
+        raise ValueError(f"the service refused the subscription: {reason}"
+                         + ("; --token needs the viewer role" if reason == "HTTP 403" else "")) from None
     except InvalidStatus as err:
         reason = err.response.body.decode(errors="replace").strip()
         raise ValueError(f"the service refused the subscription: HTTP {err.response.status_code}"
