@@ -303,7 +303,9 @@ if (typeof document !== "undefined") {
         showSessions([], `session list refused: HTTP ${r.status}: ${body.detail || r.statusText}`);
       } else {
         const list = await r.json();
-        summary = list.find((s) => s.session === session) || null;
+        // a session the list does not hold has no source yet: only a source creates one (the
+        // service keeps this page's subscription waiting for it)
+        summary = list.find((s) => s.session === session) || { session, sources: 0, hand: null };
         showSessions(list, null);
       }
     } catch (err) {
