@@ -23,6 +23,7 @@ import logging
 import random
 from collections import deque
 from typing import Any, AsyncIterator, Callable, Iterable
+from urllib.parse import quote, urlsplit
 
 from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
@@ -47,17 +48,55 @@ class Backoff:
         self.delay = self.initial_s
 
 
+URL_SCHEMES = ("http", "https", "ws", "wss")
+
+
+def service_url(url: str) -> str:
+    """The service's address, checked: ``http``, ``https``, ``ws`` or ``wss``, a host, a port in
+    1-65535 if one is given, an optional path prefix (a reverse proxy's), and no query or fragment
+    (the clients add the paths and the token). Raises ``ValueError`` naming what is wrong; the
+    address is shown without its user, password and query, which may hold secrets."""
+    if not isinstance(url, str):
+        raise ValueError(f"the service URL must be text such as http://127.0.0.1:8765, got {type(url).__name__}")
+    try:
+        parts = urlsplit(url.strip())
+        port = parts.port
+    except ValueError as err:                    # e.g. "Port out of range 0-65535", an unclosed [
+        raise ValueError(f"service URL {_shown(url)!r}: {err}") from None
+    shown = _shown(url)
+    if parts.scheme not in URL_SCHEMES or not parts.netloc:
+        raise ValueError(f"service URL {shown!r} must start with http://, https://, ws:// or wss:// and name a host, "
+                         "e.g. http://127.0.0.1:8765")
+    if not parts.hostname or any(c.isspace() for c in parts.netloc):
+        raise ValueError(f"service URL {shown!r} names no valid host, e.g. http://127.0.0.1:8765")
+    if port == 0:
+        raise ValueError(f"service URL {shown!r}: port 0 is not a port a service listens on (1-65535)")
+    if parts.query or parts.fragment:
+        raise ValueError(f"service URL {shown!r} must have no query or fragment: the token is given on its own, "
+                         "the client adds it")
+    return url.strip()
+
+
 def _url(base: str, path: str, token: str | None, binary: bool) -> str:
-    base = base.rstrip("/").replace("http://", "ws://").replace("https://", "wss://")
+    """The WebSocket URL of ``path`` under the (checked) service URL ``base``, the token and the
+    session name percent-encoded."""
+    parts = urlsplit(service_url(base))
+    scheme = {"http": "ws", "https": "wss"}.get(parts.scheme, parts.scheme)
     query = []
     if token:
-        query.append(f"token={token}")
+        query.append(f"token={quote(token, safe='')}")
     if binary:
         query.append("format=msgpack")
-    return f"{base}{path}" + ("?" + "&".join(query) if query else "")
+    return f"{scheme}://{parts.netloc}{parts.path.rstrip('/')}{path}" + ("?" + "&".join(query) if query else "")
+
+
+def _path(kind: str, session: str) -> str:
+    return f"/v1/{kind}/{quote(session, safe='')}"
 
 
 _log = logging.getLogger("fingertrack.client")
+CLOSE_SYNC_TIMEOUT_S = 30.0
+"""How long ``Publisher.close`` waits for the service to answer its last ``sync``, s."""
 FATAL_CLOSE_CODES = (1003, 1008)
 """Close codes that mean refused for good (1013, "try again later", is retried)."""
 
@@ -67,8 +106,12 @@ class Refused(PermissionError):
 
 
 def _shown(url: str) -> str:
-    """A URL fit to print: without its query (which holds the token)."""
-    return url.split("?", 1)[0]
+    """A URL fit to print: without its query (which holds the token) and its user and password."""
+    url = str(url).split("?", 1)[0].split("#", 1)[0]
+    scheme, sep, rest = url.partition("://")
+    if sep and "@" in rest.split("/", 1)[0]:
+        rest = rest.split("@", 1)[1]
+    return f"{scheme}{sep}{rest}"
 
 
 def _handshake_refusal(url: str, err: InvalidStatus) -> Refused | None:
@@ -106,7 +149,7 @@ class Publisher:
     def __init__(self, url: str, session: str, token: str, hand: str = "right", source: str = "python-client",
                  binary: bool = False, backoff: Backoff | None = None, max_errors: int = 1000,
                  on_event: Callable[[str], None] | None = None):
-        self.url = _url(url, f"/v1/ingest/{session}", token, binary)
+        self.url = _url(url, _path("ingest", session), token, binary)
         self.on_event = on_event or _log.warning
         self.binary = binary
         self.hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": hand, "source": source}
@@ -200,22 +243,36 @@ class Publisher:
     async def sync(self, timeout_s: float = 120.0) -> None:
         """Return once the service has handled every message sent so far (protocol ``sync``), so its
         frames and error replies for them exist. Raises ``ConnectionError`` if the connection closes
-        first and ``TimeoutError`` after ``timeout_s``."""
+        first and ``TimeoutError`` after ``timeout_s`` (sending the barrier included: a service that
+        stopped reading blocks the send)."""
         if self._ws is None:
             return
         self._sync_id += 1
+        key = self._sync_id
         waiter = asyncio.get_running_loop().create_future()
-        self._synced[self._sync_id] = waiter
-        await self._ws.send(encode({"type": "sync", "id": self._sync_id}, self.binary))
-        await asyncio.wait_for(waiter, timeout_s)
+        self._synced[key] = waiter
 
-    async def close(self, sync_timeout_s: float = 120.0) -> None:
+        async def barrier():
+            await self._ws.send(encode({"type": "sync", "id": key}, self.binary))
+            await waiter
+        try:
+            await asyncio.wait_for(barrier(), timeout_s)
+        finally:
+            self._synced.pop(key, None)
+
+    async def close(self, sync_timeout_s: float = CLOSE_SYNC_TIMEOUT_S) -> None:
         """Close after the service has handled everything sent (``sync``; skipped if the connection is
-        already gone), so that its replies to the last messages are in ``errors``."""
+        already gone), so that its replies to the last messages are in ``errors``. Bounded: a ``sync``
+        not answered within ``sync_timeout_s`` (a service far behind, or gone without closing) is
+        reported through ``on_event`` and the connection is closed anyway (its closing handshake
+        waits at most 10 s more); the replies to the last messages may then be missing."""
         if self._ws is not None:
             try:
                 await self.sync(sync_timeout_s)
-            except (ConnectionClosed, ConnectionError, asyncio.TimeoutError):
+            except asyncio.TimeoutError:
+                self.on_event(f"{_shown(self.url)}: the service did not answer sync within {sync_timeout_s:g} s; "
+                              "closing without its replies to the last messages")
+            except (ConnectionClosed, ConnectionError):
                 pass
             await self._ws.close()
         if self._reader is not None:
@@ -226,7 +283,7 @@ class Subscription:
     def __init__(self, url: str, session: str, token: str, binary: bool = False, backoff: Backoff | None = None,
                  reconnect: bool = True, typed: bool = False, on_event: Callable[[str], None] | None = None):
         """``typed``: yield ``service.protocol`` models (``Frame``, ``Gesture``) instead of dicts."""
-        self.url = _url(url, f"/v1/stream/{session}", token, binary)
+        self.url = _url(url, _path("stream", session), token, binary)
         self.on_event = on_event or _log.warning
         self.typed = typed
         self.backoff = backoff or Backoff()

@@ -36,15 +36,12 @@ _non_negative_int = _number(int, 0, False, "a non-negative whole number")
 
 
 def _service_url(text: str) -> str:
-    """The service's address: http(s) or ws(s) with a host (the clients derive the WebSocket URLs)."""
-    from urllib.parse import urlsplit
+    """The service's address: http(s) or ws(s) with a host (``clients.client.service_url``)."""
+    from clients.client import service_url
     try:
-        parts = urlsplit(text)
-    except ValueError:
-        parts = None
-    if parts is None or parts.scheme not in ("http", "https", "ws", "wss") or not parts.hostname:
-        raise argparse.ArgumentTypeError(f"expected the service's URL, e.g. http://127.0.0.1:8765, got {text!r}")
-    return text
+        return service_url(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _interval(text: str) -> tuple[float, float]:
