@@ -23,8 +23,8 @@ from service.api.config import ServiceSettings, SettingsError
 from service.api.server import ServerThread
 from service.pipeline.hand import HandSession
 from service.pipeline.tracked import TrackedHand
-from service.protocol import parse_line, parse_message
-from service.protocol.messages import Imu, ImuBatch, ImuSample, Pose
+from service.protocol import ProtocolError, parse_line, parse_message
+from service.protocol.messages import Imu, ImuBatch, ImuSample, Pose, SamplesRefused
 from service.protocol.wire import encode
 from service.sim.session import SimConfig
 
@@ -158,6 +158,71 @@ def test_one_absurd_sample_does_not_poison_a_session(server):
     assert len(after) > 20
     for f in after:
         assert all(math.isfinite(v) for fi in f["fingers"].values() for k, v in fi.items() if k != "mode")
+
+
+def _batch_with(batch: dict, index: int, sample: dict) -> dict:
+    return {**batch, "samples": [*batch["samples"][:index], sample, *batch["samples"][index:]]}
+
+
+def test_an_invalid_sample_refuses_only_itself_and_the_batch_goes_on():
+    """The imu_batch rule: samples with a problem of their own are refused one by one, named by index;
+    a batch whose problem is not inside single samples, or with no valid sample, is refused whole."""
+    batch = next(m for m in _messages(seed=4) if m["type"] == "imu_batch")
+    bad = {"t": 0.0, "id": "index.1", "gyr": [1e300, 0, 0], "acc": [0, 9.81, 0]}
+    odd = _batch_with(_batch_with(batch, 1, bad), 4, {"t": 0.0, "id": "index.1", "gyr": [0, 0, 0]})
+    with pytest.raises(SamplesRefused) as err:
+        parse_message(odd)
+    assert err.value.code == "invalid_samples" and err.value.refused == [1, 4]
+    assert f"2 of {len(odd['samples'])} samples refused (samples 1, 4)" in err.value.detail
+    assert "samples.1.gyr.0" in err.value.detail and "samples.4.acc" in err.value.detail
+    assert err.value.kept == parse_message(batch)                 # the others, in their order
+    for whole in ({**batch, "samples": [bad, bad]},                   # no valid sample
+                  {**batch, "samples": []},                           # none at all
+                  {**batch, "samples": "none"},                       # a problem outside the samples
+                  {**batch, "samples": batch["samples"] * 4096}):     # too many
+        with pytest.raises(ProtocolError) as err:
+            parse_message(whole)
+        assert not isinstance(err.value, SamplesRefused) and err.value.code == "invalid_message"
+
+
+def test_a_batch_with_one_bad_sample_streams_as_the_batch_without_it(server):
+    """Live: one out-of-range sample inside a batch is answered ``invalid_samples`` naming it, and the
+    session's frames equal those of the same stream without that sample (the batch's other samples
+    were processed; refusing the whole batch would lose ten samples and change the angles)."""
+    msgs = _messages(seed=5)[2:]
+    k = next(i for i, m in enumerate(msgs) if m["type"] == "imu_batch" and i > len(msgs) // 3)
+    bad = {"t": msgs[k]["samples"][0]["t"], "id": "index.2", "gyr": [0, 0, 0], "acc": [0, 9.81, 1e300]}
+    attacked = [*msgs[:k], _batch_with(msgs[k], 3, bad), *msgs[k + 1:]]
+
+    async def stream(name, messages):
+        frames = []
+        sub = Subscription(server.ws_url, name, VIEWER)
+
+        async def collect():
+            async for m in sub:
+                if m["type"] == "frame":
+                    frames.append(m)
+        task = asyncio.create_task(collect())
+        while sub.server_hello is None:
+            await asyncio.sleep(0.02)
+        async with connect(f"{server.ws_url}/v1/ingest/{name}?token={SOURCE}") as ws:
+            replies = await _replies(ws, [HELLO, *messages])
+        produced = _sessions(server)[name]["frames_out"]
+        deadline = time.monotonic() + 120                # bounds a failure
+        while not frames or frames[-1]["seq"] < produced:
+            assert time.monotonic() < deadline, f"frame {produced} never arrived"
+            await asyncio.sleep(0.02)
+        await sub.close()
+        task.cancel()
+        return replies, [(f["seq"], f["t"], f["fingers"]) for f in frames]
+    replies, frames = asyncio.run(stream("batch-bad", attacked))
+    ref_replies, ref_frames = asyncio.run(stream("batch-ref", msgs))
+    assert [r for r in ref_replies[1:] if r] == []
+    errors = [(i, e) for i, r in enumerate(replies[1:]) for e in r]
+    assert len(errors) == 1 and errors[0][0] == k
+    reply = errors[0][1]
+    assert reply["code"] == "invalid_samples" and reply["samples"] == [3] and "samples.3.acc.2" in reply["detail"]
+    assert len(frames) > 20 and frames == ref_frames
 
 
 def test_a_diverged_filter_resets_and_the_frames_stay_finite():

@@ -236,8 +236,44 @@ def _describe(err: ValidationError) -> str:
     return "; ".join(parts) + (f"; and {more} more" if more > 0 else "")
 
 
+class SamplesRefused(ProtocolError):
+    """Some samples of an ``imu_batch`` are invalid: they are refused (``refused``: their indexes in
+    ``samples``, in order), the others are kept as ``kept``, a valid ``ImuBatch`` to process. The
+    reply is the ``invalid_samples`` error naming the refused samples; a caller that handles only
+    ``ProtocolError`` refuses the whole batch instead."""
+
+    def __init__(self, kept: "ImuBatch", refused: list[int], detail: str):
+        super().__init__("invalid_samples", detail)
+        self.kept = kept
+        self.refused = refused
+
+
+def _refuse_samples(obj: dict, err: ValidationError) -> SamplesRefused | None:
+    """The per-sample rule of ``imu_batch``: when every problem lies inside single samples and at
+    least one sample is valid, the valid ones are kept; ``None`` when the batch as a whole is bad."""
+    samples = obj.get("samples")
+    bad: set[int] = set()
+    for e in err.errors(include_url=False):
+        loc = e["loc"]
+        if len(loc) < 3 or loc[:2] != ("imu_batch", "samples") or not isinstance(loc[2], int):
+            return None                       # e.g. no samples, too many, or a problem outside them
+        bad.add(loc[2])
+    if not isinstance(samples, list) or len(bad) >= len(samples):
+        return None
+    try:
+        kept = _ADAPTER.validate_python({**obj, "samples": [x for i, x in enumerate(samples) if i not in bad]})
+    except ValidationError:
+        return None
+    refused = sorted(bad)
+    shown = ", ".join(map(str, refused[:10])) + (", ..." if len(refused) > 10 else "")
+    return SamplesRefused(kept, refused, f"imu_batch: {len(refused)} of {len(samples)} samples refused (samples "
+                                         f"{shown}), the other {len(samples) - len(refused)} processed: {_describe(err)}")
+
+
 def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | ReferencePose | Truth | Sync:
-    """Validate a decoded JSON value as a source message; raises ``ProtocolError``."""
+    """Validate a decoded JSON value as a source message; raises ``ProtocolError``, or its
+    ``SamplesRefused`` for an ``imu_batch`` whose invalid samples are refused one by one while its
+    valid ones are kept (``err.kept``)."""
     if not isinstance(obj, dict):
         raise ProtocolError("invalid_message", f"a message must be a JSON object, got {type(obj).__name__}")
     kind = obj.get("type")
@@ -246,6 +282,8 @@ def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | 
     try:
         return _ADAPTER.validate_python(obj)
     except ValidationError as err:
+        if kind == "imu_batch" and (partial := _refuse_samples(obj, err)) is not None:
+            raise partial from None
         code = "non_unit_quaternion" if "unit quaternion" in str(err) else "invalid_message"
         raise ProtocolError(code, f"{kind}: {_describe(err)}") from None
 

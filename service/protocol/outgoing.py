@@ -43,6 +43,8 @@ ERROR_CODES: dict[str, str] = {
     "time_backwards": "a sample is older than what the session has already processed",
     "duplicate": "the same sensor and time was already received",
     "unknown_sensor": "a sample of a sensor id the session's calibration does not place",
+    "invalid_samples": "some samples of an imu_batch are invalid or out of range: those (listed in 'samples') are "
+                       "dropped, the batch's other samples are processed",
     "internal_error": "processing the message failed inside the service (a defect; logged); the message is dropped",
 }
 """Every error code the service sends, with its meaning."""
@@ -68,11 +70,15 @@ class SyncReply(_Message):
 
 
 class ErrorMessage(_Message):
-    """A source message was refused and dropped; the connection and the session go on."""
+    """A source message was refused and dropped (with ``invalid_samples``: only the samples listed);
+    the connection and the session go on."""
 
     type: Literal["error"] = "error"
     code: str = Field(description="machine-readable reason, one of: " + ", ".join(ERROR_CODES))
     detail: str = Field(description="human-readable reason naming the field, the value and what was expected")
+    samples: Optional[list[Annotated[int, Field(ge=0)]]] = Field(
+        None, description="invalid_samples: the indexes (from 0) in the imu_batch's samples of the samples refused; "
+                          "the other samples of the batch were processed")
 
 
 class FingerAngles(_Message):

@@ -14,6 +14,7 @@ from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
 from ...pipeline.hand import Dropped
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
+from ...protocol.messages import SamplesRefused, dump_message
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
@@ -105,9 +106,13 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 await send_error(ws, metrics, *refused)
                 continue
             binary = data.get("bytes") is not None
+            partial = None
             try:
                 raw = decode(data["bytes"] if binary else data["text"], binary)
                 msg = parse_message(raw)
+            except SamplesRefused as err:          # the batch's valid samples go on (answered below)
+                partial, msg = err, err.kept
+                raw = dump_message(msg)
             except ProtocolError as err:
                 await send_error(ws, metrics, err.code, err.detail)
                 continue
@@ -127,6 +132,8 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 await live.settled()
                 await send(ws, {"type": "sync", "id": msg.id})
                 continue
+            if partial is not None:
+                await send_error(ws, metrics, partial.code, partial.detail, samples=partial.refused)
             try:
                 dropped = await live.ingest(raw, msg)
             except ValueError as err:          # e.g. a calibration that does not fit the hand

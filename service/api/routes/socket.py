@@ -121,9 +121,10 @@ def _abort(ws: WebSocket) -> bool:
     return False
 
 
-async def send_error(ws: WebSocket, metrics: Metrics, code: str, detail: str) -> None:
+async def send_error(ws: WebSocket, metrics: Metrics, code: str, detail: str, **fields) -> None:
+    """An ``error`` reply (``fields``: the optional fields of ``ErrorMessage``, e.g. ``samples``)."""
     metrics.errors.labels(code).inc()
-    await send(ws, {"type": "error", "code": code, "detail": detail})
+    await send(ws, {"type": "error", "code": code, "detail": detail, **fields})
 
 
 def server_hello(session: str, **extra) -> dict:
