@@ -67,6 +67,32 @@ def _sessions(server, token=ADMIN):
     return {s["session"]: s for s in rest(server.url, "GET", "/v1/sessions", token)[1]}
 
 
+async def _stream_watched(server, name, messages):
+    """Stream ``messages`` (after a hello) into session ``name`` in lockstep (``_replies``) while a
+    subscriber watches it; returns the replies and every frame up to the session's last."""
+    frames = []
+    sub = Subscription(server.ws_url, name, VIEWER)
+
+    async def collect():
+        async for m in sub:
+            if m["type"] == "frame":
+                frames.append(m)
+    task = asyncio.create_task(collect())
+    while sub.server_hello is None:
+        await asyncio.sleep(0.02)
+    async with connect(f"{server.ws_url}/v1/ingest/{name}?token={SOURCE}") as ws:
+        # in lockstep: when a message's reply has come, the frames it made are in the subscriber's queue
+        replies = await _replies(ws, [HELLO, *messages])
+    produced = _sessions(server)[name]["frames_out"]
+    deadline = time.monotonic() + 120                # bounds a failure
+    while not frames or frames[-1]["seq"] < produced:  # the last frame (a slow subscriber loses the oldest)
+        assert time.monotonic() < deadline, f"frame {produced} never arrived"
+        await asyncio.sleep(0.02)
+    await sub.close()
+    task.cancel()
+    return replies, frames
+
+
 # -- F1, F2, F8: absurd but schema-valid numbers ---------------------------------------------------------
 
 def test_huge_timestamps_are_refused_and_the_service_keeps_answering(server):
@@ -128,29 +154,7 @@ def test_one_absurd_sample_does_not_poison_a_session(server):
     t_bad = next(m for m in msgs[half:] if m["type"] == "imu_batch")["samples"][0]["t"]
     bad = {"type": "imu", "t": t_bad + 1e-4, "id": "index.1", "gyr": [1e300, 0, 0], "acc": [0, 9.81, 0]}
 
-    async def go():
-        frames = []
-        sub = Subscription(server.ws_url, "poison", VIEWER)
-
-        async def collect():
-            async for m in sub:
-                if m["type"] == "frame":
-                    frames.append(m)
-        task = asyncio.create_task(collect())
-        while sub.server_hello is None:
-            await asyncio.sleep(0.02)
-        async with connect(f"{server.ws_url}/v1/ingest/poison?token={SOURCE}") as ws:
-            # in lockstep: when a message's reply has come, the frames it made are in the subscriber's queue
-            replies = await _replies(ws, [HELLO, *msgs[2:half], bad, *msgs[half:]])
-        produced = _sessions(server)["poison"]["frames_out"]
-        deadline = time.monotonic() + 120                # bounds a failure
-        while not frames or frames[-1]["seq"] < produced:  # the last frame (a slow subscriber loses the oldest)
-            assert time.monotonic() < deadline, f"frame {produced} never arrived"
-            await asyncio.sleep(0.02)
-        await sub.close()
-        task.cancel()
-        return replies, frames
-    replies, frames = asyncio.run(go())
+    replies, frames = asyncio.run(_stream_watched(server, "poison", [*msgs[2:half], bad, *msgs[half:]]))
     bad_reply = replies[half - 1]
     assert bad_reply and bad_reply[0]["code"] == "invalid_message" and "gyr.0" in bad_reply[0]["detail"]
     assert not [r for r in replies[half:] for r in r]            # the well-formed rest: accepted in silence
@@ -185,7 +189,7 @@ def test_an_invalid_sample_refuses_only_itself_and_the_batch_goes_on():
         assert not isinstance(err.value, SamplesRefused) and err.value.code == "invalid_message"
 
 
-def test_a_batch_with_one_bad_sample_streams_as_the_batch_without_it(server):
+def test_a_batch_with_one_bad_sample_streams_as_the_batch_without_it():
     """Live: one out-of-range sample inside a batch is answered ``invalid_samples`` naming it, and the
     session's frames equal those of the same stream without that sample (the batch's other samples
     were processed; refusing the whole batch would lose ten samples and change the angles)."""
@@ -194,35 +198,18 @@ def test_a_batch_with_one_bad_sample_streams_as_the_batch_without_it(server):
     bad = {"t": msgs[k]["samples"][0]["t"], "id": "index.2", "gyr": [0, 0, 0], "acc": [0, 9.81, 1e300]}
     attacked = [*msgs[:k], _batch_with(msgs[k], 3, bad), *msgs[k + 1:]]
 
-    async def stream(name, messages):
-        frames = []
-        sub = Subscription(server.ws_url, name, VIEWER)
-
-        async def collect():
-            async for m in sub:
-                if m["type"] == "frame":
-                    frames.append(m)
-        task = asyncio.create_task(collect())
-        while sub.server_hello is None:
-            await asyncio.sleep(0.02)
-        async with connect(f"{server.ws_url}/v1/ingest/{name}?token={SOURCE}") as ws:
-            replies = await _replies(ws, [HELLO, *messages])
-        produced = _sessions(server)[name]["frames_out"]
-        deadline = time.monotonic() + 120                # bounds a failure
-        while not frames or frames[-1]["seq"] < produced:
-            assert time.monotonic() < deadline, f"frame {produced} never arrived"
-            await asyncio.sleep(0.02)
-        await sub.close()
-        task.cancel()
-        return replies, [(f["seq"], f["t"], f["fingers"]) for f in frames]
-    replies, frames = asyncio.run(stream("batch-bad", attacked))
-    ref_replies, ref_frames = asyncio.run(stream("batch-ref", msgs))
+    settings = ServiceSettings.load(port=0, admin_token=ADMIN, tokens={SOURCE: "source", VIEWER: "viewer"},
+                                    subscriber_queue_frames=10_000)       # every frame kept for the comparison
+    with ServerThread(settings) as srv:
+        replies, frames = asyncio.run(_stream_watched(srv, "batch-bad", attacked))
+        ref_replies, ref_frames = asyncio.run(_stream_watched(srv, "batch-ref", msgs))
     assert [r for r in ref_replies[1:] if r] == []
     errors = [(i, e) for i, r in enumerate(replies[1:]) for e in r]
     assert len(errors) == 1 and errors[0][0] == k
     reply = errors[0][1]
     assert reply["code"] == "invalid_samples" and reply["samples"] == [3] and "samples.3.acc.2" in reply["detail"]
-    assert len(frames) > 20 and frames == ref_frames
+    assert len(frames) > 20 and [f["seq"] for f in frames] == list(range(1, len(frames) + 1))
+    assert [(f["t"], f["fingers"]) for f in frames] == [(f["t"], f["fingers"]) for f in ref_frames]
 
 
 def test_a_diverged_filter_resets_and_the_frames_stay_finite():
