@@ -37,10 +37,12 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+
+from service.protocol.outgoing import GestureDict, GestureStateDict, RayDict
 
 from .confidence import calibrated_confidence
 
@@ -204,7 +206,7 @@ class GestureRecognizer:
         return Features(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])))
 
     @staticmethod
-    def ray(frame) -> dict | None:
+    def ray(frame) -> RayDict | None:
         """The pointing ray along the index finger; ``None`` when the finger has no direction (a
         degenerate geometry would otherwise give a NaN direction)."""
         tip = frame.joints["index_tip"][0]
@@ -215,13 +217,14 @@ class GestureRecognizer:
             return None
         return {"origin": tip.tolist(), "direction": (d / norm).tolist()}
 
-    def _event(self, frame, g: str, kind: str, confidence: float) -> dict:
-        ev = {"type": "gesture", "t": frame.t, "gesture": g, "event": kind, "confidence": round(confidence, 4)}
+    def _event(self, frame, g: str, kind: Literal["start", "end"], confidence: float) -> GestureDict:
+        """The protocol's ``gesture`` event (``protocol.outgoing.Gesture``)."""
+        ev: GestureDict = {"type": "gesture", "t": frame.t, "gesture": g, "event": kind, "confidence": round(confidence, 4)}
         if g == "point":
             ev["ray"] = self.ray(frame)
         return ev
 
-    def update(self, frame) -> tuple[dict, list[dict]]:
+    def update(self, frame) -> tuple[GestureStateDict, list[GestureDict]]:
         s = self.settings
         x = self.features(frame)
         t = frame.t
@@ -233,7 +236,7 @@ class GestureRecognizer:
         self._previous = (t, others)
         x.others_curl_rate = self._rate
         self.history.append((t, tuple(x.curl.get(f, 0.0) for f in FINGER_ORDER), x.pinch_distance_m, self._rate))
-        events: list[dict] = []
+        events: list[GestureDict] = []
         # candidates for starting: the highest-priority enter condition that holds
         candidates = [(g, RULES[g].score(x, s)) for g in GESTURES if RULES[g].enters(x, s)]
         best = candidates[0] if candidates else None
@@ -261,7 +264,7 @@ class GestureRecognizer:
             self.active = self._candidate
             self._candidate, self._candidate_since, self._failing_since = None, None, None
             events.append(self._event(frame, self.active, "start", conf))
-        annotation = {
+        annotation: GestureStateDict = {
             "active": self.active,
             "curl": {f: round(v, 4) for f, v in x.curl.items()},
             "grab_strength": round(x.grab_strength, 4),

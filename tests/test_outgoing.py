@@ -1,15 +1,21 @@
-"""Each output message is serialised once for all its subscribers (per wire format)."""
+"""Each output message is serialised once for all its subscribers (per wire format), and is built in
+the shape its protocol model declares."""
 import asyncio
 import json
+from typing import Union, get_args, get_origin, get_type_hints
 
 import msgpack
+from typing_extensions import is_typeddict
 
 from clients.glove import source_messages
 from service.api import outgoing
 from service.api.config import ServiceSettings
 from service.api.metrics import Metrics
+from service.api.routes.socket import server_hello
 from service.api.sessions import LiveSession, Subscriber
+from service.pipeline.tracked import replay
 from service.protocol import parse_message
+from service.protocol.outgoing import WIRE_SHAPES, FrameDict, GestureDict, ServerHelloDict
 from service.sim.session import SimConfig
 
 
@@ -44,3 +50,51 @@ def test_one_encoding_per_message_and_format_for_many_subscribers(monkeypatch):
             assert decoded == json.loads(real_dumps(item.message))
     n = len(queues[0])
     assert calls == {"json": n, "msgpack": n}     # not n x subscribers
+
+
+def test_each_wire_shape_spells_its_models_fields_in_order():
+    """One definition per message: the TypedDict the service builds is its published model's twin."""
+    assert {m.__name__ for m in WIRE_SHAPES} >= {"ServerHello", "SyncReply", "Frame", "Gesture", "ErrorMessage"}
+    for model, shape in WIRE_SHAPES.items():
+        assert list(shape.__annotations__) == list(model.model_fields), model.__name__
+        required = {name for name, f in model.model_fields.items() if f.is_required()}
+        assert required <= shape.__required_keys__, model.__name__
+
+
+def _shape_problems(value, tp, path="message") -> list[str]:
+    """Where ``value`` differs from the TypedDict ``tp``: keys it does not declare, required keys
+    missing, keys out of the declared order; nested TypedDicts, dicts of them and optionals followed."""
+    if is_typeddict(tp):
+        hints = get_type_hints(tp)
+        found = [f"{path}: {k!r} not declared" for k in value if k not in hints]
+        found += [f"{path}: {k!r} missing" for k in tp.__required_keys__ if k not in value]
+        if [k for k in value if k in hints] != [k for k in hints if k in value]:
+            found.append(f"{path}: keys {list(value)} not in the order {list(hints)}")
+        for k in value:
+            if k in hints:
+                found += _shape_problems(value[k], hints[k], f"{path}.{k}")
+        return found
+    if get_origin(tp) is dict:
+        return [p for k, v in value.items() for p in _shape_problems(v, get_args(tp)[1], f"{path}.{k}")]
+    if get_origin(tp) is Union and value is not None:
+        return _shape_problems(value, next(a for a in get_args(tp) if a is not type(None)), path)
+    return []
+
+
+def test_the_pipeline_and_the_recogniser_build_the_declared_shapes():
+    sim = [parse_message(m) for _, m in source_messages(SimConfig(motion="point", duration_s=2.0, noise="none", seed=3))]
+    out = list(replay(sim))
+    frames = [m for m in out if m["type"] == "frame"]
+    events = [m for m in out if m["type"] == "gesture"]
+    assert len(frames) > 100 and ("point", "start") in [(e["gesture"], e["event"]) for e in events]
+    assert any("ray" in f["gesture"] for f in frames)          # the pointing ray is followed too
+    for m in out:
+        shape = FrameDict if m["type"] == "frame" else GestureDict
+        assert _shape_problems(m, shape) == []
+    assert _shape_problems({"type": "frame", "t": 0.0}, FrameDict) != []       # the check can fail
+
+
+def test_the_service_replies_are_built_in_their_declared_order():
+    assert list(server_hello("s", waiting=True)) == list(ServerHelloDict.__annotations__)
+    assert list(server_hello("s")) == [k for k in ServerHelloDict.__annotations__ if k != "waiting"]
+    assert _shape_problems(server_hello("s"), ServerHelloDict) == []

@@ -6,6 +6,7 @@ format. Encoding used to be done per subscriber and was a measurable share of a 
 """
 from __future__ import annotations
 
+from ..protocol.outgoing import FrameDict, GestureDict
 from ..protocol.wire import encode
 
 
@@ -14,7 +15,7 @@ class Outgoing:
 
     __slots__ = ("message", "_text", "_packed")
 
-    def __init__(self, message: dict):
+    def __init__(self, message: FrameDict | GestureDict):
         self.message = message
         self._text: str | None = None
         self._packed: bytes | None = None

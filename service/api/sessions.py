@@ -28,6 +28,7 @@ from ..estimators.registry import EstimatorSpec
 from ..pipeline.hand import Dropped, PipelineSettings
 from ..pipeline.tracked import TrackedHand
 from ..protocol.messages import dump_message
+from ..protocol.outgoing import FrameDict, FrameStatusDict, GestureDict
 from .config import ServiceSettings
 from .metrics import Metrics
 from .outgoing import Outgoing
@@ -136,7 +137,7 @@ class LiveSession:
         self.source: Any = None
         """The connection feeding the session (one at a time), and its token."""
         self.source_token: str | None = None
-        self.last_status: dict = {}
+        self.last_status: FrameStatusDict | dict = {}
         self.frames_out = 0
         self.dropped_frames = 0
         self.created = time.time()
@@ -215,7 +216,7 @@ class LiveSession:
     async def settled(self) -> None:
         """Every message ingested so far has been handled (here: as soon as ``ingest`` returned)."""
 
-    def _fan_out(self, group: list[dict], t0: float) -> None:
+    def _fan_out(self, group: list[FrameDict | GestureDict], t0: float) -> None:
         for out in group:
             if out["type"] == "frame":
                 self.last_status = out["status"]

@@ -41,6 +41,7 @@ from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
 from ..model.openxr import joint_poses, joint_radii, joint_tracked
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
+from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .optical import OpticalTrack
 
 DEAD_RECKONING_PRIOR = 1e-2
@@ -148,17 +149,19 @@ class HandFrame:
     hand_rotation: np.ndarray                   # metacarpus to world
     hand_position: np.ndarray
     joints: dict[str, tuple[np.ndarray, np.ndarray]]
-    status: dict
+    status: FrameStatusDict
     tracked: dict[str, bool] = field(default_factory=dict)   # per joint; a joint not listed is tracked
 
-    def to_message(self, calib: HandCalibration) -> dict:
-        fingers = {}
+    def to_message(self, calib: HandCalibration) -> FrameDict:
+        """The protocol's ``frame`` (``protocol.outgoing.Frame``), without the gesture layer's object."""
+        fingers: dict[str, FingerAnglesDict] = {}
         for f, phi in self.joint_angles.items():
             names = calib.finger(f).joint_names
-            fingers[f] = {**{n: float(v) for n, v in zip(names, phi)}, "mode": self.modes[f]}
+            # the finger's joint names (mcp, pip, dip; the thumb mcp, ip) are read from the calibration
+            fingers[f] = {**{n: float(v) for n, v in zip(names, phi)}, "mode": self.modes[f]}  # type: ignore[typeddict-item]
         radii = joint_radii(calib)
-        joints = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
-                      "tracked": self.tracked.get(n, True)} for n, (p, q) in self.joints.items()}
+        joints: dict[str, JointPoseDict] = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
+                                                "tracked": self.tracked.get(n, True)} for n, (p, q) in self.joints.items()}
         return {
             "type": "frame", "t": self.t, "seq": self.seq, "hand": self.hand, "fingers": fingers,
             "joints": joints, "status": self.status,
@@ -501,9 +504,10 @@ class HandSession:
         return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
                          joints, self.status(t), tracked)
 
-    def status(self, t: float | None = None) -> dict:
+    def status(self, t: float | None = None) -> FrameStatusDict:
+        """The frame's ``status`` (``protocol.outgoing.FrameStatus``) at source time ``t``."""
         now = t if t is not None else (self._processed_t or 0.0)
-        sensors = {}
+        sensors: dict[str, SensorStatusDict] = {}
         for fs in self._fingers.values():
             for s in fs.geom.sensors:
                 last = self._last_sample.get(s.id)

@@ -13,6 +13,7 @@ from typing import Iterable, Iterator
 from gestures.recognizer import GestureRecognizer, GestureSettings
 
 from ..estimators.registry import EstimatorSpec
+from ..protocol.outgoing import FrameDict, GestureDict
 
 from .hand import Counters, Dropped, HandSession, PipelineSettings
 
@@ -44,10 +45,10 @@ class TrackedHand:
     def set_gesture_settings(self, settings: GestureSettings) -> None:
         self.recognizer.settings = settings
 
-    def handle(self, message) -> list[dict]:
+    def handle(self, message) -> list[FrameDict | GestureDict]:
         return [m for group in self.handle_iter(message) for m in group]
 
-    def handle_iter(self, message) -> Iterator[list[dict]]:
+    def handle_iter(self, message) -> Iterator[list[FrameDict | GestureDict]]:
         """For each frame the message completes, as soon as it is ready: the frame and its events."""
         self.accept(message)
         yield from self.outputs()
@@ -57,7 +58,7 @@ class TrackedHand:
         ``outputs``."""
         return self._session.accept(message)
 
-    def outputs(self) -> Iterator[list[dict]]:
+    def outputs(self) -> Iterator[list[FrameDict | GestureDict]]:
         """For each frame that is ready, as soon as it is: the frame message and its gesture events."""
         for frame in self._session.ready_frames():
             annotation, events = self.recognizer.update(frame)
@@ -67,7 +68,7 @@ class TrackedHand:
 
 
 def replay(messages: Iterable, settings: PipelineSettings | None = None,
-           gesture_settings: GestureSettings | None = None, hand: str = "right") -> Iterator[dict]:
+           gesture_settings: GestureSettings | None = None, hand: str = "right") -> Iterator[FrameDict | GestureDict]:
     """Every output message of a sequence of parsed source messages."""
     tracked = TrackedHand(hand, settings, gesture_settings)
     for msg in messages:

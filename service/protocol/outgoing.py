@@ -6,14 +6,20 @@ turns them into the JSON Schema documents under ``docs/schema/``, served at ``/v
 every protocol-v1 reader, they ignore unknown fields, so a field added later (always optional) does
 not break an older client.
 
+Each model has a ``TypedDict`` twin (``...Dict``, written under it) that spells the same fields in the
+same order: what the service actually builds and sends is a plain dict typed with it, so the hot path
+pays nothing for validation (a ``TypedDict`` is only an annotation) and a type checker holds every
+construction site to the contract. A test keeps each twin equal to its model (names, order, which
+fields are always present); the service's tests validate everything it sends against the schema.
+
 Units: SI (seconds, metres, radians); quaternions ``[x, y, z, w]``; positions and directions in the
 world frame (OpenXR stage space, +Y up).
 """
-from __future__ import annotations
 
 from typing import Annotated, Literal, Optional, Union
 
 from pydantic import Field, TypeAdapter, ValidationError
+from typing_extensions import NotRequired, TypedDict
 
 from .messages import FINGER_JOINTS, PROTOCOL_VERSION, SENSOR_ID_PATTERN, ProtocolError, Quat, Vec3, _describe, _Message
 
@@ -62,12 +68,23 @@ class ServerHello(_Message):
                                     "yet (the subscriber waits for it and gets its frames from its start; it creates nothing)")
 
 
+class ServerHelloDict(TypedDict):
+    type: Literal["hello"]
+    protocol: int
+    server: str
+    session: str
+    waiting: NotRequired[bool]
+
 class SyncReply(_Message):
     """The answer to a source's ``sync``: every message the source sent before it has been handled."""
 
     type: Literal["sync"]
     id: Annotated[int, Field(ge=0, le=2**53)] = Field(description="the id of the source's sync")
 
+
+class SyncReplyDict(TypedDict):
+    type: Literal["sync"]
+    id: int
 
 class ErrorMessage(_Message):
     """A source message was refused and dropped (with ``invalid_samples``: only the samples listed);
@@ -81,6 +98,13 @@ class ErrorMessage(_Message):
                           "the other samples of the batch were processed")
 
 
+class ErrorMessageDict(TypedDict):
+    type: Literal["error"]
+    code: str
+    detail: str
+    samples: NotRequired[list[int]]
+
+
 class FingerAngles(_Message):
     """Joint angles of one finger, rad, flexion positive (DESIGN.md "Conventions")."""
 
@@ -92,6 +116,13 @@ class FingerAngles(_Message):
                                             "integration), fused (a filter using both), none (no information, held)")
 
 
+class FingerAnglesDict(TypedDict):
+    mcp: float
+    pip: NotRequired[float]
+    dip: NotRequired[float]
+    ip: NotRequired[float]
+    mode: str
+
 class JointPose(_Message):
     """One OpenXR hand joint in the world frame: -Z toward the fingertip, +Y out of the back of the hand."""
 
@@ -100,6 +131,12 @@ class JointPose(_Message):
     radius: Optional[Annotated[float, Field(ge=0.0)]] = Field(None, description="joint centre to skin, m")
     tracked: bool = Field(True, description="false: the pose is held or inferred, not measured now")
 
+
+class JointPoseDict(TypedDict):
+    position: list[float]
+    orientation: list[float]
+    radius: Optional[float]
+    tracked: bool
 
 JointName = Literal[JOINT_NAMES]  # type: ignore[valid-type]
 Joints = Annotated[dict[JointName, JointPose], Field(  # type: ignore[valid-type]
@@ -113,6 +150,10 @@ class SensorStatus(_Message):
     silent: bool = Field(description="true when the sensor has been silent longer than the sensor timeout")
 
 
+class SensorStatusDict(TypedDict):
+    age_s: Optional[float]
+    silent: bool
+
 class DroppedCounts(_Message):
     """Source samples dropped so far, by reason."""
 
@@ -124,10 +165,21 @@ class DroppedCounts(_Message):
                                              "session that fell behind (the live service only)")
 
 
+class DroppedCountsDict(TypedDict):
+    duplicate: int
+    late: int
+    overflow: int
+    unknown_sensor: int
+    subscriber_frames: NotRequired[int]
+
 class ReferencePoseCounts(_Message):
     applied: int = Field(ge=0, description="reference_pose messages applied as a known configuration")
     stale: int = Field(ge=0, description="reference_pose messages ignored: too old, or pushed out of the bounded queue")
 
+
+class ReferencePoseCountsDict(TypedDict):
+    applied: int
+    stale: int
 
 class FrameStatus(_Message):
     optics: Literal["tracking", "occluded", "waiting"] = Field(
@@ -142,10 +194,23 @@ class FrameStatus(_Message):
                                          "reference after diverging (a non-finite estimate or a numerical failure)")
 
 
+class FrameStatusDict(TypedDict):
+    optics: Literal["tracking", "occluded", "waiting"]
+    estimator: str
+    sensors: dict[str, SensorStatusDict]
+    dropped: DroppedCountsDict
+    clock_steps: int
+    reference_poses: ReferencePoseCountsDict
+    filter_resets: int
+
 class Ray(_Message):
     origin: Vec3 = Field(description="the index fingertip, m, world frame")
     direction: Vec3 = Field(description="unit vector from the index MCP joint to the fingertip, world frame")
 
+
+class RayDict(TypedDict):
+    origin: list[float]
+    direction: list[float]
 
 class GestureState(_Message):
     """The gesture layer's continuous values at this frame (``gestures/recognizer.py``)."""
@@ -156,6 +221,13 @@ class GestureState(_Message):
     pinch_strength: Unit = Field(description="1 with the thumb and index tips touching, 0 from 7 cm apart; 0 while grasping")
     ray: Optional[Ray] = Field(None, description="the pointing ray, while pointing")
 
+
+class GestureStateDict(TypedDict):
+    active: Optional[str]
+    curl: dict[str, float]
+    grab_strength: float
+    pinch_strength: float
+    ray: NotRequired[Optional[RayDict]]
 
 class Frame(_Message):
     """Service -> client: the hand at one time of the source clock."""
@@ -170,6 +242,16 @@ class Frame(_Message):
     gesture: Optional[GestureState] = Field(None, description="gesture layer values (absent without the recogniser)")
 
 
+class FrameDict(TypedDict):
+    type: Literal["frame"]
+    t: float
+    seq: int
+    hand: str
+    fingers: dict[str, FingerAnglesDict]
+    joints: dict[str, JointPoseDict]
+    status: FrameStatusDict
+    gesture: NotRequired[GestureStateDict]
+
 class Gesture(_Message):
     """A gesture started or ended (sent right after the frame that caused it)."""
 
@@ -181,11 +263,27 @@ class Gesture(_Message):
     ray: Optional[Ray] = Field(None, description="the pointing ray (point events)")
 
 
+class GestureDict(TypedDict):
+    type: Literal["gesture"]
+    t: float
+    gesture: str
+    event: Literal["start", "end"]
+    confidence: float
+    ray: NotRequired[Optional[RayDict]]
+
 ServiceMessage = Annotated[Union[ServerHello, SyncReply, Frame, Gesture, ErrorMessage], Field(discriminator="type")]
 """Any message the service sends on ``/v1/ingest`` or ``/v1/stream``."""
 OutputMessage = Annotated[Union[Frame, Gesture, ErrorMessage], Field(discriminator="type")]
 _OUTPUT_ADAPTER: TypeAdapter = TypeAdapter(OutputMessage)
 SERVICE_TYPES = ("hello", "sync", "frame", "gesture", "error")
+WIRE_SHAPES: dict[type, type] = {
+    ServerHello: ServerHelloDict, SyncReply: SyncReplyDict, ErrorMessage: ErrorMessageDict, Frame: FrameDict,
+    Gesture: GestureDict, FingerAngles: FingerAnglesDict, JointPose: JointPoseDict, SensorStatus: SensorStatusDict,
+    DroppedCounts: DroppedCountsDict, ReferencePoseCounts: ReferencePoseCountsDict, FrameStatus: FrameStatusDict,
+    Ray: RayDict, GestureState: GestureStateDict,
+}
+"""Each model and the ``TypedDict`` the service builds it as. (No postponed annotations in this module:
+they would hide ``NotRequired`` from the ``TypedDict``s.)"""
 
 
 def parse_output(obj: object) -> Frame | Gesture | ErrorMessage:

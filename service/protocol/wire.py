@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Callable, Iterator, Literal
+from typing import Any, Callable, Iterator, Literal, Mapping
 
 import msgpack
 
@@ -25,7 +25,7 @@ def _reject_constant(name: str):
     raise ValueError(f"non-finite number {name} is not allowed")
 
 
-def finite_copy(message: dict) -> dict:
+def finite_copy(message: Mapping[str, Any]) -> Mapping[str, Any]:
     """``message`` unchanged if every number in it is finite; else a copy with each non-finite number
     replaced by ``None`` and their paths listed in ``invalid`` (strict JSON parsers, a browser's
     ``JSON.parse`` among them, reject NaN and infinity)."""
@@ -48,7 +48,7 @@ def finite_copy(message: dict) -> dict:
     return cleaned
 
 
-def encode(message: dict, binary: bool) -> str | bytes:
+def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
     """One message as compact JSON text, or MessagePack bytes when ``binary``; never with NaN or
     infinity (``finite_copy``)."""
     if binary:

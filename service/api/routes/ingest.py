@@ -15,6 +15,7 @@ from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 from ...pipeline.hand import Dropped
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
+from ...protocol.outgoing import SyncReplyDict
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
@@ -130,7 +131,7 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 continue
             elif isinstance(msg, Sync):           # everything before it is handled: say so
                 await live.settled()
-                await send(ws, {"type": "sync", "id": msg.id})
+                await send(ws, SyncReplyDict(type="sync", id=msg.id))
                 continue
             if partial is not None:
                 await send_error(ws, metrics, partial.code, partial.detail, samples=partial.refused)

@@ -14,6 +14,7 @@ from fastapi import WebSocket
 from fastapi.responses import JSONResponse
 
 from ...protocol import MSGPACK_SUBPROTOCOL, PROTOCOL_VERSION, encode
+from ...protocol.outgoing import ErrorMessageDict, ServerHelloDict, SyncReplyDict
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER
 from ..metrics import Metrics
 from ..outgoing import Outgoing
@@ -71,7 +72,7 @@ def close_reason(text: str) -> str:
     return text.encode()[:120].decode("utf-8", "ignore")
 
 
-async def send(ws: WebSocket, message: dict | Outgoing) -> None:
+async def send(ws: WebSocket, message: ServerHelloDict | SyncReplyDict | ErrorMessageDict | Outgoing) -> None:
     """One message in the connection's encoding (an ``Outgoing`` one is encoded once for everyone)."""
     binary = ws.state.binary
     if isinstance(message, Outgoing):
@@ -121,11 +122,20 @@ def _abort(ws: WebSocket) -> bool:
     return False
 
 
-async def send_error(ws: WebSocket, metrics: Metrics, code: str, detail: str, **fields) -> None:
-    """An ``error`` reply (``fields``: the optional fields of ``ErrorMessage``, e.g. ``samples``)."""
+async def send_error(ws: WebSocket, metrics: Metrics, code: str, detail: str, samples: list[int] | None = None) -> None:
+    """An ``error`` reply (``ErrorMessage``); ``samples``: the indexes of the samples an ``invalid_samples``
+    reply refuses."""
     metrics.errors.labels(code).inc()
-    await send(ws, {"type": "error", "code": code, "detail": detail, **fields})
+    reply = ErrorMessageDict(type="error", code=code, detail=detail)
+    if samples is not None:
+        reply["samples"] = samples
+    await send(ws, reply)
 
 
-def server_hello(session: str, **extra) -> dict:
-    return {"type": "hello", "protocol": PROTOCOL_VERSION, "server": "fingertrack", "session": session, **extra}
+def server_hello(session: str, waiting: bool | None = None) -> ServerHelloDict:
+    """The service's hello; ``waiting`` (on ``/v1/stream`` only) says whether the session still waits
+    for its source."""
+    hello = ServerHelloDict(type="hello", protocol=PROTOCOL_VERSION, server="fingertrack", session=session)
+    if waiting is not None:
+        hello["waiting"] = waiting
+    return hello
