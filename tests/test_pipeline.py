@@ -149,6 +149,22 @@ def test_handle_says_what_a_message_dropped_and_why():
     assert (session.counters.duplicate, session.counters.late, session.counters.unknown_sensor) == (1, 1, 1)
 
 
+def test_a_calibration_that_does_not_fit_the_hand_changes_nothing():
+    """A calibration refused by the pipeline (too few sensors for a finger's joints) leaves the hand as
+    it was: the frames equal those of the same stream without it (it used to keep the new calibration
+    with the old fingers, so every later sample was dropped as of an unknown sensor)."""
+    msgs = [parse_message(m) for m in simulate(SimConfig(motion="grasp", noise="white", seed=11, t_m_s=1.0)).messages()]
+    bad = parse_message({"type": "calibration", "fingers": {"index": {"sensors": [{"id": "index.1", "phalanx": 1}]}}})
+    half = len(msgs) // 2
+    hand, reference = TrackedHand(), TrackedHand()
+    out = [o for m in msgs[:half] for o in hand.handle(m)]
+    with pytest.raises(ValueError, match="cannot determine its 3 joint angles"):
+        hand.handle(bad)
+    out += [o for m in msgs[half:] for o in hand.handle(m)]
+    expected = [o for m in msgs for o in reference.handle(m)]
+    assert len(out) > 20 and json.dumps(out) == json.dumps(expected)
+
+
 def test_replaying_twice_gives_identical_frames(sequence_clean, tmp_path):
     a = json.dumps(_run(sequence_clean.messages()))
     b = json.dumps(_run(sequence_clean.messages()))

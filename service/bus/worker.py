@@ -26,8 +26,8 @@ from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 from ..api.config import ServiceSettings, redacted_url
 from ..api.metrics import Metrics
 from ..api.outgoing import Outgoing
+from ..api.replies import drop_replies, failure_reply
 from ..api.sessions import LiveSession
-from ..pipeline.hand import Dropped
 from ..protocol import ProtocolError, parse_message
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
@@ -276,17 +276,18 @@ class Worker:
 
     # -- session traffic -------------------------------------------------------------------------
     async def _handle(self, owned: OwnedSession, raw: dict) -> dict:
+        """Process one source message; the reply lists its error replies, ``(code, detail)`` as the
+        embedded service gives them (``api.replies``), which the gateway passes on to the source."""
         parsed = parse_message(raw)
-        dropped, error = Dropped(), None
         try:
-            dropped = await owned.live.ingest(raw, parsed)
-        except ValueError as err:
-            error = str(err)
+            errors = [list(reply) for reply in drop_replies(parsed, await owned.live.ingest(raw, parsed))]
+        except Exception as err:                    # bad input, or a defect (logged in one line)
+            errors = [list(failure_reply(owned.name, parsed, err))]
         if parsed.type == "hello":
             owned.hello = raw
-        elif parsed.type == "calibration" and error is None:
+        elif parsed.type == "calibration" and not errors:
             owned.calibration = raw
-        return {"late": dropped.late, "duplicate": dropped.duplicate, "error": error}
+        return {"errors": errors}
 
     async def _on_source(self, owned: OwnedSession, msg) -> None:
         raw = unpack(msg.data)["raw"]
@@ -301,7 +302,7 @@ class Worker:
                         pass                        # angles the protocol refuses: start as a new session
                 reply = await self._handle(owned, raw)
             except ProtocolError as err:            # the gateway validated it; only a version skew gets here
-                reply = {"late": 0, "duplicate": 0, "error": f"{err.code}: {err.detail}"}
+                reply = {"errors": [[err.code, err.detail]]}
             # fence: after a long stall, make sure the session is still ours before publishing
             if time.monotonic() - owned.renewed_at > LEASE_S / 2 and not await self._renew(owned):
                 owned.sink.pending.clear()

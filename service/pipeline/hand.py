@@ -223,12 +223,23 @@ class HandSession:
         """Switch the estimator of every finger live; each starts from the current estimate. A name
         and settings are validated first (``EstimatorSpec.of``): ``ValueError``/``ValidationError`` for
         an unknown name or bad settings, and nothing changes."""
-        self._estimator = spec if isinstance(spec, EstimatorSpec) else EstimatorSpec.of(spec, params)
-        self._build_fingers()
+        self._rebuild(self.calibration, spec if isinstance(spec, EstimatorSpec) else EstimatorSpec.of(spec, params))
 
     def apply_calibration(self, overrides: dict) -> None:
-        self.calibration = self.calibration.with_overrides(overrides)
-        self._build_fingers()
+        """Apply a calibration's overrides; one that does not fit the hand (``ValueError``, e.g. too
+        few sensors for a finger's joints) changes nothing."""
+        self._rebuild(self.calibration.with_overrides(overrides), self._estimator)
+
+    def _rebuild(self, calibration: HandCalibration, estimator: EstimatorSpec) -> None:
+        """Make ``calibration`` and ``estimator`` current and rebuild every finger for them, or, if
+        they do not fit together (the rebuild raises), keep the current ones and their fingers."""
+        before = self.calibration, self._estimator
+        self.calibration, self._estimator = calibration, estimator
+        try:
+            self._build_fingers()            # assigns the new fingers only once all are built
+        except Exception:
+            self.calibration, self._estimator = before
+            raise
 
     # -- input ---------------------------------------------------------------------------------------
     def handle(self, msg) -> Handled:

@@ -7,23 +7,21 @@ from __future__ import annotations
 
 import asyncio
 import hmac
-import logging
 import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
-from ...pipeline.hand import Dropped
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
+from ..replies import drop_replies, failure_reply
 from ..sessions import LiveSession
 from .socket import close_reason, open_session, release, send, send_error, server_hello
 
 router = APIRouter()
-log = logging.getLogger("fingertrack")
 
 
 class TokenBucket:
@@ -51,21 +49,6 @@ def _admit(data: dict, settings: ServiceSettings, bucket: TokenBucket) -> tuple[
         return "message_too_large", f"{size} bytes; the limit is {settings.max_message_bytes}"
     if not bucket.take():
         return "rate_limited", f"more than {settings.rate_limit_msgs_per_s:g} messages/s; message dropped"
-    return None
-
-
-def _drop_error(msg, dropped: Dropped | None) -> tuple[str, str] | None:
-    """The ``error`` reply for a message the pipeline dropped as late, duplicate or of a sensor the
-    calibration does not place."""
-    if dropped is None:                    # a bus session answers from its worker's reply
-        return None
-    when = f"{msg.type} at t={getattr(msg, 't', None)}"
-    if dropped.late:
-        return "time_backwards", f"{when} is older than what was already processed; dropped"
-    if dropped.duplicate:
-        return "duplicate", f"{when} was already received; dropped"
-    if dropped.unknown_sensor:
-        return "unknown_sensor", f"{when}: a sensor id the session's calibration does not place; dropped"
     return None
 
 
@@ -137,16 +120,10 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 await send_error(ws, metrics, partial.code, partial.detail, samples=partial.refused)
             try:
                 dropped = await live.ingest(raw, msg)
-            except ValueError as err:          # e.g. a calibration that does not fit the hand
-                await send_error(ws, metrics, "invalid_message", str(err))
+            except Exception as err:           # bad input, or a defect (logged); no exception reaches the socket layer
+                await send_error(ws, metrics, *failure_reply(session, msg, err))
                 continue
-            except Exception as err:           # a defect: answered and logged in one line, the session goes on
-                log.warning("session %s: %s while processing %s: %s; message dropped", session, type(err).__name__,
-                            msg.type, str(err)[:200])
-                await send_error(ws, metrics, "internal_error",
-                                 f"{type(err).__name__} while processing {msg.type}; message dropped")
-                continue
-            if (reply := _drop_error(msg, dropped)) is not None:
+            for reply in drop_replies(msg, dropped):            # a bus session answers from its worker
                 await send_error(ws, metrics, *reply)
     except WebSocketDisconnect:
         pass
