@@ -61,12 +61,16 @@ on all three phalanges it would be, and is left for later. The hand kinematics a
 """
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import Field
 
 from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
+from . import chain_kernel as K
 from . import kalman
-from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimator, lost_optics_variance
+from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimate, FingerEstimator, FingerSamples, FingerTrack, \
+    lost_optics_variance
 from .observations import initial_sensor_theta
 
 N_STATE = 5
@@ -89,16 +93,98 @@ class ChainSettings(EstimatorSettings):
     hand_jerk_time_s: float = Field(0.0, ge=0.0, description="added accelerometer std per m/s³ of the optical hand jerk: the optical acceleration is a windowed derivative fit that lags by about this long in fast reaches, s")
     untracked_acc_noise_m_s2: float = Field(3.0, gt=0.0, description="accelerometer std while the hand's acceleration is unknown (optics lost), m/s²")
     rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
+    implementation: Literal["compiled", "reference"] = Field(
+        "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
+                                "tested equal to (to 1e-9), about a hundred times slower")
 
 
 class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
+    jit_kernels = True
 
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._compiled = self.settings.implementation == "compiled"
+        self._nb = int(np.prod(self.batch_shape, dtype=int))
+        self._settings_vector = K.settings_vector(self.settings)
+        self._geometry_vector = K.geometry_vector(self.obs, self.closure, self.gravity_world)
+
+    # -- the compiled path ---------------------------------------------------------------------
     def _advance(self, t, gyr, acc, hand):
         if self._state is None:
             self._start_t = t
-        return super()._advance(t, gyr, acc, hand)
+        if not self._compiled:
+            return super()._advance(t, gyr, acc, hand)
+        if self._state is None:
+            state, dt = self._init_state(gyr, acc, hand, self._initial_theta), 0.0
+        else:
+            state, dt = self._state, t - self._t_last
+        nb, ns = self._nb, self.n_sensors
+        self._state, _, phi, phal, mode = self._kernel(
+            state, np.array([dt]), np.ascontiguousarray(gyr, dtype=float).reshape(1, nb, ns, 3),
+            np.ascontiguousarray(acc, dtype=float).reshape(1, nb, ns, 3), hand.flat.reshape(1, nb, K.HAND_SIZE),
+            hand.acceleration)
+        self._t_last = t
+        b = self.batch_shape
+        return FingerEstimate(t, phal[0].reshape(b + phal.shape[-1:]), phi[0].reshape(b + phi.shape[-1:]),
+                              mode[0].reshape(b + (ns,)))
+
+    def run(self, samples: FingerSamples) -> FingerTrack:
+        """All samples in one kernel call (the reference: one ``_step`` per sample); the same numbers
+        as ``update`` on each."""
+        if not self._compiled or len(samples) == 0:
+            return super().run(samples)
+        self._validate_batch(samples)
+        t = np.asarray(samples.t, dtype=float)
+        n, nb, ns = len(t), self._nb, self.n_sensors
+        if self._state is None:
+            self._start_t = float(t[0])
+            state = self._init_state(*samples.sample(0)[1:], self._initial_theta)
+            dt0 = 0.0
+        else:
+            state, dt0 = self._state, t[0] - self._t_last
+        dts = np.diff(t, prepend=t[0] - dt0)
+        hand = samples.hand
+        self._state, _, phi, phal, mode = self._kernel(
+            state, dts, np.ascontiguousarray(samples.gyr, dtype=float).reshape(n, nb, ns, 3),
+            np.ascontiguousarray(samples.acc, dtype=float).reshape(n, nb, ns, 3), hand.flat.reshape(n, nb, K.HAND_SIZE),
+            np.asarray(hand.acceleration)[0])
+        self._t_last = float(t[-1])
+        b = (n,) + self.batch_shape
+        return FingerTrack(t, phal.reshape(b + phal.shape[-1:]), phi.reshape(b + phi.shape[-1:]), mode.reshape(b + (ns,)))
+
+    def _kernel(self, state, dts, gyr, acc, hand_flat, first_hand_acc):
+        """``chain_kernel.run`` on the state dict (its arrays updated in place, made C-contiguous
+        float64 first if they are not): returns ``(state, theta, phi, phalanx angles, mode)`` with the
+        kernel's (N, B, ...) shapes."""
+        nb, ns, nph = self._nb, self.n_sensors, self.geom.n_phalanges
+        x = np.ascontiguousarray(state["x"], dtype=float)
+        P = np.ascontiguousarray(state["P"], dtype=float)
+        rate = np.ascontiguousarray(state["rate"], dtype=float)
+        hand_acc = state.get("hand_acc")
+        hand_acc = (np.array(first_hand_acc, dtype=float) if hand_acc is None
+                    else np.ascontiguousarray(hand_acc, dtype=float))
+        n = dts.shape[0]
+        theta = np.empty((n, nb, ns))
+        phi = np.empty((n, nb, nph))
+        phal = np.empty((n, nb, nph))
+        mode = np.empty((n, nb, ns), dtype=np.int8)
+        K.run(x.reshape(nb, ns, K.N_STATE), P.reshape(nb, ns, K.N_STATE, K.N_STATE), rate.reshape(nb, ns),
+              hand_acc.reshape(nb, 3), dts, gyr, acc, hand_flat, self._settings_vector, self._geometry_vector,
+              bool(getattr(self, "_hand_untracked", False)), theta, phi, phal, mode)
+        return {"x": x, "P": P, "rate": rate, "hand_acc": hand_acc}, theta, phi, phal, mode
+
+    def _step(self, state, dt, gyr, acc, hand):
+        if not self._compiled:
+            return self._step_reference(state, dt, gyr, acc, hand)
+        nb, ns = self._nb, self.n_sensors
+        state, theta, _, _, mode = self._kernel(
+            {k: v.copy() for k, v in state.items()}, np.array([float(dt)]),
+            np.ascontiguousarray(gyr, dtype=float).reshape(1, nb, ns, 3),
+            np.ascontiguousarray(acc, dtype=float).reshape(1, nb, ns, 3), hand.flat.reshape(1, nb, K.HAND_SIZE),
+            hand.acceleration)
+        return state, theta[0].reshape(self.batch_shape + (ns,)), mode[0].reshape(self.batch_shape + (ns,))
 
     def _init_state(self, gyr, acc, hand, theta0):
         s = self.settings
@@ -179,7 +265,8 @@ class Chain(FingerEstimator):
         if self._state is not None:
             self._state["P"][..., 0, 0] += lost_optics_variance(duration_s)
 
-    def _step(self, state, dt, gyr, acc, hand):
+    def _step_reference(self, state, dt, gyr, acc, hand):
+        """One sample in numpy (the reference the kernel is tested equal to)."""
         s = self.settings
         x, P = state["x"], state["P"]
         rate_meas = self.obs.relative_rate(gyr, hand)

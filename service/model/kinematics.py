@@ -58,6 +58,17 @@ class BaseMotion:
         k_w = skew(w)
         return rot_t, skew(dw) + k_w @ k_w, k_w
 
+    @cached_property
+    def flat(self) -> np.ndarray:
+        """``(..., 18)`` C-contiguous float64: rotation (row-major), acceleration, angular velocity and
+        angular acceleration, the layout compiled kernels read (``estimators.chain_kernel``). Computed
+        once per ``BaseMotion`` (shared by every finger of a hand state) and kept."""
+        r = np.asarray(self.rotation, dtype=float)
+        return np.ascontiguousarray(np.concatenate(
+            [r.reshape(r.shape[:-2] + (9,)), np.asarray(self.acceleration, dtype=float),
+             np.asarray(self.angular_velocity, dtype=float), np.asarray(self.angular_acceleration, dtype=float)],
+            axis=-1))
+
     @staticmethod
     def still(rotation: np.ndarray, position: np.ndarray, n: int) -> "BaseMotion":
         z = np.zeros((n, 3))

@@ -1,0 +1,296 @@
+"""Compiled (numba) kernel of ``chain``. ``chain.py`` explains the method and keeps the numpy
+reference (``Chain._step_reference``); ``tests/test_chain_kernel.py`` checks the two against each
+other to 1e-9 on random inputs and on a simulated recording through the hand pipeline.
+
+Everything lives in flat float64 arrays the estimator keeps, so one call advances every sensor of a
+finger (and every batch row) by any number of samples without a numpy call:
+
+* state: ``x`` (B, S, 5) = ``[θ, b_g, b_ax, b_ay, b_az]`` per sensor, ``P`` (B, S, 5, 5), the last
+  measured relative rate ``rate`` (B, S) and the last hand acceleration ``hand_acc`` (B, 3), updated
+  in place;
+* inputs per sample: ``dt`` (N,), ``gyr``/``acc`` (N, B, S, 3) and the hand as ``BaseMotion.flat``
+  (N, B, 18: rotation row-major, acceleration, angular velocity, angular acceleration);
+* the finger's constants (``geometry_vector``) and the settings (``settings_vector``) as vectors.
+
+One flat loop over scalars, as in ``rigid/inertial_kernel.py``: no array views or array arguments to
+helpers on the per-sample path (numba reference-counts those with atomic calls). The only fast-math
+licence taken is fused multiply-add; results differ from the numpy reference by rounding only.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .. import JIT_CACHE
+
+FMA = {"contract"}
+"""Fused multiply-add only (rounding differs by an ulp; NaN and infinity keep their meaning)."""
+
+N_STATE = 5
+HAND_SIZE = 18
+"""``BaseMotion.flat``: rotation (9, row-major), acceleration, angular velocity, angular acceleration."""
+
+# --- settings vector -------------------------------------------------------------------------
+(ST_GYRO_NOISE, ST_GYRO_WALK, ST_ACC_WALK, ST_ACC_NOISE, ST_KINEMATIC, ST_GYRO_SCALE, ST_ACC_SCALE,
+ ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE) = range(11)
+SETTINGS_SIZE = 11
+SATURATED_SIGMA_M_S2 = 1e6
+"""Accelerometer std of a clipped sample (no update in effect), as in the reference."""
+SATURATION_MARGIN = 1.0 - 1e-3
+"""A reading at this fraction of full scale or beyond counts as clipped."""
+
+
+def settings_vector(s) -> np.ndarray:
+    """The ``ChainSettings`` the kernel reads, in the ``ST_*`` order."""
+    return np.array([s.gyro_noise_density_rad_s_rthz, s.gyro_bias_walk_rad_s_rts, s.acc_bias_walk_m_s2_rts,
+                     s.acc_noise_m_s2, s.kinematic_uncertainty, s.gyro_scale_uncertainty, s.acc_scale_uncertainty,
+                     s.gyro_range_rad_s, s.acc_range_m_s2, s.hand_jerk_time_s, s.untracked_acc_noise_m_s2], dtype=float)
+
+
+def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
+    """One finger's constants (``FingerObservations`` and ``ChainClosure``) concatenated in the order
+    the kernel reads them: sensor mountings (S, 3, 3), hinge axes in sensor coordinates (S, 3), finger
+    base rotation (3, 3) and position (3), levers (S, n), prefixes (S, n), eq. 6 chain factors (S),
+    closure matrix (n, S), anatomical branch starts (S), gravity (3)."""
+    parts = (obs.mount, obs.hinge_in_sensor, obs.base, obs.base_position, obs._lever, obs._prefix.astype(float),
+             obs._chain_factor, closure.matrix, obs.branch_low, gravity_world)
+    return np.ascontiguousarray(np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts]))
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode):
+    """Advance the state (``x``, ``p``, ``rates``, ``hand_acc``, in place) by every sample ``i`` of
+    ``dts`` (``dt = 0`` is the first sample after initialisation: no prediction, no rate change).
+    Outputs per sample: the filter's per-sensor angle ``out_theta`` (N, B, S), the joint angles on the
+    anatomical branch ``out_phi`` (N, B, n), their phalanx angles ``out_phal`` (N, B, n) and the mode
+    code ``out_mode`` (N, B, S) int8 (1 fast, 2 fused). All arrays C-contiguous float64."""
+    nb, ns = x.shape[0], x.shape[1]
+    nph = out_phi.shape[2]
+    o_hinge = 9 * ns
+    o_base = o_hinge + 3 * ns
+    o_bpos = o_base + 9
+    o_lever = o_bpos + 3
+    o_prefix = o_lever + ns * nph
+    o_cf = o_prefix + ns * nph
+    o_clo = o_cf + ns
+    o_bl = o_clo + nph * ns
+    o_g = o_bl + ns
+    grav0, grav1, grav2 = geo[o_g], geo[o_g + 1], geo[o_g + 2]
+    fast_above = 0.5 * math.sqrt(grav0 * grav0 + grav1 * grav1 + grav2 * grav2)
+    b00, b01, b02 = geo[o_base], geo[o_base + 1], geo[o_base + 2]
+    b10, b11, b12 = geo[o_base + 3], geo[o_base + 4], geo[o_base + 5]
+    b20, b21, b22 = geo[o_base + 6], geo[o_base + 7], geo[o_base + 8]
+    bp0, bp1, bp2 = geo[o_bpos], geo[o_bpos + 1], geo[o_bpos + 2]
+    q_theta = st[ST_GYRO_NOISE] ** 2
+    q_bg = st[ST_GYRO_WALK] ** 2
+    q_ba = st[ST_ACC_WALK] ** 2
+    gyro_range, acc_range = st[ST_GYRO_RANGE], st[ST_ACC_RANGE]
+    gyro_clip, acc_clip = gyro_range * SATURATION_MARGIN, acc_range * SATURATION_MARGIN
+    untracked_var = (st[ST_UNTRACKED_NOISE] if untracked else 0.0) ** 2
+    two_pi = 2.0 * math.pi
+
+    th = np.empty(ns)           # predicted per-sensor angle
+    rate = np.empty(ns)         # bias-corrected relative rate
+    prev = np.empty(ns)         # previous relative rate, corrected with the same bias
+    rc = np.empty(ns)           # rate change
+    meas = np.empty(ns)         # measured relative rate (the next sample's previous)
+    th_all = np.empty(nph)
+    w_all = np.empty(nph)
+    dw_all = np.empty(nph)
+    cs = np.empty(nph)
+    sn = np.empty(nph)
+    pht = np.empty((N_STATE, 3))        # P Hᵀ
+    kg = np.empty((N_STATE, 3))         # Kalman gain
+    a = np.empty((N_STATE, N_STATE))    # (I - K H) P
+
+    for i in range(dts.shape[0]):
+        dt = dts[i]
+        for b in range(nb):
+            h = hand[i, b]
+            r00, r01, r02, r10, r11, r12, r20, r21, r22 = h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7], h[8]
+            ha0, ha1, ha2 = h[9], h[10], h[11]
+            # the hand's rates and linear term in metacarpus coordinates: R_Mᵀ ω, R_Mᵀ α, R_Mᵀ (a_M - g)
+            w0 = r00 * h[12] + r10 * h[13] + r20 * h[14]
+            w1 = r01 * h[12] + r11 * h[13] + r21 * h[14]
+            w2 = r02 * h[12] + r12 * h[13] + r22 * h[14]
+            dw0 = r00 * h[15] + r10 * h[16] + r20 * h[17]
+            dw1 = r01 * h[15] + r11 * h[16] + r21 * h[17]
+            dw2 = r02 * h[15] + r12 * h[16] + r22 * h[17]
+            la0, la1, la2 = ha0 - grav0, ha1 - grav1, ha2 - grav2
+            lin0 = r00 * la0 + r10 * la1 + r20 * la2
+            lin1 = r01 * la0 + r11 * la1 + r21 * la2
+            lin2 = r02 * la0 + r12 * la1 + r22 * la2
+            hand_rate = w0 * b00 + w1 * b10 + w2 * b20          # (R_Bᵀ R_Mᵀ ω_M)_x
+            jerk = 0.0
+            if dt > 0:
+                j0, j1, j2 = ha0 - hand_acc[b, 0], ha1 - hand_acc[b, 1], ha2 - hand_acc[b, 2]
+                jerk = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2) / dt
+            jerk_var = (st[ST_JERK_TIME] * jerk) ** 2
+
+            # predicted angles (trapezoid of the bias-corrected relative rate), then the chain
+            for k in range(ns):
+                g0, g1, g2 = gyr[i, b, k, 0], gyr[i, b, k, 1], gyr[i, b, k, 2]
+                hi = o_hinge + 3 * k
+                rm = geo[hi] * g0 + geo[hi + 1] * g1 + geo[hi + 2] * g2 - hand_rate
+                bg = x[b, k, 1]
+                rate[k] = rm - bg
+                prev[k] = rates[b, k] - bg
+                meas[k] = rm
+                th[k] = x[b, k, 0] + dt * 0.5 * (prev[k] + rate[k])
+                rc[k] = (rate[k] - prev[k]) / dt if dt > 0 else 0.0
+            acc_th = 0.0
+            acc_w = 0.0
+            acc_dw = 0.0
+            for j in range(nph):
+                sj_th = 0.0
+                sj_w = 0.0
+                sj_dw = 0.0
+                for k in range(ns):
+                    c = geo[o_clo + j * ns + k]
+                    sj_th += c * th[k]
+                    sj_w += c * rate[k]
+                    sj_dw += c * rc[k]
+                acc_th += sj_th
+                acc_w += sj_w
+                acc_dw += sj_dw
+                th_all[j] = acc_th
+                w_all[j] = acc_w
+                dw_all[j] = acc_dw
+                cs[j] = math.cos(acc_th)
+                sn[j] = math.sin(acc_th)
+
+            for k in range(ns):
+                # reference force of the chain model (observations.reference_force, eqs. 1-2 with a
+                # moving hand): u = R_Bᵀ [R_Mᵀ(a_M - g) + α×ρ + ω×(ω×ρ) + 2 ω×ρ' + ρ'']
+                v1 = v2 = vel1 = vel2 = ac1 = ac2 = 0.0
+                w_max = 0.0
+                dw_max = 0.0
+                for j in range(nph):
+                    lev = geo[o_lever + k * nph + j]
+                    v1 += lev * cs[j]
+                    v2 += lev * sn[j]
+                    wj, dwj = w_all[j], dw_all[j]
+                    vel1 += lev * (wj * -sn[j])
+                    vel2 += lev * (wj * cs[j])
+                    ac1 += lev * (dwj * -sn[j] - wj * wj * cs[j])
+                    ac2 += lev * (dwj * cs[j] - wj * wj * sn[j])
+                    if geo[o_prefix + k * nph + j] > 0.0:
+                        w_max = max(w_max, abs(wj))
+                        dw_max = max(dw_max, abs(dwj))
+                # finger base -> metacarpus: ρ = p_B + R_B v (v has no x component)
+                rho0 = bp0 + b01 * v1 + b02 * v2
+                rho1 = bp1 + b11 * v1 + b12 * v2
+                rho2 = bp2 + b21 * v1 + b22 * v2
+                ve0, ve1, ve2 = b01 * vel1 + b02 * vel2, b11 * vel1 + b12 * vel2, b21 * vel1 + b22 * vel2
+                ar0, ar1, ar2 = b01 * ac1 + b02 * ac2, b11 * ac1 + b12 * ac2, b21 * ac1 + b22 * ac2
+                # ω×ρ, then ω×(ω×ρ) + α×ρ + 2 ω×ρ'
+                c0, c1, c2 = w1 * rho2 - w2 * rho1, w2 * rho0 - w0 * rho2, w0 * rho1 - w1 * rho0
+                o0 = lin0 + (dw1 * rho2 - dw2 * rho1) + (w1 * c2 - w2 * c1) + 2.0 * (w1 * ve2 - w2 * ve1) + ar0
+                o1 = lin1 + (dw2 * rho0 - dw0 * rho2) + (w2 * c0 - w0 * c2) + 2.0 * (w2 * ve0 - w0 * ve2) + ar1
+                o2 = lin2 + (dw0 * rho1 - dw1 * rho0) + (w0 * c1 - w1 * c0) + 2.0 * (w0 * ve1 - w1 * ve0) + ar2
+                u0 = b00 * o0 + b10 * o1 + b20 * o2
+                u1 = b01 * o0 + b11 * o1 + b21 * o2
+                u2 = b02 * o0 + b12 * o1 + b22 * o2
+
+                # the measured force in the phalanx frame, saturation
+                m = 9 * k
+                a0, a1, a2 = acc[i, b, k, 0], acc[i, b, k, 1], acc[i, b, k, 2]
+                f0 = geo[m] * a0 + geo[m + 1] * a1 + geo[m + 2] * a2
+                f1 = geo[m + 3] * a0 + geo[m + 4] * a1 + geo[m + 5] * a2
+                f2 = geo[m + 6] * a0 + geo[m + 7] * a1 + geo[m + 8] * a2
+                g0, g1, g2 = gyr[i, b, k, 0], gyr[i, b, k, 1], gyr[i, b, k, 2]
+                gyr_sat = abs(g0) >= gyro_clip or abs(g1) >= gyro_clip or abs(g2) >= gyro_clip
+                acc_sat = abs(a0) >= acc_clip or abs(a1) >= acc_clip or abs(a2) >= acc_clip
+
+                # predict: F = I - dt e0 e1ᵀ, P = F P Fᵀ + Q (Q from the gyro noise, its scale error
+                # and saturation, and the offsets' random walks)
+                scale = st[ST_GYRO_SCALE] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2) + (gyro_range if gyr_sat else 0.0)
+                for jj in range(N_STATE):
+                    p[b, k, 0, jj] = p[b, k, 0, jj] - dt * p[b, k, 1, jj]
+                for ii in range(N_STATE):
+                    p[b, k, ii, 0] = p[b, k, ii, 0] - dt * p[b, k, ii, 1]
+                p[b, k, 0, 0] += q_theta * dt + (dt * scale) ** 2
+                p[b, k, 1, 1] += q_bg * dt
+                p[b, k, 2, 2] += q_ba * dt
+                p[b, k, 3, 3] += q_ba * dt
+                p[b, k, 4, 4] += q_ba * dt
+
+                # measurement f = R_x(θ)ᵀ u + b_a
+                c, s = math.cos(th[k]), math.sin(th[k])
+                y0 = f0 - (u0 + x[b, k, 2])
+                y1 = f1 - ((c * u1 + s * u2) + x[b, k, 3])
+                y2 = f2 - ((-s * u1 + c * u2) + x[b, k, 4])
+                h1 = -s * u1 + c * u2              # ∂f_y/∂θ
+                h2 = -c * u1 - s * u2              # ∂f_z/∂θ
+                mu = geo[o_cf + k] * math.sqrt(dw_max * dw_max + w_max ** 4)     # eq. 6 bound
+                fnorm = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+                sigma = math.sqrt(st[ST_ACC_NOISE] ** 2 + (st[ST_KINEMATIC] * mu) ** 2 + (st[ST_ACC_SCALE] * fnorm) ** 2
+                                  + jerk_var + untracked_var)
+                if acc_sat or gyr_sat:
+                    sigma = SATURATED_SIGMA_M_S2
+                r = sigma * sigma
+
+                # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
+                # H rows: e2, h1 e0 + e3, h2 e0 + e4
+                for ii in range(N_STATE):
+                    pi0 = p[b, k, ii, 0]
+                    pht[ii, 0] = p[b, k, ii, 2]
+                    pht[ii, 1] = h1 * pi0 + p[b, k, ii, 3]
+                    pht[ii, 2] = h2 * pi0 + p[b, k, ii, 4]
+                s00 = pht[2, 0] + r
+                s01 = pht[2, 1]
+                s02 = pht[2, 2]
+                s10 = h1 * pht[0, 0] + pht[3, 0]
+                s11 = h1 * pht[0, 1] + pht[3, 1] + r
+                s12 = h1 * pht[0, 2] + pht[3, 2]
+                s20 = h2 * pht[0, 0] + pht[4, 0]
+                s21 = h2 * pht[0, 1] + pht[4, 1]
+                s22 = h2 * pht[0, 2] + pht[4, 2] + r
+                # S⁻¹ by cofactors
+                i00 = s11 * s22 - s12 * s21
+                i01 = s02 * s21 - s01 * s22
+                i02 = s01 * s12 - s02 * s11
+                i10 = s12 * s20 - s10 * s22
+                i11 = s00 * s22 - s02 * s20
+                i12 = s02 * s10 - s00 * s12
+                i20 = s10 * s21 - s11 * s20
+                i21 = s01 * s20 - s00 * s21
+                i22 = s00 * s11 - s01 * s10
+                det = s00 * i00 + s01 * i10 + s02 * i20
+                for ii in range(N_STATE):
+                    q0, q1, q2 = pht[ii, 0], pht[ii, 1], pht[ii, 2]
+                    kg[ii, 0] = (q0 * i00 + q1 * i10 + q2 * i20) / det
+                    kg[ii, 1] = (q0 * i01 + q1 * i11 + q2 * i21) / det
+                    kg[ii, 2] = (q0 * i02 + q1 * i12 + q2 * i22) / det
+                # (I - K H) P, then ((I - K H) P)(I - K H)ᵀ + r K Kᵀ
+                for ii in range(N_STATE):
+                    k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
+                    for jj in range(N_STATE):
+                        a[ii, jj] = p[b, k, ii, jj] - ((k1 * h1 + k2 * h2) * p[b, k, 0, jj] + k0 * p[b, k, 2, jj]
+                                                       + k1 * p[b, k, 3, jj] + k2 * p[b, k, 4, jj])
+                for ii in range(N_STATE):
+                    k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
+                    for jj in range(N_STATE):
+                        l0, l1, l2 = kg[jj, 0], kg[jj, 1], kg[jj, 2]
+                        p[b, k, ii, jj] = (a[ii, jj] - ((l1 * h1 + l2 * h2) * a[ii, 0] + l0 * a[ii, 2] + l1 * a[ii, 3]
+                                                        + l2 * a[ii, 4])) + r * (k0 * l0 + k1 * l1 + k2 * l2)
+                x[b, k, 0] = th[k] + (kg[0, 0] * y0 + kg[0, 1] * y1 + kg[0, 2] * y2)
+                for ii in range(1, N_STATE):
+                    x[b, k, ii] += kg[ii, 0] * y0 + kg[ii, 1] * y1 + kg[ii, 2] * y2
+                rates[b, k] = meas[k]
+                out_theta[i, b, k] = x[b, k, 0]
+                out_mode[i, b, k] = 1 if mu > fast_above else 2
+
+            hand_acc[b, 0], hand_acc[b, 1], hand_acc[b, 2] = ha0, ha1, ha2
+            # joint angles from the angles on their anatomical branch, and their phalanx angles
+            phal = 0.0
+            for j in range(nph):
+                phi = 0.0
+                for k in range(ns):
+                    low = geo[o_bl + k]
+                    phi += geo[o_clo + j * ns + k] * (low + (x[b, k, 0] - low) % two_pi)
+                out_phi[i, b, j] = phi
+                phal += phi
+                out_phal[i, b, j] = phal

@@ -1,0 +1,102 @@
+"""The compiled ``chain`` kernel (``estimators/chain_kernel.py``) equals its numpy reference
+(``implementation="reference"``) to 1e-9: on random states and inputs (every branch: saturated gyro
+and accelerometer, untracked hand, hand jerk, batch rows, every finger shape) and on a realistic
+simulated recording through the hand pipeline with a saturated sample, a dropped sample, a sensor
+falling silent, an optical loss and a reference pose."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from service.estimators.chain import Chain, ChainSettings
+from service.model.hand import default_calibration
+from service.model.kinematics import BaseMotion
+from service.pipeline.hand import HandSession, PipelineSettings
+from service.protocol import parse_message
+from service.sim.errors import OpticalModel
+from service.sim.session import SimConfig, simulate
+from scipy.spatial.transform import Rotation
+
+TOL = 1e-9
+
+
+def _random_hand(rng, batch):
+    rot = Rotation.random(int(np.prod(batch, dtype=int)) or 1, random_state=rng).as_matrix().reshape(batch + (3, 3))
+    v = lambda scale: rng.normal(0.0, scale, batch + (3,))       # noqa: E731
+    return BaseMotion(rot, v(0.3), v(1.0), v(5.0), v(3.0), v(30.0))
+
+
+def _random_state(rng, est):
+    b, s = est.batch_shape, est.n_sensors
+    x = np.concatenate([rng.uniform(-1.0, 2.0, b + (s, 1)), rng.normal(0.0, 0.05, b + (s, 1)),
+                        rng.normal(0.0, 0.5, b + (s, 3))], axis=-1)
+    a = rng.normal(0.0, 0.05, b + (s, 5, 5))
+    P = a @ np.swapaxes(a, -1, -2) + 1e-4 * np.eye(5)             # symmetric positive definite
+    return {"x": x, "P": P, "rate": rng.normal(0.0, 3.0, b + (s,)), "hand_acc": rng.normal(0.0, 5.0, b + (3,))}
+
+
+@pytest.mark.parametrize("finger, batch, extra", [("index", (), ()), ("thumb", (), ()), ("middle", (3,), ()),
+                                                  ("ring", (2, 2), ()), ("little", (), ((0, 1.0),))])
+def test_kernel_step_equals_the_reference_on_random_inputs(finger, batch, extra):
+    rng = np.random.default_rng(["index", "thumb", "middle", "ring", "little"].index(finger))
+    geom = default_calibration("right").finger(finger)
+    if extra:           # a sensor silent: one sensor left, closed by a second coupling
+        geom = replace(geom, sensors=geom.sensors[1:])
+    settings = dict(hand_jerk_time_s=0.01, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
+    compiled = Chain(geom, ChainSettings(**settings), batch_shape=batch, extra_couplings=extra)
+    reference = Chain(geom, ChainSettings(**settings, implementation="reference"), batch_shape=batch,
+                      extra_couplings=extra)
+    s = compiled.n_sensors
+    for trial in range(12):
+        state = _random_state(rng, compiled)
+        untracked = trial % 3 == 1
+        compiled._hand_untracked = reference._hand_untracked = untracked
+        dt = 0.0 if trial == 0 else rng.uniform(0.001, 0.02)
+        gyr = rng.normal(0.0, 4.0, batch + (s, 3))
+        acc = rng.normal(0.0, 12.0, batch + (s, 3))
+        if trial % 4 == 2:
+            gyr[..., 0, 1] = 31.0                    # past the gyro's full scale
+        if trial % 4 == 3:
+            acc[..., -1, 2] = -160.0                 # past the accelerometer's
+        hand = _random_hand(rng, batch)
+        new_r, theta_r, mode_r = reference._step({k: v.copy() for k, v in state.items()}, dt, gyr, acc, hand)
+        new_c, theta_c, mode_c = compiled._step({k: v.copy() for k, v in state.items()}, dt, gyr, acc, hand)
+        np.testing.assert_allclose(theta_c, theta_r, rtol=0, atol=TOL)
+        np.testing.assert_array_equal(mode_c, mode_r)
+        for key in ("x", "rate", "hand_acc"):
+            np.testing.assert_allclose(new_c[key], new_r[key], rtol=0, atol=TOL, err_msg=key)
+        np.testing.assert_allclose(new_c["P"], new_r["P"], rtol=1e-9, atol=1e-15)
+
+
+def _faulty_recording():
+    """A realistic recording with the faults a glove and a tracker produce, as messages."""
+    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=7, duration_s=2.0,
+                       reference_hold_s=0.6, optical=OpticalModel(occlusions_s=((1.2, 1.45),)))
+    messages = list(simulate(config).messages(include_truth=False))
+    imu = [i for i, m in enumerate(messages) if m["type"] == "imu"]
+    saturated = messages[imu[300]]                        # t = 0.15 s
+    saturated["gyr"] = [40.0, saturated["gyr"][1], 0.0]   # beyond ±2000 deg/s
+    saturated["acc"] = [0.0, 170.0, 0.0]                  # beyond ±16 g
+    dropped = {imu[901], imu[1503]}                       # one sample of two sensors missing
+    silent = {i for i in imu if messages[i]["id"] == "middle.2" and 1.6 <= messages[i]["t"] < 1.75}
+    return [m for i, m in enumerate(messages) if i not in dropped and i not in silent]
+
+
+def test_kernel_equals_the_reference_through_the_pipeline_on_a_faulty_recording():
+    messages = _faulty_recording()
+    assert any(m["type"] == "reference_pose" for m in messages)
+    runs = {}
+    for impl in ("compiled", "reference"):
+        session = HandSession("right", PipelineSettings(estimator_params={"implementation": impl}))
+        frames = [f for m in messages for f in session.handle(parse_message(m)).frames]
+        runs[impl] = (frames, session.counters)
+    compiled, reference = runs["compiled"][0], runs["reference"][0]
+    assert len(compiled) == len(reference) > 150
+    assert runs["compiled"][1].references_applied == 1
+    statuses = {f.status["optics"] for f in compiled}
+    assert statuses == {"tracking", "occluded"}
+    assert any(f.status["sensors"]["middle.2"]["silent"] for f in compiled)
+    for c, r in zip(compiled, reference):
+        assert c.t == r.t and c.modes == r.modes
+        for finger, phi in r.joint_angles.items():
+            np.testing.assert_allclose(c.joint_angles[finger], phi, rtol=0, atol=TOL, err_msg=f"{finger} at t={c.t}")
