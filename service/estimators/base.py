@@ -132,6 +132,8 @@ class FingerEstimator:
     Settings: ClassVar[type[EstimatorSettings]] = EstimatorSettings
     jit_kernels: ClassVar[bool] = False
     """True when the estimator runs numba kernels, compiled on first use (``estimators.warm``)."""
+    kernels: ClassVar[tuple] = ()
+    """Those kernels (numba dispatchers), so that ``estimators.warm`` can tell whether they are cached on disk."""
 
     def __init__(self, geom: FingerGeometry, settings: EstimatorSettings | None = None,
                  initial_theta: np.ndarray | None = None, batch_shape: tuple[int, ...] = (),

@@ -102,6 +102,7 @@ class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
     jit_kernels = True
+    kernels = (K.run,)
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)

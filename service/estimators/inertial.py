@@ -46,6 +46,7 @@ def _coefficients(settings: rigid_inertial.InertialSettings, dt_us: int) -> np.n
 class InertialFinger(FingerEstimator):
     name = "inertial"
     jit_kernels = True
+    kernels = (K.run_sample,)
     Settings = InertialFingerSettings
 
     def _init_state(self, gyr, acc, hand, theta0):

@@ -5,7 +5,13 @@ tens of seconds and would freeze every session if it happened on the service's e
 ``warm_off_loop`` first compiles them in a separate process (``python -m service.estimators.warm
 NAME [PARAMS_JSON]``), which fills the on-disk cache without competing with the service for its
 interpreter lock, then runs a few samples in a worker thread, which loads the cached code into this
-process. The container image runs the same command at build time."""
+process. The container image runs the same command at build time.
+
+The hand pipeline's own kernels (the OpenXR joint poses) are warmed the same way, under the name
+``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
+cache (the usual case after the first run, and in the container image) the separate process is skipped:
+loading cached code takes a fraction of a second, where starting that process costs a full interpreter
+start-up."""
 from __future__ import annotations
 
 import asyncio
@@ -17,13 +23,63 @@ import numpy as np
 _WARM: set[str] = set()
 
 
+PIPELINE = "pipeline"
+"""The name under which the hand pipeline's own kernels are warmed."""
+
+
+def _pipeline_kernels() -> tuple:
+    from ..model import openxr_kernel
+    return (openxr_kernel.joint_poses,)
+
+
+def _kernels(name: str) -> tuple:
+    """The numba dispatchers behind ``name`` (an estimator or ``PIPELINE``); empty for none."""
+    if name == PIPELINE:
+        return _pipeline_kernels()
+    from .registry import REGISTRY
+    cls = REGISTRY.get(name)
+    return tuple(getattr(cls, "kernels", ())) if cls is not None and cls.jit_kernels else ()
+
+
+def _on_disk(kernels: tuple) -> bool:
+    """Whether every dispatcher has compiled code for this source in the on-disk cache (numba's index
+    for it exists and matches the source); False when that cannot be told."""
+    try:
+        return bool(kernels) and all(k._cache._cache_file._load_index() for k in kernels)
+    except Exception:                      # numba internals differ: assume not cached
+        return False
+
+
+def _warm_pipeline() -> None:
+    from ..model.hand import default_calibration
+    from ..model.openxr import joint_poses_compiled
+
+    calib = default_calibration("right")
+    joint_poses_compiled(calib, {n: np.zeros(g.n_phalanges) for n, g in calib.fingers.items()}, np.eye(3), np.zeros(3))
+
+
+def _to_warm(name: str) -> list[str]:
+    """What warming ``name`` has to do in this process: the pipeline's kernels once, then the
+    estimator's if it has kernels."""
+    names = [PIPELINE] if PIPELINE not in _WARM else []
+    from .registry import REGISTRY
+    cls = REGISTRY.get(name)
+    if cls is not None and cls.jit_kernels and name not in _WARM:
+        names.append(name)
+    return names
+
+
 def warm(name: str, params: dict | None = None) -> None:
     """Run a few samples through the estimator ``name`` so that its kernels are compiled (or loaded
-    from the cache) in this process. Raises ``ValueError`` for an unknown name or bad settings."""
+    from the cache) in this process (``PIPELINE``: the hand pipeline's kernels). Raises ``ValueError``
+    for an unknown name or bad settings."""
     from ..model.hand import default_calibration
     from ..model.kinematics import BaseMotion
     from .registry import estimator_class
 
+    if name == PIPELINE:
+        _warm_pipeline()
+        return
     cls = estimator_class(name)
     settings = cls.Settings(**(params or {}))
     geom = default_calibration("right").finger("index")
@@ -40,23 +96,23 @@ async def warm_off_loop(name: str, params: dict | None = None) -> None:
     """``warm`` without blocking the event loop (module docstring); a no-op for estimators without
     kernels and for those already warm in this process. Bad names or settings are left for the
     caller's own validation to report."""
-    from .registry import REGISTRY
-
-    cls = REGISTRY.get(name)
-    if cls is None or not cls.jit_kernels or name in _WARM:
+    names = _to_warm(name)
+    if not names:
         return
-    try:
-        proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "service.estimators.warm", name,
-                                                    json.dumps(params or {}), stdout=asyncio.subprocess.DEVNULL,
-                                                    stderr=asyncio.subprocess.DEVNULL)
-        await proc.wait()
-    except OSError:
-        pass                                # no separate process here: the thread compiles instead
-    try:
-        await asyncio.to_thread(warm, name, params)
-    except ValueError:
-        return
-    _WARM.add(name)
+    if not _on_disk(tuple(k for n in names for k in _kernels(n))):
+        try:
+            proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "service.estimators.warm", *names[-1:],
+                                                        json.dumps(params or {}), stdout=asyncio.subprocess.DEVNULL,
+                                                        stderr=asyncio.subprocess.DEVNULL)
+            await proc.wait()
+        except OSError:
+            pass                            # no separate process here: the thread compiles instead
+    for n in names:
+        try:
+            await asyncio.to_thread(warm, n, params if n == name else None)
+        except ValueError:
+            return
+        _WARM.add(n)
 
 
 def warm_ahead(name: str, params: dict | None = None) -> None:
@@ -64,32 +120,32 @@ def warm_ahead(name: str, params: dict | None = None) -> None:
     separate process, then the samples here. A no-op where ``warm_off_loop`` is one."""
     import subprocess
 
-    from .registry import REGISTRY
-
-    cls = REGISTRY.get(name)
-    if cls is None or not cls.jit_kernels or name in _WARM:
+    names = _to_warm(name)
+    if not names:
         return
-    try:
-        subprocess.run([sys.executable, "-m", "service.estimators.warm", name, json.dumps(params or {})],
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
-    except OSError:
-        pass
-    try:
-        warm(name, params)
-    except ValueError:
-        return
-    _WARM.add(name)
+    if not _on_disk(tuple(k for n in names for k in _kernels(n))):
+        try:
+            subprocess.run([sys.executable, "-m", "service.estimators.warm", *names[-1:], json.dumps(params or {})],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
+        except OSError:
+            pass
+    for n in names:
+        try:
+            warm(n, params if n == name else None)
+        except ValueError:
+            return
+        _WARM.add(n)
 
 
 def main(argv: list[str]) -> int:
     if not argv:
-        print("usage: python -m service.estimators.warm NAME [PARAMS_JSON] (NAME: all for every estimator)")
+        print("usage: python -m service.estimators.warm NAME [PARAMS_JSON] (NAME: all for every estimator; the pipeline's kernels are always warmed)")
         return 2
     from .registry import REGISTRY
-    names = [n for n, c in REGISTRY.items() if c.jit_kernels] if argv[0] == "all" else [argv[0]]
+    names = [PIPELINE] + ([n for n, c in REGISTRY.items() if c.jit_kernels] if argv[0] == "all" else [argv[0]])
     params = json.loads(argv[1]) if len(argv) > 1 else {}
-    for name in names:
-        warm(name, params)
+    for name in dict.fromkeys(names):
+        warm(name, None if name == PIPELINE else params)
     return 0
 
 

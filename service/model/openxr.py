@@ -108,3 +108,50 @@ def joint_tracked(optics_tracking: bool, fingers_measured: Mapping[str, bool]) -
         measured = bone == "metacarpal" or fingers_measured.get(finger, True)
         tracked[name] = bool(optics_tracking and measured)
     return tracked
+
+
+# -- compiled form of ``joint_poses`` ------------------------------------------------------------------------
+# ``joint_poses`` above is the reference; ``joint_poses_compiled`` computes the same 26 poses in one numba
+# call (``tests/test_openxr_kernel.py``: equal to 1e-12) from the calibration packed once per calibration.
+
+_FINGER_ORDER = ("thumb",) + tuple(LONG_FINGERS)
+_PACK = 16          # per finger: n, base rotation (9, row-major), base position (3), lengths (3, zero-padded)
+_packed: dict[int, tuple[HandCalibration, np.ndarray]] = {}
+
+
+def _packed_calibration(calib: HandCalibration) -> np.ndarray:
+    """``(6, 16)``: one row per finger in joint order (``_PACK``), then the palm joint's y and the thumb
+    metacarpal length; cached per calibration object."""
+    hit = _packed.get(id(calib))
+    if hit is not None and hit[0] is calib:
+        return hit[1]
+    out = np.zeros((len(_FINGER_ORDER) + 1, _PACK))
+    for f, name in enumerate(_FINGER_ORDER):
+        geom = calib.finger(name)
+        n = geom.n_phalanges
+        out[f, 0] = n
+        out[f, 1:10] = geom.base_matrix().ravel()
+        out[f, 10:13] = geom.base_position_m
+        out[f, 13:13 + n] = geom.lengths_m
+    out[-1, 0] = 0.5 * calib.finger("middle").base_position_m[1]
+    out[-1, 1] = THUMB_METACARPAL_M
+    if len(_packed) >= 64:
+        _packed.clear()
+    _packed[id(calib)] = (calib, out)
+    return out
+
+
+def joint_poses_compiled(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
+                         hand_rotation: np.ndarray, hand_position: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """``joint_poses`` in one compiled call (same arguments, same result to rounding)."""
+    from .openxr_kernel import joint_poses as kernel
+
+    phi = np.zeros((len(_FINGER_ORDER), 3))
+    for f, name in enumerate(_FINGER_ORDER):
+        a = joint_angles[name]
+        phi[f, :len(a)] = a
+    positions = np.empty((len(JOINT_NAMES), 3))
+    quats = np.empty((len(JOINT_NAMES), 4))
+    kernel(_packed_calibration(calib), phi, np.ascontiguousarray(hand_rotation, dtype=float),
+           np.ascontiguousarray(hand_position, dtype=float), positions, quats)
+    return {n: (positions[k], quats[k]) for k, n in enumerate(JOINT_NAMES)}

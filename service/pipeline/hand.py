@@ -39,7 +39,7 @@ from ..estimators.registry import EstimatorSpec, make_estimator
 from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
-from ..model.openxr import joint_poses, joint_radii, joint_tracked
+from ..model.openxr import joint_poses_compiled, joint_radii, joint_tracked
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .optical import OpticalTrack
@@ -509,7 +509,7 @@ class HandSession:
         assert hand is not None
         angles = {n: fs.phi.copy() for n, fs in self._fingers.items()}
         modes = {n: fs.mode for n, fs in self._fingers.items()}
-        joints = joint_poses(self.calibration, angles, hand.rotation, hand.position)
+        joints = joint_poses_compiled(self.calibration, angles, hand.rotation, hand.position)
         tracked = joint_tracked(self._tracking, {n: bool(fs.active_sensors) for n, fs in self._fingers.items()})
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),

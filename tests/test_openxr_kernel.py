@@ -1,0 +1,29 @@
+"""The compiled OpenXR joint poses (``model/openxr_kernel.py``) equal the numpy/scipy reference
+``openxr.joint_poses`` on random poses of both hands and of a recalibrated hand."""
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from service.model.hand import default_calibration
+from service.model.openxr import JOINT_NAMES, joint_poses, joint_poses_compiled
+
+
+@pytest.mark.parametrize("hand", ["right", "left"])
+def test_compiled_joint_poses_equal_the_reference(hand):
+    rng = np.random.default_rng(11)
+    calib = default_calibration(hand)
+    recalibrated = calib.with_overrides({"thumb": {"lengths": [0.05, 0.03]},
+                                         "ring": {"base": {"orientation": [0.1, 0.05, -0.08, 0.99]}}})
+    for trial in range(40):
+        c = recalibrated if trial % 2 else calib
+        angles = {n: rng.uniform(-1.5, 3.0, g.n_phalanges) for n, g in c.fingers.items()}
+        if trial == 0:
+            angles = {n: np.zeros(g.n_phalanges) for n, g in c.fingers.items()}   # identity joint frames
+        rotation = Rotation.random(random_state=rng).as_matrix()
+        position = rng.normal(0.0, 1.0, 3)
+        reference = joint_poses(c, angles, rotation, position)
+        compiled = joint_poses_compiled(c, angles, rotation, position)
+        assert list(compiled) == list(JOINT_NAMES)
+        for name in JOINT_NAMES:
+            np.testing.assert_allclose(compiled[name][0], reference[name][0], rtol=0, atol=1e-12, err_msg=name)
+            np.testing.assert_allclose(compiled[name][1], reference[name][1], rtol=0, atol=1e-12, err_msg=name)
