@@ -18,6 +18,7 @@ Poses marked ``valid: false`` are left out; the splines bridge the gaps.
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -26,6 +27,7 @@ from scipy.spatial.transform import Rotation
 
 from ..model import quaternion as quat
 from ..model.kinematics import BaseMotion
+from . import optical_kernel
 
 MIN_POSES = 5
 MIN_POSES_QUADRATIC = 8
@@ -93,6 +95,17 @@ class OpticalTrack:
         self.latest_t: float | None = None
         self.latest_valid_t: float | None = None
         self._pruned_valid: tuple | None = None
+        # the same poses as arrays for the compiled ``at`` (``optical_kernel``): entries lo..hi-1
+        self._max_poses = max_poses
+        cap = 2 * max_poses + 2
+        self._t = np.zeros(cap)
+        self._valid = np.zeros(cap, dtype=np.bool_)
+        self._position = np.zeros((cap, 3))
+        self._orientation = np.zeros((cap, 4))
+        self._lo = self._hi = 0
+        self._held_t = math.nan                           # the newest pruned valid pose
+        self._held_position = np.zeros(3)
+        self._held_orientation = np.array([0.0, 0.0, 0.0, 1.0])
 
     def add(self, t: float, position, orientation_xyzw, valid: bool) -> None:
         if self.latest_t is not None and t <= self.latest_t:
@@ -108,6 +121,29 @@ class OpticalTrack:
             old = self._poses.popleft()
             if old[1]:
                 self._pruned_valid = old       # still the held pose during a long occlusion
+        self._add_array(t, position, orientation_xyzw, valid, horizon)
+
+    def _add_array(self, t: float, position, orientation_xyzw, valid: bool, horizon: float) -> None:
+        """``add`` on the arrays, step for step as on the deque (its ``maxlen`` drops silently)."""
+        if self._hi == len(self._t):
+            n = self._hi - self._lo
+            for a in (self._t, self._valid, self._position, self._orientation):
+                a[:n] = a[self._lo:self._hi]
+            self._lo, self._hi = 0, n
+        i = self._hi
+        self._t[i], self._valid[i] = t, bool(valid)
+        if valid:
+            self._position[i] = position
+            self._orientation[i] = orientation_xyzw
+        self._hi += 1
+        if self._hi - self._lo > self._max_poses:
+            self._lo += 1
+        while self._hi - self._lo > 2 and self._t[self._lo + 1] < horizon:
+            if self._valid[self._lo]:
+                self._held_t = float(self._t[self._lo])
+                self._held_position = self._position[self._lo].copy()
+                self._held_orientation = self._orientation[self._lo].copy()
+            self._lo += 1
 
     def covers(self, t: float) -> bool:
         """True when ``t`` can be evaluated now: a pose at or after ``t`` has arrived."""
@@ -122,7 +158,19 @@ class OpticalTrack:
         return out
 
     def at(self, t: float) -> tuple[BaseMotion | None, bool]:
-        """``(kinematics, tracking)``; ``None`` before the first valid pose."""
+        """``(kinematics, tracking)``; ``None`` before the first valid pose. One compiled call
+        (``optical_kernel.at``), equal to ``at_reference``."""
+        out = np.empty(24)
+        status = optical_kernel.at(float(t), self._t, self._valid, self._position, self._orientation, self._lo, self._hi,
+                                   self._held_t, self._held_position, self._held_orientation, float(self.window_s),
+                                   float(self.timeout_s), out)
+        if status == optical_kernel.NONE:
+            return None, False
+        return (BaseMotion(out[:9].reshape(3, 3), out[9:12], out[12:15], out[15:18], out[18:21], out[21:24]),
+                status == optical_kernel.TRACKING)
+
+    def at_reference(self, t: float) -> tuple[BaseMotion | None, bool]:
+        """``at`` in numpy and scipy (the reference of the compiled kernel)."""
 
         poses = self._relevant(t)
         valid = [p for p in poses if p[1]] or ([self._pruned_valid] if self._pruned_valid is not None else [])

@@ -1,0 +1,190 @@
+"""Compiled (numba) kernel of ``OpticalTrack.at``: the metacarpus kinematics at one time from the
+stored poses, in one call. ``OpticalTrack.at_reference`` (numpy and scipy's ``Rotation``) is the
+reference; ``tests/test_optical_kernel.py`` checks the two against each other.
+
+The poses are the track's arrays ``t`` (cap,), ``valid`` (cap,) 0/1, ``position`` (cap, 3) and
+``orientation`` (cap, 4, ``[x, y, z, w]``) between ``lo`` and ``hi`` (the reference's deque), plus
+the newest pruned valid pose (``held``: t, position, orientation; ``t`` NaN when there is none).
+The rotation formulas are scipy's (``from_quat`` normalises; ``as_rotvec`` and ``from_rotvec`` with
+their series below 1e-3 rad), the fit the same ``lstsq`` (LAPACK gelsd).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .. import JIT_CACHE
+
+FMA = {"contract"}
+NONE, HELD, TRACKING = 0, 1, 2
+"""``at`` results: no valid pose yet; the last valid pose held (optics lost); tracked."""
+
+
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+def _unit(x, y, z, w):
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    return x / n, y / n, z / n, w / n
+
+
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+def _matrix(x, y, z, w, out, o):
+    """Rotation matrix of a unit ``[x, y, z, w]`` quaternion into ``out[o:o+9]`` (row-major)."""
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    out[o + 0] = x2 - y2 - z2 + w2
+    out[o + 1] = 2.0 * (xy - zw)
+    out[o + 2] = 2.0 * (xz + yw)
+    out[o + 3] = 2.0 * (xy + zw)
+    out[o + 4] = -x2 + y2 - z2 + w2
+    out[o + 5] = 2.0 * (yz - xw)
+    out[o + 6] = 2.0 * (xz - yw)
+    out[o + 7] = 2.0 * (yz + xw)
+    out[o + 8] = -x2 - y2 + z2 + w2
+
+
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+def _exp(vx, vy, vz):
+    """``Rotation.from_rotvec`` as a unit quaternion."""
+    angle = math.sqrt(vx * vx + vy * vy + vz * vz)
+    if angle <= 1e-3:
+        a2 = angle * angle
+        scale = 0.5 - a2 / 48.0 + a2 * a2 / 3840.0
+    else:
+        scale = math.sin(angle / 2.0) / angle
+    return _unit(vx * scale, vy * scale, vz * scale, math.cos(angle / 2.0))
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out):
+    """The metacarpus kinematics at ``t`` (``OpticalTrack.at_reference``): returns ``NONE``, ``HELD``
+    or ``TRACKING`` and fills ``out`` (24: rotation row-major, position, velocity, acceleration,
+    angular velocity, angular acceleration; world frame) for the last two."""
+    # the poses up to the first at or after t
+    end = hi
+    for i in range(lo, hi):
+        if ts[i] >= t:
+            end = i + 1
+            break
+    last = -1
+    for i in range(end - 1, lo - 1, -1):
+        if valid[i]:
+            last = i
+            break
+    if last < 0 and math.isnan(held_t):
+        return NONE
+    if last >= 0:
+        last_t = ts[last]
+        lx, ly, lz, lw = orientation[last, 0], orientation[last, 1], orientation[last, 2], orientation[last, 3]
+        lp0, lp1, lp2 = position[last, 0], position[last, 1], position[last, 2]
+    else:
+        last_t = held_t
+        lx, ly, lz, lw = held_q[0], held_q[1], held_q[2], held_q[3]
+        lp0, lp1, lp2 = held_p[0], held_p[1], held_p[2]
+    qx, qy, qz, qw = _unit(lx, ly, lz, lw)
+    if (end > lo and not valid[end - 1]) or t - last_t > timeout_s:
+        _matrix(qx, qy, qz, qw, out, 0)
+        out[9], out[10], out[11] = lp0, lp1, lp2
+        for k in range(12, 24):
+            out[k] = 0.0
+        return HELD
+
+    # the fit window: the valid poses within window_s before t (at least the newest)
+    m = 0
+    if last >= 0:
+        for i in range(lo, end):
+            if valid[i] and ts[i] >= t - window_s:
+                m += 1
+    if m == 0:
+        m = 1
+        idx = np.empty(1, np.int64)
+        idx[0] = last
+    else:
+        idx = np.empty(m, np.int64)
+        j = 0
+        for i in range(lo, end):
+            if valid[i] and ts[i] >= t - window_s:
+                idx[j] = i
+                j += 1
+    tau = np.empty(m)
+    tabs = np.empty(m)
+    pos = np.empty((m, 3))
+    rv = np.empty((m, 3))
+    # rotation vectors relative to the newest: log(R_ref⁻¹ R_i), scipy's as_rotvec
+    for j in range(m):
+        i = idx[j]
+        if i >= 0:
+            tj = ts[i]
+            px, py, pz = position[i, 0], position[i, 1], position[i, 2]
+            ix, iy, iz, iw = _unit(orientation[i, 0], orientation[i, 1], orientation[i, 2], orientation[i, 3])
+        else:
+            tj = held_t
+            px, py, pz = held_p[0], held_p[1], held_p[2]
+            ix, iy, iz, iw = _unit(held_q[0], held_q[1], held_q[2], held_q[3])
+        tabs[j] = tj
+        tau[j] = tj - t
+        pos[j, 0], pos[j, 1], pos[j, 2] = px, py, pz
+        # conj(q_ref) ⊗ q_i
+        ax, ay, az, aw = -qx, -qy, -qz, qw
+        cx = aw * ix + ax * iw + ay * iz - az * iy
+        cy = aw * iy - ax * iz + ay * iw + az * ix
+        cz = aw * iz + ax * iy - ay * ix + az * iw
+        cw = aw * iw - ax * ix - ay * iy - az * iz
+        if cw < 0.0:
+            cx, cy, cz, cw = -cx, -cy, -cz, -cw
+        angle = 2.0 * math.atan2(math.sqrt(cx * cx + cy * cy + cz * cz), cw)
+        if angle <= 1e-3:
+            a2 = angle * angle
+            scale = 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0
+        else:
+            scale = angle / math.sin(angle / 2.0)
+        rv[j, 0], rv[j, 1], rv[j, 2] = scale * cx, scale * cy, scale * cz
+
+    coef_p = np.zeros((3, 3))
+    coef_r = np.zeros((3, 3))
+    if m >= 8:                          # MIN_POSES_QUADRATIC: position, rate and acceleration
+        design = np.empty((m, 3))
+        for j in range(m):
+            design[j, 0], design[j, 1], design[j, 2] = 1.0, tau[j], 0.5 * tau[j] ** 2
+        coef_p[:, :] = np.linalg.lstsq(design, pos)[0]
+        coef_r[:, :] = np.linalg.lstsq(design, rv)[0]
+    elif m >= 3:                        # rates only
+        design = np.empty((m, 2))
+        for j in range(m):
+            design[j, 0], design[j, 1] = 1.0, tau[j]
+        coef_p[:2, :] = np.linalg.lstsq(design, pos)[0]
+        coef_r[:2, :] = np.linalg.lstsq(design, rv)[0]
+    else:
+        for k in range(3):
+            coef_p[0, k] = pos[m - 1, k]
+            coef_r[0, k] = rv[m - 1, k]
+
+    ref = np.empty(9)
+    _matrix(qx, qy, qz, qw, ref, 0)
+    t_last = tabs[m - 1]
+    t_prev = tabs[m - 2] if m >= 2 else 0.0
+    if m >= 2 and t_prev <= t <= t_last and t_last > t_prev:
+        s = (t_last - t) / (t_last - t_prev)
+        ex, ey, ez, ew = _exp(s * rv[m - 2, 0], s * rv[m - 2, 1], s * rv[m - 2, 2])
+    elif t_last == t:
+        ex, ey, ez, ew = 0.0, 0.0, 0.0, 1.0
+    else:
+        d = t - t_last
+        ex, ey, ez, ew = _exp(coef_r[1, 0] * d, coef_r[1, 1] * d, coef_r[1, 2] * d)
+    rel = np.empty(9)
+    _matrix(ex, ey, ez, ew, rel, 0)
+    for r in range(3):
+        for c in range(3):
+            out[3 * r + c] = ref[3 * r] * rel[c] + ref[3 * r + 1] * rel[3 + c] + ref[3 * r + 2] * rel[6 + c]
+    for k in range(3):
+        out[9 + k] = coef_p[0, k]
+        out[12 + k] = coef_p[1, k]
+        out[15 + k] = coef_p[2, k]
+    # body-frame rates to the world frame: R_ref ω, R_ref α
+    w0, w1, w2 = coef_r[1, 0], coef_r[1, 1], coef_r[1, 2]
+    a0, a1, a2 = coef_r[2, 0], coef_r[2, 1], coef_r[2, 2]
+    for r in range(3):
+        out[18 + r] = ref[3 * r] * w0 + ref[3 * r + 1] * w1 + ref[3 * r + 2] * w2
+        out[21 + r] = ref[3 * r] * a0 + ref[3 * r + 1] * a1 + ref[3 * r + 2] * a2
+    return TRACKING
