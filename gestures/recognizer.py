@@ -61,8 +61,8 @@ class GestureSettings(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    curl_full_long_rad: float = Field(np.radians(250.0), gt=0.0, description="total flexion of a fully curled long finger, rad")
-    curl_full_thumb_rad: float = Field(np.radians(120.0), gt=0.0, description="total flexion of a fully curled thumb, rad")
+    curl_full_long_rad: float = Field(float(np.radians(250.0)), gt=0.0, description="total flexion of a fully curled long finger, rad")
+    curl_full_thumb_rad: float = Field(float(np.radians(120.0)), gt=0.0, description="total flexion of a fully curled thumb, rad")
     grasp_curl_enter: float = Field(0.6, ge=0.0, le=1.0, description="grasp starts with every long finger's curl above this")
     grasp_curl_exit: float = Field(0.45, ge=0.0, le=1.0, description="grasp ends when one long finger's curl falls below this")
     point_index_enter: float = Field(0.2, ge=0.0, le=1.0, description="index curl at most this to start pointing")

@@ -222,3 +222,8 @@ def test_the_openapi_document_declares_the_bearer_scheme_and_typed_bodies(server
     body = _resolve(doc, body["$ref"]) if "$ref" in body else body
     assert set(body["properties"]) == {"estimator", "estimator_params", "gestures", "record"}
     assert body.get("additionalProperties") is False            # unknown fields are refused, as the route does
+    for method in ("get", "put"):                               # both answer the session's whole configuration
+        answer = paths["/v1/sessions/{session}/config"][method]["responses"]["200"]["content"]["application/json"]["schema"]
+        answer = _resolve(doc, answer["$ref"]) if "$ref" in answer else answer
+        assert set(answer["required"]) == {"estimator", "record"}
+        assert set(answer["properties"]) == {"estimator", "estimator_params", "gestures", "record"}

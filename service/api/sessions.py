@@ -23,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pydantic import BaseModel, ConfigDict, Field
+
 from gestures.recognizer import GestureSettings
 from ..estimators.registry import EstimatorSpec
 from ..pipeline.hand import Dropped, PipelineSettings
@@ -111,18 +113,17 @@ class Recorder:
             self._fh.close()
 
 
-class SessionConfig:
-    """What ``GET/PUT /v1/sessions/{session}/config`` reads and changes."""
+class SessionConfig(BaseModel):
+    """What ``GET/PUT /v1/sessions/{session}/config`` reads and changes (``LiveSession.update_config``
+    validates a change whole, then replaces the configuration)."""
 
-    def __init__(self, estimator: str, record: bool):
-        self.estimator = estimator
-        self.estimator_params: dict[str, Any] = {}
-        self.gestures = GestureSettings()
-        self.record = record
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
-    def as_dict(self) -> dict:
-        return {"estimator": self.estimator, "estimator_params": self.estimator_params,
-                "gestures": self.gestures.model_dump(), "record": self.record}
+    estimator: str = Field(description="estimator name (``fingertrack estimate --list``)")
+    estimator_params: dict[str, Any] = Field(default_factory=dict, description="the estimator's settings as given "
+                                             "(its defaults for the others)")
+    gestures: GestureSettings = Field(default_factory=GestureSettings, description="gesture recogniser thresholds")
+    record: bool = Field(description="the session's source messages are recorded (needs the service's record_dir)")
 
 
 class LiveSession:
@@ -130,7 +131,7 @@ class LiveSession:
         self.name = name
         self.settings = settings
         self.metrics = metrics
-        self.config = SessionConfig(settings.estimator, settings.record_all)
+        self.config = SessionConfig(estimator=settings.estimator, record=settings.record_all)
         self.hand = TrackedHand(settings=PipelineSettings(estimator=settings.estimator, output_rate_hz=settings.output_rate_hz))
         self.subscribers: set[Subscriber] = set()
         self.recorder: Recorder | None = None
@@ -178,12 +179,10 @@ class LiveSession:
             raise ValueError("record: the service has no record_dir; start it with one to record sessions")
         if (estimator, params) != (self.config.estimator, self.config.estimator_params):
             self.hand.set_estimator(spec)
-        self.config.estimator, self.config.estimator_params = estimator, params
-        self.config.gestures = gestures
+        self.config = SessionConfig(estimator=estimator, estimator_params=params, gestures=gestures, record=record)
         self.hand.set_gesture_settings(gestures)
-        self.config.record = record
         self._apply_recording()
-        return self.config.as_dict()
+        return self.config.model_dump()
 
     def enrol(self, segments: list) -> dict:
         """Fit the gesture thresholds to labelled segments of the recent frames and apply them
@@ -236,7 +235,7 @@ class LiveSession:
     def summary(self) -> dict:
         return {"session": self.name, "hand": self.hand.hand, "sources": self.sources,
                 "subscribers": len(self.subscribers), "frames_out": self.frames_out,
-                "dropped_subscriber_frames": self.dropped_frames, "config": self.config.as_dict(),
+                "dropped_subscriber_frames": self.dropped_frames, "config": self.config.model_dump(),
                 "status": self.last_status, "recording": str(self.recorder.path) if self.recorder else None}
 
     def close(self) -> None:

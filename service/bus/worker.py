@@ -102,7 +102,7 @@ class OwnedSession:
             seq, t = self.sink.resume_after
         return pack({"session": self.name, "worker": worker, "seq": seq, "t": t,
                      "angles": self.sink.last_angles or self.resume_angles, "hello": self.hello,
-                     "calibration": self.calibration, "config": self.live.config.as_dict()})
+                     "calibration": self.calibration, "config": self.live.config.model_dump()})
 
 
 class Worker:

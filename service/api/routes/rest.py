@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from ...estimators.warm import warm_ahead
 from ...protocol import PROTOCOL_VERSION
 from ..deps import MetricsDep, Role, SessionsDep, existing_session, session_or_new
-from ..sessions import LiveSession
+from ..sessions import LiveSession, SessionConfig
 
 router = APIRouter()
 INDEX_PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8"><title>fingertrack</title>
@@ -65,12 +65,12 @@ def list_sessions(request: Request, sessions: SessionsDep, role: Annotated[str, 
     return out
 
 
-@router.get("/v1/sessions/{session}/config", dependencies=[Security(Role("read"))])
+@router.get("/v1/sessions/{session}/config", dependencies=[Security(Role("read"))], response_model=SessionConfig)
 def get_config(live: Annotated[LiveSession, Depends(existing_session)]):
-    return live.config.as_dict()
+    return live.config
 
 
-@router.put("/v1/sessions/{session}/config", dependencies=[Security(Role("configure"))])
+@router.put("/v1/sessions/{session}/config", dependencies=[Security(Role("configure"))], response_model=SessionConfig)
 def put_config(session: str, change: SessionConfigChange, sessions: SessionsDep):
     # a plain function (FastAPI's thread pool), as before: a bus session's change waits for its worker
     live = session_or_new(session, sessions)
