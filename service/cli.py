@@ -96,7 +96,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _parse_params(pairs: list[str], beta: float | None) -> dict:
+def _parse_params(pairs: list[str]) -> dict:
     """``NAME=VALUE`` pairs to settings keyword arguments; a dotted name reaches a nested settings
     object (``core.tau_acc_s=2`` for the ``inertial`` estimator's core). Values stay strings: the
     settings models validate and convert them."""
@@ -116,9 +116,17 @@ def _parse_params(pairs: list[str], beta: float | None) -> dict:
         if isinstance(node.get(leaf), dict):
             raise ValueError(f"--param: {name!r} is a group of settings, set its fields as {name}.FIELD=VALUE")
         node[leaf] = value.strip()
-    if beta is not None:
-        params["beta"] = beta
     return params
+
+
+def _estimator_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--estimator NAME`` and its settings: ``--param NAME=VALUE`` (``_parse_params``); ``--beta B``
+    is short for ``--param beta=B`` (Madgwick's gain)."""
+    parser.add_argument("--estimator", default="chain", help="estimator name (fingertrack estimate --list; default chain)")
+    parser.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                        help="any estimator setting; NAME.FIELD for a nested one (e.g. core.tau_acc_s=2)")
+    parser.add_argument("--beta", dest="param", action="append", type=lambda value: f"beta={value}", metavar="B",
+                        help="the same as --param beta=B: the madgwick estimator's gain, rad/s")
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
@@ -139,7 +147,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     from .pipeline.offline import load_recording, run_with_references
 
     try:
-        spec = EstimatorSpec.of(args.estimator, _parse_params(args.param, args.beta))
+        spec = EstimatorSpec.of(args.estimator, _parse_params(args.param))
     except ValidationError as err:
         raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
     rec = load_recording(args.recording)
@@ -193,7 +201,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     from .protocol import read_recording
 
     try:
-        settings = PipelineSettings(estimator=args.estimator, estimator_params=_parse_params(args.param, None))
+        settings = PipelineSettings(estimator=args.estimator, estimator_params=_parse_params(args.param))
         EstimatorSpec.of(settings.estimator, settings.estimator_params)
     except ValidationError as err:
         raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
@@ -499,11 +507,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     est = sub.add_parser("estimate", help="run a recording through an estimator and write joint angles as CSV")
     est.add_argument("recording", nargs="?", help="protocol-v1 recording, JSON Lines")
-    est.add_argument("--estimator", default="chain", help="estimator name (see --list; default chain)")
+    _estimator_arguments(est)
     est.add_argument("--list", action="store_true", help="list the estimators, one per line, name first")
-    est.add_argument("--beta", type=float, default=None, help="Madgwick gain beta, rad/s")
-    est.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                     help="any estimator setting; NAME.FIELD for a nested one (e.g. core.tau_acc_s=2)")
     est.add_argument("--truth", action="store_true", help="print RMS error per joint in degrees (needs truth)")
     est.add_argument("--init-from-truth", action="store_true", help="start from the recording's true initial configuration")
     est.add_argument("--out", help="output CSV: t,finger,mcp,pip,dip,mode (radians)")
@@ -511,9 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser("replay", help="run a recording through the hand pipeline and gesture recogniser")
     rep.add_argument("recording", help="protocol-v1 recording, JSON Lines")
-    rep.add_argument("--estimator", default="chain", help="estimator name (default chain)")
-    rep.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                     help="any estimator setting; NAME.FIELD for a nested one (e.g. core.tau_acc_s=2)")
+    _estimator_arguments(rep)
     rep.add_argument("--out", help="write the frames and gesture events as JSON Lines")
     rep.set_defaults(func=_cmd_replay)
 

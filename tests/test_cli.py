@@ -66,7 +66,7 @@ def test_a_dotted_param_sets_a_nested_setting(tmp_path, capsys):
     from service.cli import _parse_params
     from service.estimators.inertial import InertialFingerSettings
 
-    params = _parse_params(["core.tau_acc_s=2", "core.scale_sigma_init=0", "second_reference=false"], None)
+    params = _parse_params(["core.tau_acc_s=2", "core.scale_sigma_init=0", "second_reference=false"])
     settings = InertialFingerSettings(**params)
     assert settings.core.tau_acc_s == 2.0 and settings.core.scale_sigma_init == 0.0
     assert settings.second_reference is False
@@ -88,6 +88,21 @@ def test_a_dotted_param_sets_a_nested_setting(tmp_path, capsys):
     assert main(["estimate", str(rec), "--estimator", "inertial", "--param", "core.=1",
                  "--out", str(tmp_path / "x.csv")]) == 2
     assert "empty name" in capsys.readouterr().err
+
+
+def test_beta_is_short_for_the_beta_param(tmp_path, capsys):
+    rec = tmp_path / "g.jsonl"
+    main(["simulate", "--motion", "grasp", "--tm", "0.5", "--noise", "white", "--out", str(rec)])
+    outs = {}
+    for name, extra in (("default", []), ("beta", ["--beta", "0.5"]), ("param", ["--param", "beta=0.5"])):
+        assert main(["estimate", str(rec), "--estimator", "madgwick", *extra, "--out", str(tmp_path / f"{name}.csv")]) == 0
+        outs[name] = (tmp_path / f"{name}.csv").read_text()
+    assert outs["beta"] == outs["param"] != outs["default"]
+    capsys.readouterr()
+    assert main(["estimate", str(rec), "--estimator", "chain", "--beta", "0.5", "--out", str(tmp_path / "x.csv")]) == 2
+    assert "beta" in capsys.readouterr().err                    # chain has no beta: refused by name
+    assert main(["estimate", str(rec), "--estimator", "madgwick", "--beta", "fast", "--out", str(tmp_path / "x.csv")]) == 2
+    assert "beta" in capsys.readouterr().err
 
 
 def _subcommands(parser) -> dict:
