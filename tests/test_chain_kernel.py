@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from service.estimators.chain import Chain, ChainSettings
+from service.estimators.chain_kernel import N_STATE
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
 from service.pipeline.hand import HandSession, PipelineSettings
@@ -29,9 +30,9 @@ def _random_hand(rng, batch):
 def _random_state(rng, est):
     b, s = est.batch_shape, est.n_sensors
     x = np.concatenate([rng.uniform(-1.0, 2.0, b + (s, 1)), rng.normal(0.0, 0.05, b + (s, 1)),
-                        rng.normal(0.0, 0.5, b + (s, 3))], axis=-1)
-    a = rng.normal(0.0, 0.05, b + (s, 5, 5))
-    P = a @ np.swapaxes(a, -1, -2) + 1e-4 * np.eye(5)             # symmetric positive definite
+                        rng.normal(0.0, 0.5, b + (s, 3)), rng.normal(0.0, 0.03, b + (s, 9))], axis=-1)
+    a = rng.normal(0.0, 0.05, b + (s, N_STATE, N_STATE))
+    P = a @ np.swapaxes(a, -1, -2) + 1e-4 * np.eye(N_STATE)       # symmetric positive definite
     return {"x": x, "P": P, "rate": rng.normal(0.0, 3.0, b + (s,)), "hand_acc": rng.normal(0.0, 5.0, b + (3,))}
 
 

@@ -5,7 +5,8 @@ other to 1e-9 on random inputs and on a simulated recording through the hand pip
 Everything lives in flat float64 arrays the estimator keeps, so one call advances every sensor of a
 finger (and every batch row) by any number of samples without a numpy call:
 
-* state: ``x`` (B, S, 5) = ``[θ, b_g, b_ax, b_ay, b_az]`` per sensor, ``P`` (B, S, 5, 5), the last
+* state: ``x`` (B, S, 14) = ``[θ, b_g, b_ax, b_ay, b_az, G (9, row-major)]`` per sensor, ``P``
+  (B, S, 14, 14), the last
   measured relative rate ``rate`` (B, S) and the last hand acceleration ``hand_acc`` (B, 3), updated
   in place;
 * inputs per sample: ``dt`` (N,), ``gyr``/``acc`` (N, B, S, 3) and the hand as ``BaseMotion.flat``
@@ -28,14 +29,19 @@ from .. import JIT_CACHE
 FMA = {"contract"}
 """Fused multiply-add only (rounding differs by an ulp; NaN and infinity keep their meaning)."""
 
-N_STATE = 5
+GA_START = 5
+"""Index of the accelerometer's linear-map states ``G`` (9, row-major) in the state vector."""
+N_STATE = GA_START + 9
+HINGE_G_YZ, HINGE_G_ZY = GA_START + 5, GA_START + 7
+"""``G_yz`` and ``G_zy``: their antisymmetric combination (a turn about the hinge axis) is left to the
+angle, so the random walk of ``G`` is projected off it (``chain._HINGE_FREE``)."""
 HAND_SIZE = 18
 """``BaseMotion.flat``: rotation (9, row-major), acceleration, angular velocity, angular acceleration."""
 
 # --- settings vector -------------------------------------------------------------------------
 (ST_GYRO_NOISE, ST_GYRO_WALK, ST_ACC_WALK, ST_ACC_NOISE, ST_KINEMATIC, ST_GYRO_SCALE, ST_ACC_SCALE,
- ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE) = range(11)
-SETTINGS_SIZE = 11
+ ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE, ST_CAL_WALK) = range(12)
+SETTINGS_SIZE = 12
 SATURATED_SIGMA_M_S2 = 1e6
 """Accelerometer std of a clipped sample (no update in effect), as in the reference."""
 SATURATION_MARGIN = 1.0 - 1e-3
@@ -46,7 +52,8 @@ def settings_vector(s) -> np.ndarray:
     """The ``ChainSettings`` the kernel reads, in the ``ST_*`` order."""
     return np.array([s.gyro_noise_density_rad_s_rthz, s.gyro_bias_walk_rad_s_rts, s.acc_bias_walk_m_s2_rts,
                      s.acc_noise_m_s2, s.kinematic_uncertainty, s.gyro_scale_uncertainty, s.acc_scale_uncertainty,
-                     s.gyro_range_rad_s, s.acc_range_m_s2, s.hand_jerk_time_s, s.untracked_acc_noise_m_s2], dtype=float)
+                     s.gyro_range_rad_s, s.acc_range_m_s2, s.hand_jerk_time_s, s.untracked_acc_noise_m_s2,
+                     s.calibration_walk_rts], dtype=float)
 
 
 def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
@@ -86,6 +93,7 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
     q_theta = st[ST_GYRO_NOISE] ** 2
     q_bg = st[ST_GYRO_WALK] ** 2
     q_ba = st[ST_ACC_WALK] ** 2
+    q_cal = st[ST_CAL_WALK] ** 2
     gyro_range, acc_range = st[ST_GYRO_RANGE], st[ST_ACC_RANGE]
     gyro_clip, acc_clip = gyro_range * SATURATION_MARGIN, acc_range * SATURATION_MARGIN
     untracked_var = (st[ST_UNTRACKED_NOISE] if untracked else 0.0) ** 2
@@ -101,9 +109,15 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
     dw_all = np.empty(nph)
     cs = np.empty(nph)
     sn = np.empty(nph)
+    hm = np.zeros((3, N_STATE))         # H
+    hp = np.empty((3, N_STATE))         # H P
     pht = np.empty((N_STATE, 3))        # P Hᵀ
     kg = np.empty((N_STATE, 3))         # Kalman gain
     a = np.empty((N_STATE, N_STATE))    # (I - K H) P
+    aht = np.empty((N_STATE, 3))        # (I - K H) P Hᵀ
+    vv = np.empty(3)                    # R_x(θ)ᵀ u
+    hth = np.empty(3)                   # ∂f/∂θ
+    yy = np.empty(3)                    # innovation
 
     for i in range(dts.shape[0]):
         dt = dts[i]
@@ -216,14 +230,30 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
                 p[b, k, 2, 2] += q_ba * dt
                 p[b, k, 3, 3] += q_ba * dt
                 p[b, k, 4, 4] += q_ba * dt
+                for ii in range(GA_START, N_STATE):
+                    if ii != HINGE_G_YZ and ii != HINGE_G_ZY:
+                        p[b, k, ii, ii] += q_cal * dt
+                half = 0.5 * q_cal * dt
+                p[b, k, HINGE_G_YZ, HINGE_G_YZ] += half
+                p[b, k, HINGE_G_ZY, HINGE_G_ZY] += half
+                p[b, k, HINGE_G_YZ, HINGE_G_ZY] += half
+                p[b, k, HINGE_G_ZY, HINGE_G_YZ] += half
 
-                # measurement f = R_x(θ)ᵀ u + b_a
+                # measurement f = (I + G) R_x(θ)ᵀ u + b_a
                 c, s = math.cos(th[k]), math.sin(th[k])
-                y0 = f0 - (u0 + x[b, k, 2])
-                y1 = f1 - ((c * u1 + s * u2) + x[b, k, 3])
-                y2 = f2 - ((-s * u1 + c * u2) + x[b, k, 4])
-                h1 = -s * u1 + c * u2              # ∂f_y/∂θ
-                h2 = -c * u1 - s * u2              # ∂f_z/∂θ
+                vv[0], vv[1], vv[2] = u0, c * u1 + s * u2, -s * u1 + c * u2
+                h1 = -s * u1 + c * u2              # ∂v_y/∂θ
+                h2 = -c * u1 - s * u2              # ∂v_z/∂θ
+                for rr in range(3):
+                    g = GA_START + 3 * rr
+                    pred = vv[rr] + x[b, k, g] * vv[0] + x[b, k, g + 1] * vv[1] + x[b, k, g + 2] * vv[2] + x[b, k, 2 + rr]
+                    hth[rr] = x[b, k, g + 1] * h1 + x[b, k, g + 2] * h2
+                    yy[rr] = pred
+                hth[1] += h1
+                hth[2] += h2
+                yy[0] = f0 - yy[0]
+                yy[1] = f1 - yy[1]
+                yy[2] = f2 - yy[2]
                 mu = geo[o_cf + k] * math.sqrt(dw_max * dw_max + w_max ** 4)     # eq. 6 bound
                 fnorm = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
                 sigma = math.sqrt(st[ST_ACC_NOISE] ** 2 + (st[ST_KINEMATIC] * mu) ** 2 + (st[ST_ACC_SCALE] * fnorm) ** 2
@@ -232,22 +262,40 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
                     sigma = SATURATED_SIGMA_M_S2
                 r = sigma * sigma
 
-                # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
-                # H rows: e2, h1 e0 + e3, h2 e0 + e4
+                # update (kalman.update): H rows i: ∂f_i/∂θ at 0, e at 2 + i, v at G_i.
+                # PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
+                for rr in range(3):
+                    for ll in range(N_STATE):
+                        hm[rr, ll] = 0.0
+                    hm[rr, 0] = hth[rr]
+                    hm[rr, 2 + rr] = 1.0
+                    g = GA_START + 3 * rr
+                    hm[rr, g], hm[rr, g + 1], hm[rr, g + 2] = vv[0], vv[1], vv[2]
                 for ii in range(N_STATE):
-                    pi0 = p[b, k, ii, 0]
-                    pht[ii, 0] = p[b, k, ii, 2]
-                    pht[ii, 1] = h1 * pi0 + p[b, k, ii, 3]
-                    pht[ii, 2] = h2 * pi0 + p[b, k, ii, 4]
-                s00 = pht[2, 0] + r
-                s01 = pht[2, 1]
-                s02 = pht[2, 2]
-                s10 = h1 * pht[0, 0] + pht[3, 0]
-                s11 = h1 * pht[0, 1] + pht[3, 1] + r
-                s12 = h1 * pht[0, 2] + pht[3, 2]
-                s20 = h2 * pht[0, 0] + pht[4, 0]
-                s21 = h2 * pht[0, 1] + pht[4, 1]
-                s22 = h2 * pht[0, 2] + pht[4, 2] + r
+                    for rr in range(3):
+                        acc_p = 0.0
+                        acc_h = 0.0
+                        for ll in range(N_STATE):
+                            acc_p += p[b, k, ii, ll] * hm[rr, ll]
+                            acc_h += hm[rr, ll] * p[b, k, ll, ii]
+                        pht[ii, rr] = acc_p
+                        hp[rr, ii] = acc_h
+                s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
+                for ll in range(N_STATE):
+                    m0, m1, m2 = hm[0, ll], hm[1, ll], hm[2, ll]
+                    q0, q1, q2 = pht[ll, 0], pht[ll, 1], pht[ll, 2]
+                    s00 += m0 * q0
+                    s01 += m0 * q1
+                    s02 += m0 * q2
+                    s10 += m1 * q0
+                    s11 += m1 * q1
+                    s12 += m1 * q2
+                    s20 += m2 * q0
+                    s21 += m2 * q1
+                    s22 += m2 * q2
+                s00 += r
+                s11 += r
+                s22 += r
                 # S⁻¹ by cofactors
                 i00 = s11 * s22 - s12 * s21
                 i01 = s02 * s21 - s01 * s22
@@ -264,21 +312,26 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
                     kg[ii, 0] = (q0 * i00 + q1 * i10 + q2 * i20) / det
                     kg[ii, 1] = (q0 * i01 + q1 * i11 + q2 * i21) / det
                     kg[ii, 2] = (q0 * i02 + q1 * i12 + q2 * i22) / det
-                # (I - K H) P, then ((I - K H) P)(I - K H)ᵀ + r K Kᵀ
+                # A = (I - K H) P, then A (I - K H)ᵀ + r K Kᵀ = A - (A Hᵀ) Kᵀ + r K Kᵀ
                 for ii in range(N_STATE):
                     k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
                     for jj in range(N_STATE):
-                        a[ii, jj] = p[b, k, ii, jj] - ((k1 * h1 + k2 * h2) * p[b, k, 0, jj] + k0 * p[b, k, 2, jj]
-                                                       + k1 * p[b, k, 3, jj] + k2 * p[b, k, 4, jj])
+                        a[ii, jj] = p[b, k, ii, jj] - (k0 * hp[0, jj] + k1 * hp[1, jj] + k2 * hp[2, jj])
+                for ii in range(N_STATE):
+                    for rr in range(3):
+                        acc_a = 0.0
+                        for ll in range(N_STATE):
+                            acc_a += a[ii, ll] * hm[rr, ll]
+                        aht[ii, rr] = acc_a
                 for ii in range(N_STATE):
                     k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
+                    c0_, c1_, c2_ = aht[ii, 0], aht[ii, 1], aht[ii, 2]
                     for jj in range(N_STATE):
                         l0, l1, l2 = kg[jj, 0], kg[jj, 1], kg[jj, 2]
-                        p[b, k, ii, jj] = (a[ii, jj] - ((l1 * h1 + l2 * h2) * a[ii, 0] + l0 * a[ii, 2] + l1 * a[ii, 3]
-                                                        + l2 * a[ii, 4])) + r * (k0 * l0 + k1 * l1 + k2 * l2)
-                x[b, k, 0] = th[k] + (kg[0, 0] * y0 + kg[0, 1] * y1 + kg[0, 2] * y2)
+                        p[b, k, ii, jj] = (a[ii, jj] - (c0_ * l0 + c1_ * l1 + c2_ * l2)) + r * (k0 * l0 + k1 * l1 + k2 * l2)
+                x[b, k, 0] = th[k] + (kg[0, 0] * yy[0] + kg[0, 1] * yy[1] + kg[0, 2] * yy[2])
                 for ii in range(1, N_STATE):
-                    x[b, k, ii] += kg[ii, 0] * y0 + kg[ii, 1] * y1 + kg[ii, 2] * y2
+                    x[b, k, ii] += kg[ii, 0] * yy[0] + kg[ii, 1] * yy[1] + kg[ii, 2] * yy[2]
                 rates[b, k] = meas[k]
                 out_theta[i, b, k] = x[b, k, 0]
                 out_mode[i, b, k] = 1 if mu > fast_above else 2

@@ -101,9 +101,15 @@ class FingerObservations:
 
     def relative_rate(self, gyr: np.ndarray, hand: BaseMotion) -> np.ndarray:
         """Hinge-axis angular rate of each phalanx relative to the metacarpus (..., S), rad/s."""
-        own = np.einsum("sj,...sj->...s", self.hinge_in_sensor, gyr)
-        hand_in_base = apply_transpose(hand.rotation, hand.angular_velocity) @ self.base   # (..., 3): R_Bᵀ R_Mᵀ ω_M
-        return own - hand_in_base[..., None, 0]
+        return self.hinge_rate(gyr) - self.hand_rate_in_base(hand)[..., None, 0]
+
+    def hinge_rate(self, gyr: np.ndarray) -> np.ndarray:
+        """What each gyro reads about its phalanx's hinge axis (..., S), rad/s."""
+        return np.einsum("sj,...sj->...s", self.hinge_in_sensor, gyr)
+
+    def hand_rate_in_base(self, hand: BaseMotion) -> np.ndarray:
+        """The hand's angular velocity in the finger base frame, ``R_Bᵀ R_Mᵀ ω_M`` (..., 3), rad/s."""
+        return apply_transpose(hand.rotation, hand.angular_velocity) @ self.base
 
     def phalanx_force(self, acc: np.ndarray) -> np.ndarray:
         """Specific force in each phalanx frame (..., S, 3): ``R_mount f``."""
