@@ -12,4 +12,4 @@ from .outgoing import (  # noqa: F401
     ERROR_CODES, ErrorMessage, Frame, FrameStatus, Gesture, GestureState, JointPose, Ray, ServerHello, SyncReply,
     parse_output,
 )
-from .wire import MSGPACK_SUBPROTOCOL, decode, encode, parse_line, read_recording  # noqa: F401
+from .wire import MSGPACK_SUBPROTOCOL, decode, encode, parse_input, parse_line, read_recording  # noqa: F401

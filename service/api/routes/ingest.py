@@ -11,7 +11,7 @@ import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
-from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_message
+from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, parse_input
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
 from ..config import ServiceSettings
@@ -92,8 +92,7 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
             binary = data.get("bytes") is not None
             partial = None
             try:
-                raw = decode(data["bytes"] if binary else data["text"], binary)
-                msg = parse_message(raw)
+                raw, msg = parse_input(data["bytes"] if binary else data["text"], binary)
             except SamplesRefused as err:          # the batch's valid samples go on (answered below)
                 partial, msg = err, err.kept
                 raw = dump_message(msg)

@@ -1,0 +1,59 @@
+"""``protocol.parse_input`` (``orjson`` for samples and poses) gives exactly what the standard path
+(the standard library's ``json`` through ``decode``, then ``parse_message``) gives: the same value and
+message for good input, the same error code and detail for bad input."""
+import json
+
+import pytest
+
+from service.protocol import ProtocolError, decode, parse_input, parse_message
+from service.sim.session import SimConfig, simulate
+
+IMU = '{"type":"imu","t":0.5,"id":"index.1","gyr":[0.1,-0.2,0.3],"acc":[0.0,9.81,0.1]%s}'
+POSE = '{"type":"pose","t":0.5,"position":[0.1,1.2,0.3],"orientation":[0,0,0,1],"valid":true%s}'
+HOSTILE = [
+    IMU % "", POSE % "", IMU % ',"note":123456789012345678901234567890', IMU % ',"x":-9300000000000000000',
+    IMU.replace("0.5", "123456789012345678901234567890") % "", IMU.replace("0.5", "1e400") % "",
+    IMU.replace("0.5", "NaN") % "", IMU.replace("0.1,", "Infinity,") % "", IMU.replace("index.1", "\\ud800") % "",
+    IMU.replace("index.1", "index.7") % "", IMU.replace("[0.1,-0.2,0.3]", "[0.1,-0.2]") % "",
+    IMU.replace("[0.1,-0.2,0.3]", "[0.1,-0.2,1000]") % "", POSE.replace("[0,0,0,1]", "[0,0,0,2]") % "",
+    POSE.replace("true", "1") % "", POSE.replace("true", "123456789012345678901") % "",
+    '{"type":"imu_batch","samples":[' + IMU % "" + "," + IMU.replace("0.1,", "500,") % "" + "]}",
+    '{"type":"imu_batch","samples":[' + IMU % "" + "," + IMU.replace("0.5", "0.505") % "" + "]}",
+    '{"type":"hello","protocol":123456789012345678901234567890,"hand":"right"}', '{"type":"hello","protocol":1,"hand":"left"}',
+    '{"type":"imu","t":0.5', "[1,2,3]", "17", '"imu"', '{"type":"nope"}', '{"type":"imu","t":0.5} trailing', "",
+    '{"type":"imu","type":"pose","t":0.5,"position":[0,0,0],"orientation":[0,0,0,1],"valid":false}',
+    "[" * 3000 + "]" * 3000,
+]
+
+
+def _standard(text):
+    try:
+        raw = decode(text)
+        return ("ok", raw, parse_message(raw))
+    except ProtocolError as err:
+        return ("error", type(err).__name__, err.code, err.detail, getattr(err, "kept", None))
+
+
+def _fast(text):
+    try:
+        raw, msg = parse_input(text)
+        return ("ok", raw, msg)
+    except ProtocolError as err:
+        return ("error", type(err).__name__, err.code, err.detail, getattr(err, "kept", None))
+
+
+@pytest.mark.parametrize("text", HOSTILE)
+def test_fast_parse_equals_the_standard_path_on_hostile_input(text):
+    for data in (text, text.encode("utf-8", "surrogatepass")):
+        fast, standard = _fast(data), _standard(data)
+        assert fast == standard
+        if fast[0] == "ok":            # the same types too (an int stays an int)
+            assert json.dumps(fast[1]) == json.dumps(standard[1])
+
+
+def test_fast_parse_equals_the_standard_path_on_a_recording():
+    session = simulate(SimConfig(motion="grasp", noise="realistic", seed=2, duration_s=0.3))
+    texts = [json.dumps(m) for m in session.messages()]
+    assert {json.loads(t)["type"] for t in texts} >= {"imu", "pose", "hello", "calibration", "truth"}
+    for text in texts:
+        assert _fast(text) == _standard(text)
