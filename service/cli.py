@@ -469,6 +469,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                            duration_s=args.seconds, first_seed=args.first_seed))
         print(f"wrote {args.out}/results.csv, events.csv, results.json, summary.md, accuracy.png")
         return 0
+    if args.which == "cpu":
+        from .bench import cpu
+        print(cpu.run(args.out, seconds=args.seconds, repeats=args.repeats, estimator=args.estimator,
+                      params=_parse_params(args.param, None), profile=args.profile))
+        print(f"wrote {args.out}/results.json, summary.md" + (", profile.txt" if args.profile else ""))
+        return 0
     if args.which == "gestures":
         from .bench import gestures
         print(gestures.run(args.out, quick=args.quick, workers=args.workers, cache_dir=args.frames_cache,
@@ -642,6 +648,17 @@ def build_parser() -> argparse.ArgumentParser:
                   "subscriber receives, the time since the glove sent the message that completed it; writes "
                   "results.json, summary.md.")
     b.add_argument("--seconds", type=_positive_float, default=20.0, help="streaming time, s (default 20)")
+
+    b = benchmark("cpu", "CPU time of one hand, stage by stage (parse, pipeline, encode), in one process",
+                  "A realistic simulated one-hand recording through parsing, the hand pipeline with gestures and the "
+                  "JSON encoding of every output, in this process; CPU seconds per second of data (process time, "
+                  "not wall time), best and median of the passes; writes results.json, summary.md.")
+    b.add_argument("--seconds", type=_positive_float, default=20.0, help="length of the recording, s (default 20)")
+    b.add_argument("--repeats", type=_positive_int, default=3, help="timed passes (default 3)")
+    b.add_argument("--estimator", default="chain", help="estimator of every finger (default chain)")
+    b.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                   help="an estimator setting, repeatable (e.g. implementation=reference for chain's numpy reference)")
+    b.add_argument("--profile", action="store_true", help="also write cProfile's top functions of one pipeline pass")
 
     b = benchmark("load", "service load: several hands at once, subscribers per hand",
                   "Hands streamed at once into a fresh service process per load level, with subscribers per hand: "

@@ -349,10 +349,11 @@ def samples_from_session(session, finger: str, hand: BaseMotion | None = None) -
 def finger_mode(modes: np.ndarray) -> str:
     """One word for a finger from its sensors' modes: ``fast`` if any sensor integrates, ``none`` if
     any has no information, ``slow`` if all observe, else ``fused``."""
-    if np.any(modes == MODE_FAST):
+    codes = np.asarray(modes).ravel().tolist()        # a few codes: plain Python beats numpy calls
+    if MODE_FAST in codes:
         return MODE_NAMES[MODE_FAST]
-    if np.any(modes == MODE_NO_INFO):
+    if MODE_NO_INFO in codes:
         return MODE_NAMES[MODE_NO_INFO]
-    if np.all(modes == MODE_SLOW):
+    if all(c == MODE_SLOW for c in codes):
         return MODE_NAMES[MODE_SLOW]
     return MODE_NAMES[MODE_FUSED]

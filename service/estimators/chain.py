@@ -140,6 +140,7 @@ class Chain(FingerEstimator):
         self._nb = int(np.prod(self.batch_shape, dtype=int))
         self._settings_vector = K.settings_vector(self.settings)
         self._geometry_vector = K.geometry_vector(self.obs, self.closure, self.gravity_world)
+        self._hand_untracked = False
 
     # -- the compiled path ---------------------------------------------------------------------
     def _advance(self, t, gyr, acc, hand):
@@ -152,11 +153,13 @@ class Chain(FingerEstimator):
         else:
             state, dt = self._state, t - self._t_last
         nb, ns = self._nb, self.n_sensors
-        self._state, _, phi, phal, mode = self._kernel(
+        self._state, theta, phi, phal, mode = self._kernel(
             state, np.array([dt]), np.ascontiguousarray(gyr, dtype=float).reshape(1, nb, ns, 3),
             np.ascontiguousarray(acc, dtype=float).reshape(1, nb, ns, 3), hand.flat.reshape(1, nb, K.HAND_SIZE),
             hand.acceleration)
         self._t_last = t
+        if not self.batch_shape:
+            return FingerEstimate(t, phal[0, 0], phi[0, 0], mode[0, 0])
         b = self.batch_shape
         return FingerEstimate(t, phal[0].reshape(b + phal.shape[-1:]), phi[0].reshape(b + phi.shape[-1:]),
                               mode[0].reshape(b + (ns,)))
@@ -186,25 +189,30 @@ class Chain(FingerEstimator):
         return FingerTrack(t, phal.reshape(b + phal.shape[-1:]), phi.reshape(b + phi.shape[-1:]), mode.reshape(b + (ns,)))
 
     def _kernel(self, state, dts, gyr, acc, hand_flat, first_hand_acc):
-        """``chain_kernel.run`` on the state dict (its arrays updated in place, made C-contiguous
-        float64 first if they are not): returns ``(state, theta, phi, phalanx angles, mode)`` with the
-        kernel's (N, B, ...) shapes."""
+        """``chain_kernel.run`` on the state dict: returns ``(state, theta, phi, phalanx angles,
+        mode)`` with the kernel's (N, B, ...) shapes. The returned state is the one the kernel updated in
+        place: ``state`` itself once it holds C-contiguous float64 arrays (a copy of them first, kept
+        with its (B, ...) views until the estimator's state is replaced by another dict)."""
         nb, ns, nph = self._nb, self.n_sensors, self.geom.n_phalanges
-        x = np.ascontiguousarray(state["x"], dtype=float)
-        P = np.ascontiguousarray(state["P"], dtype=float)
-        rate = np.ascontiguousarray(state["rate"], dtype=float)
-        hand_acc = state.get("hand_acc")
-        hand_acc = (np.array(first_hand_acc, dtype=float) if hand_acc is None
-                    else np.ascontiguousarray(hand_acc, dtype=float))
+        views = getattr(self, "_views", None)
+        if views is None or views[0] is not state:
+            x = np.ascontiguousarray(state["x"], dtype=float)
+            P = np.ascontiguousarray(state["P"], dtype=float)
+            rate = np.ascontiguousarray(state["rate"], dtype=float)
+            hand_acc = state.get("hand_acc")
+            hand_acc = (np.array(first_hand_acc, dtype=float) if hand_acc is None
+                        else np.ascontiguousarray(hand_acc, dtype=float))
+            state = {"x": x, "P": P, "rate": rate, "hand_acc": hand_acc}
+            views = self._views = (state, x.reshape(nb, ns, K.N_STATE), P.reshape(nb, ns, K.N_STATE, K.N_STATE),
+                                   rate.reshape(nb, ns), hand_acc.reshape(nb, 3))
         n = dts.shape[0]
         theta = np.empty((n, nb, ns))
         phi = np.empty((n, nb, nph))
         phal = np.empty((n, nb, nph))
         mode = np.empty((n, nb, ns), dtype=np.int8)
-        K.run(x.reshape(nb, ns, K.N_STATE), P.reshape(nb, ns, K.N_STATE, K.N_STATE), rate.reshape(nb, ns),
-              hand_acc.reshape(nb, 3), dts, gyr, acc, hand_flat, self._settings_vector, self._geometry_vector,
-              bool(getattr(self, "_hand_untracked", False)), theta, phi, phal, mode)
-        return {"x": x, "P": P, "rate": rate, "hand_acc": hand_acc}, theta, phi, phal, mode
+        K.run(views[1], views[2], views[3], views[4], dts, gyr, acc, hand_flat, self._settings_vector,
+              self._geometry_vector, self._hand_untracked, theta, phi, phal, mode)
+        return views[0], theta, phi, phal, mode
 
     def _step(self, state, dt, gyr, acc, hand):
         if not self._compiled:

@@ -191,6 +191,8 @@ class HandSession:
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
         self._dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)      # this message's drops (``accept``)
+        self._sensor_ids_of: HandCalibration | None = None
+        self._sensor_ids: frozenset[str] = frozenset()
         self._estimator = EstimatorSpec.of(self.settings.estimator, self.settings.estimator_params)
         self._build_fingers()
 
@@ -312,8 +314,15 @@ class HandSession:
                     fs.phi = np.asarray(phi, dtype=float)
             self.counters.references_applied += 1
 
+    def _known_sensor(self, sid: str) -> bool:
+        """Whether the calibration places sensor ``sid`` (its ids kept per calibration object)."""
+        calibration = self.calibration
+        if self._sensor_ids_of is not calibration:
+            self._sensor_ids_of, self._sensor_ids = calibration, frozenset(calibration.sensor_ids)
+        return sid in self._sensor_ids
+
     def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
-        if sid not in self.calibration.sensor_ids:
+        if not self._known_sensor(sid):
             self._drop("unknown_sensor")
             return
         newest = self._newest_imu_t

@@ -1,0 +1,116 @@
+"""CPU cost of one hand (``fingertrack bench cpu``): a realistic simulated recording run through what a
+session does with it, stage by stage, in this one process, measured in CPU time (``time.process_time``),
+not wall time, so that a busy machine slows it down less.
+
+Stages, each over the whole recording (the JSON Lines text of ``fingertrack simulate``: one ``imu``
+message per sensor and sample, poses at 90 Hz):
+
+* ``parse``: decode and validate every line (``protocol.parse_line``);
+* ``pipeline``: the parsed messages through ``TrackedHand`` (alignment, the five finger estimators,
+  the optical fit, the OpenXR joints, the gesture recogniser, the outgoing messages);
+* ``encode``: every output message encoded once as JSON text (``protocol.encode``).
+
+The kernels are loaded (or compiled) by a first pass over the first second before any timing; the
+time that took is reported apart. ``--param implementation=reference`` runs ``chain``'s numpy
+reference, a baseline the compiled core must beat. ``--profile`` adds cProfile's top functions of
+one more pipeline pass (its overhead inflates the figures; read the shares, not the seconds).
+"""
+from __future__ import annotations
+
+import cProfile
+import io
+import json
+import pstats
+import statistics
+import time
+from pathlib import Path
+
+from ..pipeline.hand import PipelineSettings
+from ..pipeline.tracked import TrackedHand
+from ..protocol import encode, parse_line
+from ..sim.session import SimConfig, simulate
+
+STAGES = ("parse", "pipeline", "encode")
+
+
+def recording_lines(seconds: float, seed: int = 0) -> list[str]:
+    """The JSON Lines of a realistic one-hand recording (``fingertrack simulate --motion random
+    --hand-motion random --noise realistic``), without its ``truth`` messages."""
+    session = simulate(SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed,
+                                 duration_s=seconds))
+    return [json.dumps(m, separators=(",", ":")) for m in session.messages(include_truth=False)]
+
+
+def _pass(lines: list[str], settings: PipelineSettings) -> tuple[dict, int]:
+    cpu = {}
+    t0 = time.process_time()
+    messages = [parse_line(line) for line in lines]
+    cpu["parse"] = time.process_time() - t0
+    hand = TrackedHand("right", settings)
+    t0 = time.process_time()
+    out = [m for msg in messages for m in hand.handle(msg)]
+    cpu["pipeline"] = time.process_time() - t0
+    t0 = time.process_time()
+    for m in out:
+        encode(m, False)
+    cpu["encode"] = time.process_time() - t0
+    return cpu, sum(1 for m in out if m["type"] == "frame")
+
+
+def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator: str = "chain",
+        params: dict | None = None, profile: bool = False) -> str:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = PipelineSettings(estimator=estimator, estimator_params=params or {})
+    lines = recording_lines(seconds)
+    data_s = seconds
+    t0 = time.process_time()
+    _pass(lines[: max(1, int(len(lines) / seconds))], settings)      # about a second: kernels loaded (or compiled)
+    warm_cpu = time.process_time() - t0
+    runs = []
+    for _ in range(repeats):
+        cpu, frames = _pass(lines, settings)
+        runs.append(cpu)
+    totals = [sum(r.values()) for r in runs]
+    best = min(range(repeats), key=lambda i: totals[i])
+    result = {
+        "seconds_of_data": data_s, "lines": len(lines), "frames": frames, "estimator": estimator,
+        "params": params or {}, "repeats": repeats, "warm_up_cpu_s": warm_cpu,
+        "runs": runs,
+        "cpu_s_per_s": {"best": totals[best] / data_s, "median": statistics.median(totals) / data_s},
+        "stages_best_cpu_s_per_s": {k: runs[best][k] / data_s for k in STAGES},
+    }
+    top = ""
+    if profile:
+        prof = cProfile.Profile()
+        messages = [parse_line(line) for line in lines]
+        hand = TrackedHand("right", settings)
+        prof.enable()
+        for msg in messages:
+            hand.handle(msg)
+        prof.disable()
+        buf = io.StringIO()
+        pstats.Stats(prof, stream=buf).sort_stats("tottime").print_stats(25)
+        top = buf.getvalue()
+        (out / "profile.txt").write_text(top)
+    (out / "results.json").write_text(json.dumps(result, indent=2))
+    summary = _summary(result)
+    (out / "summary.md").write_text(summary + ("\n\n```\n" + top + "```\n" if top else ""))
+    return summary
+
+
+def _summary(r: dict) -> str:
+    s = r["stages_best_cpu_s_per_s"]
+    lines = [
+        f"One hand, {r['seconds_of_data']:g} s of realistic data ({r['lines']} messages, {r['frames']} frames), "
+        f"estimator {r['estimator']}{' ' + json.dumps(r['params']) if r['params'] else ''}; CPU time of this process, "
+        f"best and median of {r['repeats']} passes; kernel load/compile pass {r['warm_up_cpu_s']:.2f} CPU s (not counted).",
+        "",
+        "| stage | CPU s per s of data (best) | % of a core |",
+        "|---|---|---|",
+    ]
+    for k in STAGES:
+        lines.append(f"| {k} | {s[k]:.4f} | {100 * s[k]:.2f} |")
+    b, m = r["cpu_s_per_s"]["best"], r["cpu_s_per_s"]["median"]
+    lines.append(f"| **total** | **{b:.4f}** (median {m:.4f}) | **{100 * b:.2f}** (median {100 * m:.2f}) |")
+    return "\n".join(lines)

@@ -1,0 +1,17 @@
+"""``fingertrack bench cpu`` (quick: one second of data, one pass): it runs the whole recording
+through every stage and writes what it measured. Its figures go in the README, not into assertions."""
+import json
+
+from service.bench import cpu
+from service.pipeline.tracked import replay
+from service.protocol import parse_line
+
+
+def test_bench_cpu_runs_every_stage_over_the_whole_recording(tmp_path):
+    summary = cpu.run(tmp_path, seconds=1.0, repeats=1)
+    result = json.loads((tmp_path / "results.json").read_text())
+    lines = cpu.recording_lines(1.0)
+    frames = sum(m["type"] == "frame" for m in replay(parse_line(line) for line in lines))
+    assert result["lines"] == len(lines) and result["frames"] == frames > 60
+    assert set(result["runs"][0]) == set(cpu.STAGES) and all(v >= 0 for v in result["runs"][0].values())
+    assert "| **total** |" in summary and (tmp_path / "summary.md").read_text().startswith(summary)
