@@ -471,8 +471,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.which == "cpu":
         from .bench import cpu
+        from pydantic import ValidationError
+
+        from .estimators.registry import EstimatorSpec
+        params = _parse_params(args.param)
+        try:
+            EstimatorSpec.of(args.estimator, params)
+        except ValidationError as err:
+            raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
         print(cpu.run(args.out, seconds=args.seconds, repeats=args.repeats, estimator=args.estimator,
-                      params=_parse_params(args.param, None), profile=args.profile))
+                      params=params, profile=args.profile))
         print(f"wrote {args.out}/results.json, summary.md" + (", profile.txt" if args.profile else ""))
         return 0
     if args.which == "gestures":
@@ -655,9 +663,7 @@ def build_parser() -> argparse.ArgumentParser:
                   "not wall time), best and median of the passes; writes results.json, summary.md.")
     b.add_argument("--seconds", type=_positive_float, default=20.0, help="length of the recording, s (default 20)")
     b.add_argument("--repeats", type=_positive_int, default=3, help="timed passes (default 3)")
-    b.add_argument("--estimator", default="chain", help="estimator of every finger (default chain)")
-    b.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
-                   help="an estimator setting, repeatable (e.g. implementation=reference for chain's numpy reference)")
+    _estimator_arguments(b)         # e.g. --param implementation=reference: chain's numpy reference
     b.add_argument("--profile", action="store_true", help="also write cProfile's top functions of one pipeline pass")
 
     b = benchmark("load", "service load: several hands at once, subscribers per hand",
