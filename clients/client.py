@@ -148,8 +148,15 @@ def _decode(data: str | bytes) -> dict:
 class Publisher:
     def __init__(self, url: str, session: str, token: str, hand: str = "right", source: str = "python-client",
                  binary: bool = False, backoff: Backoff | None = None, max_errors: int = 1000,
-                 on_event: Callable[[str], None] | None = None):
+                 on_event: Callable[[str], None] | None = None, max_unconfirmed: int | None = 256,
+                 max_unconfirmed_bytes: int = 8 << 20):
+        """``max_unconfirmed`` (``max_unconfirmed_bytes``): flow control, at most that many messages
+        (bytes) sent and not yet confirmed handled by the service (a ``sync`` answered; one goes out
+        by itself every quarter of it); ``send`` waits beyond it, so a source faster than the service
+        is slowed down instead of refused ``overloaded`` (the service's backlog holds 1024 messages
+        by default). ``None``: no flow control."""
         self.url = _url(url, _path("ingest", session), token, binary)
+        self.max_unconfirmed, self.max_unconfirmed_bytes = max_unconfirmed, max_unconfirmed_bytes
         self.on_event = on_event or _log.warning
         self.binary = binary
         self.hello = {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": hand, "source": source}
@@ -162,6 +169,10 @@ class Publisher:
         self.reconnects = 0
         self._sync_id = 0
         self._synced: dict[int, asyncio.Future] = {}
+        self._sent = self._sent_bytes = 0            # on this connection
+        self._confirmed = self._confirmed_bytes = 0  # of those, handled by the service
+        self._marks: dict[int, tuple[int, int]] = {}  # sync id -> (messages, bytes) sent before it
+        self._progress = asyncio.Event()              # a sync was answered, or the connection ended
 
     async def connect(self) -> None:
         try:
@@ -176,6 +187,8 @@ class Publisher:
         if reply.get("type") == "error":
             raise Refused(f"{_shown(self.url)}: {reply['code']}: {reply['detail']}")
         self.server_hello = reply
+        self._sent = self._sent_bytes = self._confirmed = self._confirmed_bytes = 0
+        self._marks.clear()
         if self.calibration is not None:
             await self._ws.send(encode(self.calibration, self.binary))
         self._reader = asyncio.create_task(self._read())
@@ -187,12 +200,18 @@ class Publisher:
                 if msg.get("type") == "error":
                     self.errors.append(msg)
                 elif msg.get("type") == "sync":
+                    mark = self._marks.pop(msg.get("id"), None)
+                    if mark is not None:
+                        self._confirmed = max(self._confirmed, mark[0])
+                        self._confirmed_bytes = max(self._confirmed_bytes, mark[1])
+                        self._progress.set()
                     waiter = self._synced.pop(msg.get("id"), None)
                     if waiter is not None and not waiter.done():
                         waiter.set_result(None)
         except ConnectionClosed:
             pass
         finally:
+            self._progress.set()
             for waiter in self._synced.values():
                 if not waiter.done():
                     waiter.set_exception(ConnectionError("the connection closed before the service answered sync"))
@@ -215,7 +234,13 @@ class Publisher:
                     self.backoff.reset()
                     if message is self.calibration:
                         return                      # connect() has just sent it
-                await self._ws.send(encode(message, self.binary))
+                data = encode(message, self.binary)
+                await self._wait_for_room(len(data))
+                await self._ws.send(data)
+                self._sent += 1
+                self._sent_bytes += len(data)
+                if self.max_unconfirmed is not None and self._sent % max(1, self.max_unconfirmed // 4) == 0:
+                    await self._send_sync()
                 return
             except Refused:
                 raise
@@ -232,6 +257,40 @@ class Publisher:
                 self.on_event(_retry_line(self.url, ws, err, delay))
                 await asyncio.sleep(delay)
 
+    def _over(self, size: int) -> bool:
+        """Flow control: would a message of ``size`` bytes exceed what may be unconfirmed?"""
+        unconfirmed = self._sent - self._confirmed
+        return unconfirmed >= self.max_unconfirmed or \
+            (unconfirmed > 0 and self._sent_bytes + size - self._confirmed_bytes > self.max_unconfirmed_bytes)
+
+    async def _wait_for_room(self, size: int) -> None:
+        """Flow control (``max_unconfirmed``): wait until the service has confirmed enough of what was
+        sent; a wait of more than 10 s is reported through ``on_event`` (once per wait)."""
+        if self.max_unconfirmed is None or not self._over(size):
+            return
+        if max((m[0] for m in self._marks.values()), default=-1) < self._sent:
+            await self._send_sync()                   # a confirmation of everything sent so far
+        waited = 0.0
+        while self._reader is not None and not self._reader.done() and self._over(size):
+            self._progress.clear()
+            try:
+                await asyncio.wait_for(self._progress.wait(), 10.0)
+            except asyncio.TimeoutError:
+                waited += 10.0
+                if waited == 10.0:
+                    self.on_event(f"{_shown(self.url)}: the service has not handled the last {self._sent - self._confirmed} "
+                                  "messages for 10 s; waiting before sending more")
+
+    async def _send_sync(self, waiter: asyncio.Future | None = None) -> int:
+        """Send a ``sync``; its answer confirms what was sent before it (and completes ``waiter``)."""
+        self._sync_id += 1
+        key = self._sync_id
+        self._marks[key] = (self._sent, self._sent_bytes)
+        if waiter is not None:
+            self._synced[key] = waiter
+        await self._ws.send(encode({"type": "sync", "id": key}, self.binary))
+        return key
+
     async def send_reference_pose(self, t0: float, t1: float, pose: str | dict = "flat") -> None:
         """Tell the service that the hand held a known configuration from ``t0`` to ``t1`` (source
         clock, s): ``"flat"`` or joint angles in radians per finger (protocol ``reference_pose``).
@@ -247,18 +306,16 @@ class Publisher:
         stopped reading blocks the send)."""
         if self._ws is None:
             return
-        self._sync_id += 1
-        key = self._sync_id
         waiter = asyncio.get_running_loop().create_future()
-        self._synced[key] = waiter
 
         async def barrier():
-            await self._ws.send(encode({"type": "sync", "id": key}, self.binary))
+            await self._send_sync(waiter)
             await waiter
         try:
             await asyncio.wait_for(barrier(), timeout_s)
         finally:
-            self._synced.pop(key, None)
+            for key in [k for k, w in self._synced.items() if w is waiter]:
+                del self._synced[key]
 
     async def close(self, sync_timeout_s: float = CLOSE_SYNC_TIMEOUT_S) -> None:
         """Close after the service has handled everything sent (``sync``; skipped if the connection is

@@ -250,7 +250,8 @@ def test_hostile_encodings_get_error_replies_and_the_connection_stays(server):
         async with connect(f"{server.ws_url}/v1/ingest/hostile?token={SOURCE}") as ws:
             replies = await _replies(ws, [
                 HELLO,
-                "[" * 970 + "]" * 970,                                        # depth bomb (RecursionError)
+                "[" * 970 + "]" * 970,                    # a depth bomb (it raised RecursionError and dropped the connection)
+                "[" * 100_000 + "]" * 100_000,            # nested too deeply for the JSON parser whatever the stack
                 msgpack.packb({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0],
                                "blob": b"\x00\x01"}),                          # bin value in an unknown field
                 msgpack.packb({"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0],
@@ -267,9 +268,12 @@ def test_hostile_encodings_get_error_replies_and_the_connection_stays(server):
                 pass
             return replies, reply, ws.close_code, ws.close_reason
     replies, reply, code, reason = asyncio.run(go())
-    assert [[r["code"] for r in rs] for rs in replies[1:]] == [["invalid_json"], ["invalid_msgpack"], ["invalid_msgpack"],
+    # 970 levels: parsed or not depending on the stack depth the parser starts at; refused either way
+    assert [r["code"] for r in replies[1]] in (["invalid_json"], ["invalid_message"])
+    assert [[r["code"] for r in rs] for rs in replies[2:]] == [["invalid_json"], ["invalid_msgpack"], ["invalid_msgpack"],
                                                                ["message_too_large"], [], ["unknown_sensor"]]
-    assert "2000200 bytes" in replies[4][0]["detail"]
+    assert "nested too deeply" in replies[2][0]["detail"]
+    assert "2000200 bytes" in replies[5][0]["detail"]
     # a 130-digit protocol: refused with a reason that fits a close frame (it used to drop the connection)
     assert reply["code"] == "unsupported_protocol"
     assert code == 1008 and reason.startswith("unsupported protocol 999")
@@ -597,6 +601,50 @@ def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():
         except ConnectionResetError:
             pass
         sock.close()
+
+
+# -- F5: a source the service cannot keep up with ---------------------------------------------------------------
+
+def _metric(server, name: str, session: str) -> float:
+    text = rest(server.url, "GET", "/metrics", ADMIN)[1]
+    line = next((x for x in text.splitlines() if x.startswith(f'{name}{{session="{session}"}}')), None)
+    return 0.0 if line is None else float(line.split()[-1])
+
+
+def _flood(server, name: str, messages: list, max_unconfirmed):
+    """Send ``messages`` through a ``Publisher`` as fast as it lets them go, then its closing sync."""
+    async def go():
+        pub = Publisher(server.url, name, SOURCE, max_unconfirmed=max_unconfirmed, max_errors=100_000)
+        for m in messages:
+            await pub.send(m)
+        await pub.close(sync_timeout_s=600)          # bounds a failure only
+        return list(pub.errors)
+    return asyncio.run(go())
+
+
+def test_a_source_faster_than_the_service_is_refused_overloaded_and_nothing_is_lost_silently():
+    """Data messages beyond a full backlog are refused one by one with ``overloaded`` (counted in the
+    session summary, the frame status and the metrics) while the connection keeps being read; every
+    other message is processed, so processed + refused = sent. With the Publisher's flow control the
+    same flood is slowed down instead: nothing refused, everything processed."""
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    ingest_backlog_messages=8)
+    msgs = _messages(seed=7, motion="sequence")
+    data = [m for m in msgs if m["type"] in ("pose", "imu", "imu_batch")]
+    with ServerThread(settings) as srv:
+        errors = _flood(srv, "flood", msgs, max_unconfirmed=None)
+        summary = _sessions(srv)["flood"]
+        refused = [e for e in errors if e["code"] == "overloaded"]
+        assert refused and len(refused) == len(errors), [e["code"] for e in errors][:20]
+        assert all("cannot keep up with this source" in e["detail"] for e in refused)
+        assert summary["overloaded"] == len(refused) == _metric(srv, "fingertrack_overloaded_messages_total", "flood")
+        assert 0 < summary["status"]["dropped"]["overloaded"] <= len(refused)
+        processed = _metric(srv, "fingertrack_messages_in_total", "flood")      # msgs[0] is the hello
+        assert processed == len(msgs) - len(refused) and len(refused) < len(data)
+
+        paced = _flood(srv, "paced", msgs, max_unconfirmed=4)                  # flow control: slowed, not refused
+        assert paced == [] and _sessions(srv)["paced"]["overloaded"] == 0
+        assert _metric(srv, "fingertrack_messages_in_total", "paced") == len(msgs)
 
 
 # -- item 4: kernels and their cache -------------------------------------------------------------------------

@@ -76,6 +76,11 @@ class ServiceSettings(BaseSettings):
                                              "this long (a send stuck on a full socket) is dropped and its buffers freed, s")
     ping_interval_s: float = Field(10.0, gt=0, description="WebSocket keepalive ping interval, s")
     ping_timeout_s: float = Field(20.0, gt=0, description="WebSocket keepalive timeout, s")
+    ingest_backlog_messages: int = Field(1024, ge=1, le=100_000, description="source messages received and not yet "
+                                         "processed, per connection; beyond it data messages are refused 'overloaded' "
+                                         "until half of it is processed (api/backlog.py)")
+    ingest_backlog_bytes: int = Field(32 << 20, ge=1024, description="bytes of source messages received and not yet "
+                                      "processed, per connection (as ingest_backlog_messages)")
     flush_interval_s: float = Field(1.0, gt=0, le=1.0, description="recordings are flushed at least this often, s")
     max_sessions: int = Field(64, ge=1, description="largest number of live sessions")
     max_sessions_per_token: int = Field(8, ge=1, description="live sessions one (non-admin) token may have created")

@@ -13,6 +13,8 @@ class Metrics:
         self.messages_out = Counter("fingertrack_messages_out", "messages sent to subscribers", ["session"], registry=self.registry)
         self.errors = Counter("fingertrack_errors", "error replies by code", ["code"], registry=self.registry)
         self.dropped_frames = Counter("fingertrack_dropped_frames", "frames dropped for slow subscribers", ["session"], registry=self.registry)
+        self.overloaded = Counter("fingertrack_overloaded_messages", "source messages refused because the service "
+                                  "could not keep up with their source", ["session"], registry=self.registry)
         self.disconnects = Counter("fingertrack_disconnects", "connections the service dropped, by reason", ["reason"],
                                    registry=self.registry)
         self.sessions = Gauge("fingertrack_sessions", "live sessions", registry=self.registry)
@@ -24,7 +26,7 @@ class Metrics:
 
     def forget_session(self, name: str) -> None:
         """Drop the series of a removed session (a name may come back as a new session)."""
-        for family in (self.messages_in, self.messages_out, self.dropped_frames, self.latency):
+        for family in (self.messages_in, self.messages_out, self.dropped_frames, self.overloaded, self.latency):
             try:
                 family.remove(name)
             except KeyError:

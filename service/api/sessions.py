@@ -141,6 +141,8 @@ class LiveSession:
         self.last_status: FrameStatusDict | dict = {}
         self.frames_out = 0
         self.dropped_frames = 0
+        self.overloaded = 0
+        """Source messages refused because the service could not keep up (``backlog.py``)."""
         self.created = time.time()
         self.owner: str | None = None
         """The token that created it (its quota key; ``None``: an admin)."""
@@ -220,6 +222,7 @@ class LiveSession:
             if out["type"] == "frame":
                 self.last_status = out["status"]
                 out["status"]["dropped"]["subscriber_frames"] = self.dropped_frames
+                out["status"]["dropped"]["overloaded"] = self.overloaded
                 self.frames_out += 1
             encoded = Outgoing(out)           # serialised once, on first send, for every subscriber
             for sub in list(self.subscribers):
@@ -235,7 +238,8 @@ class LiveSession:
     def summary(self) -> dict:
         return {"session": self.name, "hand": self.hand.hand, "sources": self.sources,
                 "subscribers": len(self.subscribers), "frames_out": self.frames_out,
-                "dropped_subscriber_frames": self.dropped_frames, "config": self.config.model_dump(),
+                "dropped_subscriber_frames": self.dropped_frames, "overloaded": self.overloaded,
+                "config": self.config.model_dump(),
                 "status": self.last_status, "recording": str(self.recorder.path) if self.recorder else None}
 
     def close(self) -> None:

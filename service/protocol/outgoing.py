@@ -49,6 +49,8 @@ ERROR_CODES: dict[str, str] = {
     "time_backwards": "a sample is older than what the session has already processed",
     "duplicate": "the same sensor and time was already received",
     "unknown_sensor": "a sample of a sensor id the session's calibration does not place",
+    "overloaded": "the service cannot keep up with this source: its backlog of received, unprocessed messages is "
+                  "full, so the data message was dropped (counted in the frame status; send less, or pace with sync)",
     "invalid_samples": "some samples of an imu_batch are invalid or out of range: those (listed in 'samples') are "
                        "dropped, the batch's other samples are processed",
     "internal_error": "processing the message failed inside the service (a defect; logged); the message is dropped",
@@ -163,6 +165,8 @@ class DroppedCounts(_Message):
     unknown_sensor: int = Field(ge=0, description="samples of a sensor the calibration does not have")
     subscriber_frames: Optional[int] = Field(None, ge=0, description="frames dropped for subscribers of this "
                                              "session that fell behind (the live service only)")
+    overloaded: Optional[int] = Field(None, ge=0, description="source messages refused with an 'overloaded' error: "
+                                      "the service could not keep up with the source (the live service only)")
 
 
 class DroppedCountsDict(TypedDict):
@@ -171,6 +175,7 @@ class DroppedCountsDict(TypedDict):
     overflow: int
     unknown_sensor: int
     subscriber_frames: NotRequired[int]
+    overloaded: NotRequired[int]
 
 class ReferencePoseCounts(_Message):
     applied: int = Field(ge=0, description="reference_pose messages applied as a known configuration")

@@ -11,12 +11,13 @@ import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
-from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, parse_input
+from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_input
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
+from ..backlog import DATA_TYPES, IngestBacklog
 from ..replies import drop_replies, failure_reply
 from ..sessions import LiveSession
 from .socket import close_reason, open_session, release, send, send_error, server_hello
@@ -39,17 +40,46 @@ class TokenBucket:
         return False
 
 
-def _admit(data: dict, settings: ServiceSettings, bucket: TokenBucket) -> tuple[str, str] | None:
-    """``(code, detail)`` if a received WebSocket message must be refused before decoding."""
+def _size(data: dict) -> int:
+    """A received WebSocket message's size in bytes as it came on the wire (a text character takes up
+    to 4)."""
     payload = data["bytes"] if data.get("bytes") is not None else data.get("text") or ""
-    # bytes as they came on the wire (a text character takes up to 4)
-    size = len(payload) if isinstance(payload, bytes) or payload.isascii() \
+    return len(payload) if isinstance(payload, bytes) or payload.isascii() \
         else len(payload.encode("utf-8", "surrogatepass"))
+
+
+def _admit(size: int, settings: ServiceSettings, bucket: TokenBucket) -> tuple[str, str] | None:
+    """``(code, detail)`` if a received WebSocket message must be refused before decoding."""
     if size > settings.max_message_bytes:
         return "message_too_large", f"{size} bytes; the limit is {settings.max_message_bytes}"
     if not bucket.take():
         return "rate_limited", f"more than {settings.rate_limit_msgs_per_s:g} messages/s; message dropped"
     return None
+
+
+def _peek(data: dict) -> dict | None:
+    """The decoded message, for what the door needs to know (type, time); ``None`` if it is not an object."""
+    binary = data.get("bytes") is not None
+    try:
+        obj = decode(data["bytes"] if binary else data["text"], binary)
+    except ProtocolError:
+        return None
+    return obj if isinstance(obj, dict) else None
+
+
+def _is_data(data: dict) -> bool:
+    return (_peek(data) or {}).get("type") in DATA_TYPES
+
+
+def _overload_reply(data: dict, backlog: IngestBacklog) -> tuple[str, str]:
+    obj = _peek(data) or {}
+    kind, t = obj.get("type"), obj.get("t")
+    if t is None and kind == "imu_batch" and isinstance(obj.get("samples"), list) and obj["samples"] \
+            and isinstance(obj["samples"][0], dict):
+        t = obj["samples"][0].get("t")
+    what = f"{kind} at t={t}" if isinstance(t, (int, float)) and not isinstance(t, bool) else str(kind)
+    return "overloaded", (f"{what}: the service cannot keep up with this source ({len(backlog)} messages wait to be "
+                          "processed); dropped. Send less, or wait for the answer to a sync")
 
 
 async def claim_source(ws: WebSocket, live: LiveSession, metrics: Metrics) -> bool:
@@ -79,55 +109,84 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         return
     live.attach_source(lambda code, detail: send_error(ws, metrics, code, detail))
     bucket = TokenBucket(settings.rate_limit_msgs_per_s)
-    greeted = False
+    backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
+    processor = asyncio.create_task(_process(ws, session, live, backlog, metrics))
     try:
-        while True:
+        while not processor.done():          # read all the time (backlog.py): pings and pongs keep passing
             data = await ws.receive()
             if data["type"] == "websocket.disconnect":
                 break
-            refused = _admit(data, settings, bucket)
+            size = _size(data)
+            refused = _admit(size, settings, bucket)
+            if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
+                refused = _overload_reply(data, backlog)
+                live.overloaded += 1
+                metrics.overloaded.labels(session).inc()
             if refused:
                 await send_error(ws, metrics, *refused)
-                continue
-            binary = data.get("bytes") is not None
-            partial = None
-            try:
-                raw, msg = parse_input(data["bytes"] if binary else data["text"], binary)
-            except SamplesRefused as err:          # the batch's valid samples go on (answered below)
-                partial, msg = err, err.kept
-                raw = dump_message(msg)
-            except ProtocolError as err:
-                await send_error(ws, metrics, err.code, err.detail)
-                continue
-            if isinstance(msg, Hello):
-                if msg.protocol != PROTOCOL_VERSION:
-                    shown = str(msg.protocol) if len(str(msg.protocol)) <= 12 else str(msg.protocol)[:12] + "..."
-                    await send_error(ws, metrics, "unsupported_protocol",
-                                     f"protocol {shown} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
-                    await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(f"unsupported protocol {shown}"))
-                    return
-                greeted = True
-                await send(ws, server_hello(session))
-            elif not greeted:
-                await send_error(ws, metrics, "expected_hello", f"the first message must be hello, got {msg.type}")
-                continue
-            elif isinstance(msg, Sync):           # everything before it is handled: say so
-                await live.settled()
-                await send(ws, SyncReplyDict(type="sync", id=msg.id))
-                continue
-            if partial is not None:
-                await send_error(ws, metrics, partial.code, partial.detail, samples=partial.refused)
-            try:
-                dropped = await live.ingest(raw, msg)
-            except Exception as err:           # bad input, or a defect (logged); no exception reaches the socket layer
-                await send_error(ws, metrics, *failure_reply(session, msg, err))
-                continue
-            for reply in drop_replies(msg, dropped):            # a bus session answers from its worker
-                await send_error(ws, metrics, *reply)
-    except WebSocketDisconnect:
+    except (WebSocketDisconnect, RuntimeError):   # RuntimeError: the processor closed the connection
         pass
     finally:
+        backlog.close()                      # what was received is still processed (its replies go nowhere)
+        await asyncio.gather(processor, return_exceptions=True)
         release(ws)
         if live.source is ws:
             live.source = live.source_token = None
             live.touch()
+
+
+async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, metrics: Metrics) -> None:
+    """The received messages in order: decoded, validated, answered or handed to the session. After
+    the connection ended, the rest of the backlog is still handed to the session, unanswered."""
+    gone = False
+
+    async def say(send_fn, *args, **fields) -> None:
+        """``send_fn(ws, *args, **fields)`` unless the connection is gone (then nothing more is sent)."""
+        nonlocal gone
+        if not gone:
+            try:
+                await send_fn(ws, *args, **fields)
+            except (WebSocketDisconnect, RuntimeError, OSError):
+                gone = True
+
+    async def reply(code: str, detail: str, **fields) -> None:
+        await say(send_error, metrics, code, detail, **fields)
+
+    greeted = False
+    while (data := await backlog.get()) is not None:
+        binary = data.get("bytes") is not None
+        partial = None
+        try:
+            raw, msg = parse_input(data["bytes"] if binary else data["text"], binary)
+        except SamplesRefused as err:          # the batch's valid samples go on (answered below)
+            partial, msg = err, err.kept
+            raw = dump_message(msg)
+        except ProtocolError as err:
+            await reply(err.code, err.detail)
+            continue
+        if isinstance(msg, Hello):
+            if msg.protocol != PROTOCOL_VERSION:
+                shown = str(msg.protocol) if len(str(msg.protocol)) <= 12 else str(msg.protocol)[:12] + "..."
+                await reply("unsupported_protocol",
+                            f"protocol {shown} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
+                if not gone:
+                    await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(f"unsupported protocol {shown}"))
+                return
+            greeted = True
+            await say(send, server_hello(session))
+        elif not greeted:
+            await reply("expected_hello", f"the first message must be hello, got {msg.type}")
+            continue
+        elif isinstance(msg, Sync):           # everything before it is handled: say so
+            await live.settled()
+            await say(send, SyncReplyDict(type="sync", id=msg.id))
+            continue
+        if partial is not None:
+            await reply(partial.code, partial.detail, samples=partial.refused)
+        try:
+            dropped = await live.ingest(raw, msg)
+        except Exception as err:           # bad input, or a defect (logged); no exception reaches the socket layer
+            await reply(*failure_reply(session, msg, err))
+            continue
+        for code, detail in drop_replies(msg, dropped):            # a bus session answers from its worker
+            await reply(code, detail)

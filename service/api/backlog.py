@@ -1,0 +1,80 @@
+"""A source connection's backlog: what the service has received from it and not yet processed, and the
+rule when the service cannot keep up with the source.
+
+The ingest route reads its WebSocket all the time into an ``IngestBacklog`` while a second task
+processes the messages in order, so the connection's keepalive pings and pongs pass however far
+processing lags. (A route that stopped reading while it was busy left the source's pong behind
+unread data: after ``ping_timeout_s`` the connection was closed with 1011 and everything the source
+had sent and the service not yet read was lost without a word.)
+
+The backlog holds at most ``ingest_backlog_messages`` messages and ``ingest_backlog_bytes`` bytes.
+When it is full the service cannot keep up with the source: every data message (``pose``, ``imu``,
+``imu_batch``) received from then on is refused at once with an ``overloaded`` error reply until the
+backlog has drained to half its bound (counted: the session summary's ``overloaded``, the frame
+status's ``dropped.overloaded`` and ``fingertrack_overloaded_messages_total``). Other messages
+(``hello``, ``calibration``, ``reference_pose``, ``sync``, anything unparsable) are few and carry
+state or a question: they are queued even then, up to twice the bound, so a ``sync`` is answered.
+Nothing received is dropped without a reply: a message is processed, or refused with a reply.
+
+A source that must not lose data paces itself: the Python ``Publisher`` keeps at most
+``max_unconfirmed`` messages beyond its last answered ``sync`` (flow control), well inside the
+default bound, so a recording replayed at full speed is slowed down, not refused.
+"""
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+
+DATA_TYPES = ("pose", "imu", "imu_batch")
+"""What an overloaded session refuses (the rest carries state and is always queued)."""
+
+
+class IngestBacklog:
+    """A bounded FIFO of received WebSocket messages (``put`` by the reader, ``get`` by the processor;
+    ``None`` from ``get``: the connection ended and everything before it was taken)."""
+
+    def __init__(self, max_messages: int, max_bytes: int):
+        self.max_messages, self.max_bytes = max_messages, max_bytes
+        self._items: deque = deque()
+        self._bytes = 0
+        self._ready = asyncio.Event()
+        self.overloaded = False
+        """True from the moment the backlog was full until it drained to half."""
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def _fits(self, size: int, factor: int = 1) -> bool:
+        if not self._items:                  # one message always fits (a single one larger than the byte bound)
+            return True
+        return len(self._items) < factor * self.max_messages and self._bytes + size <= factor * self.max_bytes
+
+    def put(self, item, size: int, data_message) -> bool:
+        """Queue a received message of ``size`` bytes; ``False`` if it is refused because the service
+        cannot keep up. ``data_message()`` says whether it is a data message (asked only when it
+        might be refused; other messages are queued up to twice the bound)."""
+        if self.overloaded and len(self._items) <= self.max_messages // 2 and self._bytes <= self.max_bytes // 2:
+            self.overloaded = False
+        if self.overloaded or not self._fits(size):
+            if data_message():
+                self.overloaded = True
+                return False
+            if not self._fits(size, factor=2):
+                return False
+        self._items.append((item, size))
+        self._bytes += size
+        self._ready.set()
+        return True
+
+    def close(self) -> None:
+        """The connection ended: ``get`` returns ``None`` after the messages already queued."""
+        self._items.append((None, 0))
+        self._ready.set()
+
+    async def get(self):
+        while not self._items:
+            self._ready.clear()
+            await self._ready.wait()
+        item, size = self._items.popleft()
+        self._bytes -= size
+        return item
