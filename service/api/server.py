@@ -107,7 +107,8 @@ class ServerThread:
 
     def __enter__(self) -> "ServerThread":
         self.thread.start()
-        deadline = time.monotonic() + 10
+        # bounds a failure only: a start may compile kernels first (a cold cache on a busy machine)
+        deadline = time.monotonic() + 300
         while not self.server.started:
             if time.monotonic() > deadline or not self.thread.is_alive():
                 raise RuntimeError("the server did not start")
