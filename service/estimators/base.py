@@ -17,6 +17,7 @@ world), angular velocity, angular acceleration and the acceleration of its origi
 from __future__ import annotations
 
 import copy
+import functools
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -152,6 +153,12 @@ class FingerEstimator:
         self._initial_theta = None if initial_theta is None else np.broadcast_to(
             np.asarray(initial_theta, dtype=float), self.batch_shape + (geom.n_phalanges,)).copy()
         self.reset()
+
+    @functools.cached_property
+    def vector_closure(self) -> ChainClosure:
+        """The finger's own chain closure, without fallback couplings: the one the vector observation
+        (2.2.2) closes with inside the estimators that blend it in (``cf``, ``switching``)."""
+        return ChainClosure(self.geom)
 
     # -- state ------------------------------------------------------------------------------
     def reset(self, initial_theta: np.ndarray | None = None) -> None:

@@ -17,7 +17,7 @@ from pydantic import Field
 
 from .base import MODE_FUSED, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import rk4_step_linear_rate
-from .observations import ChainClosure, initial_sensor_theta, vector_observation
+from .observations import initial_sensor_theta, vector_observation
 
 
 class ComplementarySettings(EstimatorSettings):
@@ -29,16 +29,12 @@ class Complementary(FingerEstimator):
     name = "cf"
     Settings = ComplementarySettings
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self._vector_closure = ChainClosure(self.geom)      # the vector observation's, without fallback couplings
-
     def _init_state(self, gyr, acc, hand, theta0):
         return {"theta": initial_sensor_theta(self.obs, acc, hand, theta0, self.gravity_world), "rate": self.obs.relative_rate(gyr, hand)}
 
     def _observe(self, gyr, acc, hand, prev_rate=None, dt=None):
         rate = self.obs.relative_rate(gyr, hand)
-        theta_obs, inplane = vector_observation(self.obs, self._vector_closure, acc, hand, self.gravity_world)
+        theta_obs, inplane = vector_observation(self.obs, self.vector_closure, acc, hand, self.gravity_world)
         return rate, theta_obs, inplane >= self.settings.min_inplane_m_s2
 
     def _blend(self, state, dt, rate, theta_obs, informative):

@@ -66,17 +66,14 @@ class Ekf(FingerEstimator):
         s = self.settings
         rate = self.obs.relative_rate(gyr, hand)
         rate_change = self.obs.rate_change(rate, state["rate"], dt)
-        d_acc = self.obs.accelerometer_reference(self.closure, hand, state["theta"], rate, rate_change,
-                                                 self.gravity_world, s.kinematic_acceleration)
+        refs_w, refs_s = self.obs.reference_pairs(self.closure, hand, state["theta"], rate, rate_change, acc,
+                                                  self.gravity_world, s.kinematic_acceleration, s.second_reference)
         q, F, Q = process_model(state["q"], state["bias"], gyr, dt, s.gyro_noise_density_rad_s_rthz,
                                 s.gyro_bias_walk_rad_s_rts)
         P = self._kalman.predict(state["P"], F, Q)
         mu = self.obs.acceleration_bound(self.closure, rate, rate_change)
-        refs_w, refs_s = [d_acc], [acc]
         sigmas = [np.hypot(s.acc_noise_m_s2, s.kinematic_uncertainty * mu)]
         if s.second_reference:
-            refs_w.append(np.broadcast_to(self.obs.hinge_axis_world(hand)[..., None, :], acc.shape))
-            refs_s.append(np.broadcast_to(self.obs.hinge_in_sensor, acc.shape))
             sigmas.append(np.full(mu.shape, s.hinge_noise))
         y, H, R = measurement_model(q, refs_w, refs_s, sigmas)
         dx, P = self._kalman.update(P, H, R, y)

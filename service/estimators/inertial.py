@@ -75,9 +75,9 @@ class InertialFinger(FingerEstimator):
         rows = state["core"].copy()
         g, a = np.ascontiguousarray(gyr.reshape(-1, 3)), np.ascontiguousarray(f_in.reshape(-1, 3))
         if s.second_reference:
-            hinge = np.broadcast_to(self.obs.hinge_axis_world(hand)[..., None, :], acc.shape)
-            rw = np.ascontiguousarray(hinge.reshape(-1, 3))
-            rs = np.ascontiguousarray(np.broadcast_to(self.obs.hinge_in_sensor, acc.shape).reshape(-1, 3))
+            hinge_world, hinge_sensor = self.obs.hinge_reference(hand, acc.shape)
+            rw = np.ascontiguousarray(hinge_world.reshape(-1, 3))
+            rs = np.ascontiguousarray(hinge_sensor.reshape(-1, 3))
         else:
             rw = rs = g
         out = np.empty((rows.shape[0], 4))

@@ -43,13 +43,9 @@ class Madgwick(FingerEstimator):
         s = self.settings
         rate = self.obs.relative_rate(gyr, hand)
         rate_change = self.obs.rate_change(rate, state["rate"], dt)
-        d_acc = self.obs.accelerometer_reference(self.closure, hand, state["theta"], rate, rate_change,
-                                                 self.gravity_world, s.kinematic_acceleration)
-        refs_world, refs_sensor = [d_acc], [acc]
-        if s.second_reference:
-            hinge = np.broadcast_to(self.obs.hinge_axis_world(hand)[..., None, :], acc.shape)
-            refs_world.append(hinge)
-            refs_sensor.append(np.broadcast_to(self.obs.hinge_in_sensor, acc.shape))
+        refs_world, refs_sensor = self.obs.reference_pairs(self.closure, hand, state["theta"], rate, rate_change, acc,
+                                                           self.gravity_world, s.kinematic_acceleration,
+                                                           s.second_reference)
         beta = s.beta
         if s.adaptive_beta:
             mu = self.obs.acceleration_bound(self.closure, rate, rate_change)

@@ -119,6 +119,13 @@ class FingerObservations:
         """The flexion-plane normal (hinge axis ``x``) in the world frame (..., 3)."""
         return hand.rotation @ self.base[:, 0]
 
+    def hinge_reference(self, hand: BaseMotion, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """The second reference vector of the attitude filters, in place of a magnetometer: the
+        flexion-plane normal in the world (from the optical pose) and in each sensor's frame, both
+        broadcast to ``shape`` (..., S, 3)."""
+        return (np.broadcast_to(self.hinge_axis_world(hand)[..., None, :], shape),
+                np.broadcast_to(self.hinge_in_sensor, shape))
+
     def reference_force_metacarpus(self, hand: BaseMotion, theta: np.ndarray, gravity_world: np.ndarray,
                                    dtheta: np.ndarray | None = None, ddtheta: np.ndarray | None = None) -> np.ndarray:
         """``R_Mᵀ (a_k - g)`` (..., S, 3): the specific force of sensor ``k`` at phalanx angles ``theta``
@@ -197,6 +204,20 @@ class FingerObservations:
         if kinematic:
             return self.reference_force_world(hand, theta_all, gravity_world, rate_all, rc_all)
         return self.reference_force_world(hand, theta_all, gravity_world)
+
+    def reference_pairs(self, closure, hand: BaseMotion, theta_sensors: np.ndarray, rate: np.ndarray,
+                        rate_change: np.ndarray, acc: np.ndarray, gravity_world: np.ndarray, kinematic: bool,
+                        second_reference: bool) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The vector pairs an attitude filter corrects with (world references, what the sensor
+        measures of them; each (..., S, 3)): the accelerometer against ``accelerometer_reference``
+        (eq. 11), and with ``second_reference`` the flexion-plane normal (``hinge_reference``)."""
+        world = [self.accelerometer_reference(closure, hand, theta_sensors, rate, rate_change, gravity_world, kinematic)]
+        sensor = [acc]
+        if second_reference:
+            hinge_world, hinge_sensor = self.hinge_reference(hand, acc.shape)
+            world.append(hinge_world)
+            sensor.append(hinge_sensor)
+        return world, sensor
 
     @staticmethod
     def rate_change(rate: np.ndarray, previous: np.ndarray, dt: float) -> np.ndarray:

@@ -26,7 +26,7 @@ from pydantic import Field
 from ..model.units import MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_OFFSET_STD_RAD_S
 from .base import LOST_RATE_RAD_S, MODE_FAST, MODE_SLOW, EstimatorSettings, FingerEstimator, FingerSamples, FingerTrack
 from .integration import rk4_step_linear_rate
-from .observations import ChainClosure, vector_observation
+from .observations import vector_observation
 
 
 class SwitchingSettings(EstimatorSettings):
@@ -41,10 +41,6 @@ class Switching(FingerEstimator):
     name = "switching"
     Settings = SwitchingSettings
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
-        self._vector_closure = ChainClosure(self.geom)      # the vector observation's, without fallback couplings
-
     def slow_error_bound(self, rates: np.ndarray, rate_changes: np.ndarray, inplane: np.ndarray) -> np.ndarray:
         """``Δθ_g`` (eq. 7) per sensor from relative rates and their derivatives per sensor (..., S)."""
         mu = self.obs.acceleration_bound(self.closure, rates, rate_changes)                   # eq. 6
@@ -58,7 +54,7 @@ class Switching(FingerEstimator):
         if theta0 is not None:
             theta = np.array(theta0[..., self.obs.phalanx], dtype=float)
             return {"theta": theta, "rate": rate, "error": np.zeros(shape), "mode": np.full(shape, MODE_FAST, np.int8)}
-        theta, inplane = vector_observation(self.obs, self._vector_closure, acc, hand, self.gravity_world)
+        theta, inplane = vector_observation(self.obs, self.vector_closure, acc, hand, self.gravity_world)
         err = self.slow_error_bound(rate, np.zeros(shape), inplane)
         # no information at all (horizontal flexion plane): integrate from the held estimate
         mode = np.where(np.isfinite(err), MODE_SLOW, MODE_FAST).astype(np.int8)
@@ -76,7 +72,7 @@ class Switching(FingerEstimator):
         rate = self.obs.relative_rate(gyr, hand)
         with np.errstate(divide="ignore", invalid="ignore"):
             rate_change = np.where(dt > 0, (rate - prev_rate) / np.where(dt > 0, dt, 1.0), 0.0)
-        theta_g, inplane = vector_observation(self.obs, self._vector_closure, acc, hand, self.gravity_world)
+        theta_g, inplane = vector_observation(self.obs, self.vector_closure, acc, hand, self.gravity_world)
         return rate, theta_g, self.slow_error_bound(rate, rate_change, inplane)
 
     def _select(self, state, dt, rate, theta_g, err_g):
