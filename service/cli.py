@@ -119,6 +119,12 @@ def _parse_params(pairs: list[str]) -> dict:
     return params
 
 
+def _service_arguments(parser: argparse.ArgumentParser, role: str) -> None:
+    """``--url`` and ``--token`` of a command that connects to a running service."""
+    parser.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
+    parser.add_argument("--token", required=True, help=f"a token with the {role} role")
+
+
 def _estimator_arguments(parser: argparse.ArgumentParser) -> None:
     """``--estimator NAME`` and its settings: ``--param NAME=VALUE`` (``_parse_params``); ``--beta B``
     is short for ``--param beta=B`` (Madgwick's gain)."""
@@ -549,8 +555,7 @@ def build_parser() -> argparse.ArgumentParser:
     wrk.set_defaults(func=_cmd_worker)
 
     glv = sub.add_parser("glove", help="stream a simulated glove + optical tracker to a service in real time")
-    glv.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
-    glv.add_argument("--token", required=True, help="a token with the source role")
+    _service_arguments(glv, "source")
     glv.add_argument("--session", default="default", help="session to stream into (default default)")
     glv.add_argument("--motion", choices=sorted(FINGER_MOTIONS), default="sequence",
                      help="finger motion (default sequence: point, grasp, release, pinch, open)")
@@ -567,8 +572,7 @@ def build_parser() -> argparse.ArgumentParser:
     glv.set_defaults(func=_cmd_glove)
 
     wat = sub.add_parser("watch", help="subscribe and print gesture events and live joint angles")
-    wat.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
-    wat.add_argument("--token", required=True, help="a token with the viewer role")
+    _service_arguments(wat, "viewer")
     wat.add_argument("--session", default="default", help="session to watch (default default)")
     wat.add_argument("--every", type=_positive_float, default=0.25, help="seconds between angle lines (default 0.25)")
     wat.add_argument("--count", type=int, default=0, help="stop after this many messages (default 0: never)")
@@ -579,8 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "stream (type MoCap, one channel per joint angle in radians, stable source_id) "
                                      "and its gesture events as an LSL marker stream, for LabRecorder and any LSL "
                                      "inlet. Needs pylsl: pip install 'fingertrack[lsl]'. Runs until Ctrl-C.")
-    lsl.add_argument("--url", required=True, type=_service_url, help="service URL, e.g. http://127.0.0.1:8765")
-    lsl.add_argument("--token", required=True, help="a token with the viewer role")
+    _service_arguments(lsl, "viewer")
     lsl.add_argument("--session", type=_session_hand, action="append", required=True, metavar="NAME[:HAND]",
                      help="a session to republish, with the hand its source is (right or left; default right); "
                           "repeatable")
