@@ -486,7 +486,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         except ValidationError as err:
             raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
         print(cpu.run(args.out, seconds=args.seconds, repeats=args.repeats, estimator=args.estimator,
-                      params=params, profile=args.profile))
+                      params=params, profile=args.profile, batched=args.batch))
         print(f"wrote {args.out}/results.json, summary.md" + (", profile.txt" if args.profile else ""))
         return 0
     if args.which == "gestures":
@@ -668,6 +668,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--repeats", type=_positive_int, default=3, help="timed passes (default 3)")
     _estimator_arguments(b)         # e.g. --param implementation=reference: chain's numpy reference
     b.add_argument("--profile", action="store_true", help="also write cProfile's top functions of one pipeline pass")
+    b.add_argument("--batch", action="store_true",
+                   help="each tick's IMU samples in one imu_batch message, as the glove streams them (default: one "
+                        "imu message per sample, as in a recording)")
 
     b = benchmark("load", "service load: several hands at once, subscribers per hand",
                   "Hands streamed at once into a fresh service process per load level, with subscribers per hand: "

@@ -3,7 +3,8 @@ session does with it, stage by stage, in this one process, measured in CPU time 
 not wall time, so that a busy machine slows it down less.
 
 Stages, each over the whole recording (the JSON Lines text of ``fingertrack simulate``: one ``imu``
-message per sensor and sample, poses at 90 Hz):
+message per sensor and sample, poses at 90 Hz; with ``--batch`` each tick's samples in one
+``imu_batch``, as the simulated glove streams them to the service):
 
 * ``parse``: decode and validate every line (``protocol.parse_line``);
 * ``pipeline``: the parsed messages through ``TrackedHand`` (alignment, the five finger estimators,
@@ -33,12 +34,18 @@ from ..sim.session import SimConfig, simulate
 STAGES = ("parse", "pipeline", "encode")
 
 
-def recording_lines(seconds: float, seed: int = 0) -> list[str]:
+def recording_lines(seconds: float, seed: int = 0, batched: bool = False) -> list[str]:
     """The JSON Lines of a realistic one-hand recording (``fingertrack simulate --motion random
-    --hand-motion random --noise realistic``), without its ``truth`` messages."""
-    session = simulate(SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed,
-                                 duration_s=seconds))
-    return [json.dumps(m, separators=(",", ":")) for m in session.messages(include_truth=False)]
+    --hand-motion random --noise realistic``), without its ``truth`` messages: one ``imu`` message per
+    sensor and sample as in a recording, or (``batched``) each tick's samples in one ``imu_batch`` in
+    order of arrival, as the simulated glove streams them (``clients.glove.source_messages``)."""
+    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=seconds)
+    if batched:
+        from clients.glove import source_messages
+        messages = [m for _, m in sorted(source_messages(config), key=lambda pair: pair[0])]
+    else:
+        messages = list(simulate(config).messages(include_truth=False))
+    return [json.dumps(m, separators=(",", ":")) for m in messages]
 
 
 def _pass(lines: list[str], settings: PipelineSettings) -> tuple[dict, int]:
@@ -58,11 +65,11 @@ def _pass(lines: list[str], settings: PipelineSettings) -> tuple[dict, int]:
 
 
 def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator: str = "chain",
-        params: dict | None = None, profile: bool = False) -> str:
+        params: dict | None = None, profile: bool = False, batched: bool = False) -> str:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = PipelineSettings(estimator=estimator, estimator_params=params or {})
-    lines = recording_lines(seconds)
+    lines = recording_lines(seconds, batched=batched)
     data_s = seconds
     t0 = time.process_time()
     _pass(lines[: max(1, int(len(lines) / seconds))], settings)      # about a second: kernels loaded (or compiled)
@@ -74,7 +81,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
     totals = [sum(r.values()) for r in runs]
     best = min(range(repeats), key=lambda i: totals[i])
     result = {
-        "seconds_of_data": data_s, "lines": len(lines), "frames": frames, "estimator": estimator,
+        "seconds_of_data": data_s, "lines": len(lines), "batched": batched, "frames": frames, "estimator": estimator,
         "params": params or {}, "repeats": repeats, "warm_up_cpu_s": warm_cpu,
         "runs": runs,
         "cpu_s_per_s": {"best": totals[best] / data_s, "median": statistics.median(totals) / data_s},
@@ -102,7 +109,8 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
 def _summary(r: dict) -> str:
     s = r["stages_best_cpu_s_per_s"]
     lines = [
-        f"One hand, {r['seconds_of_data']:g} s of realistic data ({r['lines']} messages, {r['frames']} frames), "
+        f"One hand, {r['seconds_of_data']:g} s of realistic data ({r['lines']} messages"
+        f"{', each tick in one imu_batch' if r['batched'] else ', one imu message per sample'}, {r['frames']} frames), "
         f"estimator {r['estimator']}{' ' + json.dumps(r['params']) if r['params'] else ''}; CPU time of this process, "
         f"best and median of {r['repeats']} passes; kernel load/compile pass {r['warm_up_cpu_s']:.2f} CPU s (not counted).",
         "",

@@ -120,6 +120,10 @@ class Dropped:
         return any(getattr(self, r) for r in DROP_REASONS)
 
 
+NOTHING_DROPPED = Dropped()
+"""What almost every message costs: nothing (one shared, immutable answer)."""
+
+
 @dataclass(frozen=True)
 class Handled:
     """The result of ``HandSession.handle``: the frames one message completes and what it dropped."""
@@ -190,7 +194,7 @@ class HandSession:
         self._fingers: dict[str, FingerState] = {}
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
-        self._dropped: dict[str, int] = dict.fromkeys(DROP_REASONS, 0)      # this message's drops (``accept``)
+        self._dropped: dict[str, int] | None = None      # this message's drops (``accept``), once there is one
         self._sensor_ids_of: HandCalibration | None = None
         self._sensor_ids: frozenset[str] = frozenset()
         self._estimator = EstimatorSpec.of(self.settings.estimator, self.settings.estimator_params)
@@ -252,9 +256,9 @@ class HandSession:
     def accept(self, msg) -> Dropped:
         """Take one source message in (the first half of ``handle``); returns what it dropped. The
         frames it completes come from ``ready_frames``."""
-        self._dropped = dict.fromkeys(DROP_REASONS, 0)
+        self._dropped = None
         self._accept(msg)
-        return Dropped(**self._dropped)
+        return NOTHING_DROPPED if self._dropped is None else Dropped(**self._dropped)
 
     def ready_frames(self) -> Iterator[HandFrame]:
         """The frames of every tick that is ready, each yielded as soon as its tick is processed (a
@@ -263,6 +267,8 @@ class HandSession:
 
     def _drop(self, reason: str, count: int = 1) -> None:
         setattr(self.counters, reason, getattr(self.counters, reason) + count)
+        if self._dropped is None:
+            self._dropped = dict.fromkeys(DROP_REASONS, 0)
         self._dropped[reason] += count
 
     def _accept(self, msg) -> None:
@@ -402,7 +408,7 @@ class HandSession:
             hand = self._dead_reckoned_hand(t - self._tick_t)
         self._hand_motion, self._tracking, self._tick_t = hand, tracking, t
         for name, fs in self._fingers.items():
-            self._update_finger(name, fs, t, hand)
+            self._update_finger(name, fs, t, hand, tick)
         self._apply_references(t)
         return self._emit_frames(t)
 
@@ -443,10 +449,13 @@ class HandSession:
         return tuple(s.id for s in geom.sensors
                      if s.id in self._last_sample and t - self._last_sample[s.id][0] <= self.settings.sensor_timeout_s)
 
-    def _update_finger(self, name: str, fs: FingerState, t: float, hand: BaseMotion) -> None:
-        live = self._live_sensors(fs.geom, t)
-        if live != fs.active_sensors:
-            self._reconfigure(name, fs, live)
+    def _update_finger(self, name: str, fs: FingerState, t: float, hand: BaseMotion, tick: dict) -> None:
+        active = fs.active_sensors
+        # every sensor of the finger active and sampled in this tick: nothing can have changed
+        if not (len(active) == len(fs.geom.sensors) and all(s in tick for s in active)):
+            live = self._live_sensors(fs.geom, t)
+            if live != active:
+                self._reconfigure(name, fs, live)
         if not fs.active_sensors:
             fs.mode = "none"
             return

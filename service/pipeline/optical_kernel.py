@@ -6,7 +6,8 @@ The poses are the track's arrays ``t`` (cap,), ``valid`` (cap,) 0/1, ``position`
 ``orientation`` (cap, 4, ``[x, y, z, w]``) between ``lo`` and ``hi`` (the reference's deque), plus
 the newest pruned valid pose (``held``: t, position, orientation; ``t`` NaN when there is none).
 The rotation formulas are scipy's (``from_quat`` normalises; ``as_rotvec`` and ``from_rotvec`` with
-their series below 1e-3 rad), the fit the same ``lstsq`` (LAPACK gelsd).
+their series below 1e-3 rad); the fit is the least-squares solution ``lstsq`` gives, by Householder QR
+(``_least_squares``: the design has full column rank, so both give the one solution, to rounding).
 """
 from __future__ import annotations
 
@@ -54,6 +55,48 @@ def _exp(vx, vy, vz):
     else:
         scale = math.sin(angle / 2.0) / angle
     return _unit(vx * scale, vy * scale, vz * scale, math.cos(angle / 2.0))
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _least_squares(a, b, k, x, v):
+    """Least squares ``min |a[:, :k] x - b|`` for ``b`` (m, 3) by Householder QR (Golub and Van Loan,
+    algorithm 5.3.2), into ``x[:k]``; ``a`` and ``b`` are overwritten, ``v`` (m,) is scratch. ``a``
+    must have full column rank (distinct pose times)."""
+    m = a.shape[0]
+    for j in range(k):
+        norm = 0.0
+        for i in range(j, m):
+            norm += a[i, j] * a[i, j]
+        norm = math.sqrt(norm)
+        alpha = -norm if a[j, j] > 0.0 else norm
+        vv = 0.0
+        for i in range(j, m):
+            v[i] = a[i, j]
+        v[j] -= alpha
+        for i in range(j, m):
+            vv += v[i] * v[i]
+        if vv == 0.0:
+            continue
+        for c in range(j, k):
+            f = 0.0
+            for i in range(j, m):
+                f += v[i] * a[i, c]
+            f *= 2.0 / vv
+            for i in range(j, m):
+                a[i, c] -= f * v[i]
+        for c in range(3):
+            f = 0.0
+            for i in range(j, m):
+                f += v[i] * b[i, c]
+            f *= 2.0 / vv
+            for i in range(j, m):
+                b[i, c] -= f * v[i]
+    for c in range(3):
+        for j in range(k - 1, -1, -1):
+            r = b[j, c]
+            for q in range(j + 1, k):
+                r -= a[j, q] * x[q, c]
+            x[j, c] = r / a[j, j]
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
@@ -143,18 +186,14 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
 
     coef_p = np.zeros((3, 3))
     coef_r = np.zeros((3, 3))
-    if m >= 8:                          # MIN_POSES_QUADRATIC: position, rate and acceleration
+    if m >= 3:      # MIN_POSES_QUADRATIC (8) and more: position, rate and acceleration; 3 to 7: rates only
+        k = 3 if m >= 8 else 2
         design = np.empty((m, 3))
+        scratch = np.empty(m)
         for j in range(m):
             design[j, 0], design[j, 1], design[j, 2] = 1.0, tau[j], 0.5 * tau[j] ** 2
-        coef_p[:, :] = np.linalg.lstsq(design, pos)[0]
-        coef_r[:, :] = np.linalg.lstsq(design, rv)[0]
-    elif m >= 3:                        # rates only
-        design = np.empty((m, 2))
-        for j in range(m):
-            design[j, 0], design[j, 1] = 1.0, tau[j]
-        coef_p[:2, :] = np.linalg.lstsq(design, pos)[0]
-        coef_r[:2, :] = np.linalg.lstsq(design, rv)[0]
+        _least_squares(design.copy(), pos, k, coef_p, scratch)
+        _least_squares(design, rv.copy(), k, coef_r, scratch)       # rv is read again below
     else:
         for k in range(3):
             coef_p[0, k] = pos[m - 1, k]
