@@ -15,6 +15,8 @@ status's ``dropped.overloaded`` and ``fingertrack_overloaded_messages_total``). 
 (``hello``, ``calibration``, ``reference_pose``, ``sync``, anything unparsable) are few and carry
 state or a question: they are queued even then, up to twice the bound, so a ``sync`` is answered.
 Nothing received is dropped without a reply: a message is processed, or refused with a reply.
+Replies come in the order of the messages (a message refused at the door for its size or the rate
+limit is answered when the processor reaches its place), except ``overloaded``, which is sent at once.
 
 A source that must not lose data paces itself: the Python ``Publisher`` keeps at most
 ``max_unconfirmed`` messages beyond its last answered ``sync`` (flow control), well inside the

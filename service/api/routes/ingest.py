@@ -118,12 +118,12 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 break
             size = _size(data)
             refused = _admit(size, settings, bucket)
-            if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
-                refused = _overload_reply(data, backlog)
+            # a refusal at the door is answered in order too (after the replies to earlier messages)
+            item, size = (data, size) if refused is None else ({"type": "refused", "reply": refused}, 0)
+            if not backlog.put(item, size, lambda: refused is None and _is_data(data)):
                 live.overloaded += 1
                 metrics.overloaded.labels(session).inc()
-            if refused:
-                await send_error(ws, metrics, *refused)
+                await send_error(ws, metrics, *_overload_reply(data, backlog))      # at once
     except (WebSocketDisconnect, RuntimeError):   # RuntimeError: the processor closed the connection
         pass
     finally:
@@ -154,6 +154,9 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
 
     greeted = False
     while (data := await backlog.get()) is not None:
+        if data["type"] == "refused":
+            await reply(*data["reply"])
+            continue
         binary = data.get("bytes") is not None
         partial = None
         try:
