@@ -317,6 +317,29 @@ def test_config_change_over_rest_switches_the_estimator_live(server):
     assert rest(server.url, "GET", "/v1/sessions/cfg/config", VIEWER)[1]["estimator"] == "madgwick"
 
 
+def test_a_configuration_change_is_validated_whole_before_anything_changes():
+    """The path the bus worker takes (a change as a dict, no REST route in front of it)."""
+    from pydantic import ValidationError
+
+    from service.api.metrics import Metrics
+    from service.api.sessions import LiveSession
+
+    live = LiveSession("unit", ServiceSettings.load(port=0), Metrics())
+    before = live.config
+    with pytest.raises(ValidationError, match="estimatr"):
+        live.update_config({"estimatr": "ekf"})
+    with pytest.raises(ValueError, match="beta"):
+        live.update_config({"estimator": "madgwick", "estimator_params": {"beta": -1.0}, "record": False})
+    assert live.config is before and live.hand.estimator_name == before.estimator
+    changed = live.update_config({"estimator": "madgwick", "estimator_params": {"beta": 0.1}})
+    assert changed == {**before.model_dump(), "estimator": "madgwick", "estimator_params": {"beta": 0.1}}
+    assert live.hand.estimator_name == "madgwick"
+    # the same estimator keeps its settings; another one starts from its defaults
+    assert live.update_config({"gestures": {"pinch_enter_m": 0.025}})["estimator_params"] == {"beta": 0.1}
+    assert live.config.gestures.pinch_enter_m == 0.025
+    assert live.update_config({"estimator": "chain"})["estimator_params"] == {}
+
+
 def test_recording_then_replaying_gives_the_frames_streamed_live(server):
     assert rest(server.url, "PUT", "/v1/sessions/rec/config", ADMIN, {"record": True})[0] == 200
     received, _ = asyncio.run(_stream_and_collect(server, "rec", _config(seed=6)))

@@ -126,6 +126,18 @@ class SessionConfig(BaseModel):
     record: bool = Field(description="the session's source messages are recorded (needs the service's record_dir)")
 
 
+class SessionConfigChange(BaseModel):
+    """Body of ``PUT /v1/sessions/{session}/config``: the fields to change; the others (omitted or
+    null) stay."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    estimator: str | None = Field(None, description="estimator name (``fingertrack estimate --list``)")
+    estimator_params: dict[str, Any] | None = Field(None, description="the estimator's settings; omitted: kept if the estimator stays, else its defaults")
+    gestures: dict[str, Any] | None = Field(None, description="gesture recogniser settings to change")
+    record: bool | None = Field(None, description="record the session's source messages (needs the service's record_dir)")
+
+
 class LiveSession:
     def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics):
         self.name = name
@@ -168,15 +180,20 @@ class LiveSession:
             self.recorder.close()
             self.recorder = None
 
-    def update_config(self, change: dict) -> dict:
-        """Validate everything first, then apply: a bad change changes nothing."""
-        estimator = change.get("estimator", self.config.estimator)
-        params = change.get("estimator_params", self.config.estimator_params if estimator == self.config.estimator else {})
-        gestures = self.config.gestures
-        if "gestures" in change:
-            gestures = GestureSettings(**{**self.config.gestures.model_dump(), **change["gestures"]})
+    def update_config(self, change: SessionConfigChange | dict) -> dict:
+        """Validate everything first (a dict as a ``SessionConfigChange``), then apply: a bad change
+        changes nothing."""
+        change = SessionConfigChange.model_validate(change)
+        current = self.config
+        estimator = current.estimator if change.estimator is None else change.estimator
+        params = change.estimator_params
+        if params is None:
+            params = current.estimator_params if estimator == current.estimator else {}
+        gestures = current.gestures
+        if change.gestures is not None:
+            gestures = GestureSettings(**{**current.gestures.model_dump(), **change.gestures})
         spec = EstimatorSpec.of(estimator, params)
-        record = bool(change.get("record", self.config.record))
+        record = current.record if change.record is None else change.record
         if record and self.settings.record_dir is None:
             raise ValueError("record: the service has no record_dir; start it with one to record sessions")
         if (estimator, params) != (self.config.estimator, self.config.estimator_params):

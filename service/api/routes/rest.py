@@ -12,7 +12,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from ...estimators.warm import warm_ahead
 from ...protocol import PROTOCOL_VERSION
 from ..deps import MetricsDep, Role, SessionsDep, existing_session, session_or_new
-from ..sessions import LiveSession, SessionConfig
+from ..sessions import LiveSession, SessionConfig, SessionConfigChange
 
 router = APIRouter()
 INDEX_PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8"><title>fingertrack</title>
@@ -20,17 +20,6 @@ INDEX_PAGE = """<!doctype html><html lang="en"><head><meta charset="utf-8"><titl
 <h1>fingertrack</h1><ul><li><a href="/viewer/">viewer</a>: a live hand, its joint angles and gesture events</li>
 <li><a href="/docs">API docs</a> (<a href="/openapi.json">OpenAPI</a>)</li><li><a href="/health">health</a></li></ul>
 </body></html>"""
-
-
-class SessionConfigChange(BaseModel):
-    """Body of ``PUT /v1/sessions/{session}/config``: the fields to change; the others stay."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    estimator: str | None = Field(None, description="estimator name (``fingertrack estimate --list``)")
-    estimator_params: dict[str, Any] | None = Field(None, description="the estimator's settings; omitted: kept if the estimator stays, else its defaults")
-    gestures: dict[str, Any] | None = Field(None, description="gesture recogniser settings to change")
-    record: bool | None = Field(None, description="record the session's source messages (needs the service's record_dir)")
 
 
 @router.get("/", include_in_schema=False)
