@@ -92,6 +92,27 @@ class SensorPlacement:
         return quat_to_matrix(np.asarray(self.mounting))
 
 
+METACARPUS_SENSOR_ID = "metacarpus"
+"""Sensor id of the optional IMU on the back of the hand (fixed to the metacarpus)."""
+
+
+@dataclass(frozen=True)
+class MetacarpusImu:
+    """The optional IMU on the back of the hand (sensor id ``metacarpus``), rigidly on the metacarpus.
+
+    Attributes:
+        position_m: the sensor's position in the metacarpus frame, metres (default: the middle of the
+            back of the hand, 5 cm from the wrist toward the fingers and 1.5 cm dorsal, ``-z``).
+        mounting: ``[x, y, z, w]`` rotation of the sensor frame in the metacarpus frame.
+    """
+
+    position_m: tuple[float, float, float] = (0.0, 0.05, -0.015)
+    mounting: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
+
+    def mounting_matrix(self) -> np.ndarray:
+        return quat_to_matrix(np.asarray(self.mounting))
+
+
 @dataclass(frozen=True)
 class FingerGeometry:
     """Planar chain of one finger (paper section 2.1).

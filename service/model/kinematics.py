@@ -28,7 +28,7 @@ from functools import cached_property
 import numpy as np
 
 from .frames import DEFAULT_GRAVITY_WORLD, apply, apply_transpose, palmar_axis, phalanx_axis, rot_x, skew
-from .hand import FingerGeometry, SensorPlacement
+from .hand import FingerGeometry, MetacarpusImu, SensorPlacement
 
 
 @dataclass(frozen=True)
@@ -160,6 +160,18 @@ def ideal_imu(
     joint_rate = dtheta[..., sensor.phalanx : sensor.phalanx + 1] * np.array([1.0, 0.0, 0.0])
     gyr = apply_transpose(r_s, base.angular_velocity) + joint_rate @ sensor.mounting_matrix()
     return ImuReadings(gyr, acc)
+
+
+def metacarpus_imu(placement: MetacarpusImu, base: BaseMotion,
+                   gravity_world: np.ndarray = DEFAULT_GRAVITY_WORLD) -> ImuReadings:
+    """Error-free readings of the IMU on the back of the hand: a point fixed to the metacarpus (the
+    module docstring's formula with no motion relative to it), in the sensor frame."""
+    n = base.rotation.shape[:-2]
+    fixed = PointMotion(np.broadcast_to(np.asarray(placement.position_m, dtype=float), n + (3,)),
+                        np.zeros(n + (3,)), np.zeros(n + (3,)))
+    world = point_in_world(base, fixed)
+    r_s = base.rotation @ placement.mounting_matrix()
+    return ImuReadings(apply_transpose(r_s, base.angular_velocity), apply_transpose(r_s, world.acceleration - gravity_world))
 
 
 def joint_positions(geom: FingerGeometry, theta: np.ndarray) -> np.ndarray:

@@ -36,12 +36,15 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ..estimators.base import FingerEstimator, finger_mode
 from ..estimators.registry import EstimatorSpec, make_estimator
-from ..model.hand import FingerGeometry, HandCalibration, default_calibration, joint_to_phalanx_angles
+from ..model.frames import DEFAULT_GRAVITY_WORLD
+from ..model.hand import METACARPUS_SENSOR_ID, FingerGeometry, HandCalibration, MetacarpusImu, default_calibration, \
+    joint_to_phalanx_angles
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
 from ..model.openxr import joint_poses_compiled, joint_radii, joint_tracked
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
+from .hand_imu import HandImu
 from .optical import OpticalTrack
 
 DEAD_RECKONING_PRIOR = 1e-2
@@ -194,6 +197,8 @@ class HandSession:
         self._fingers: dict[str, FingerState] = {}
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
+        self._hand_known = False            # the hand's acceleration is known (optics, or the back-of-hand IMU)
+        self._hand_imu = self._new_hand_imu(MetacarpusImu())
         self._dropped: dict[str, int] | None = None      # this message's drops (``accept``), once there is one
         self._sensor_ids_of: HandCalibration | None = None
         self._sensor_ids: frozenset[str] = frozenset()
@@ -201,6 +206,9 @@ class HandSession:
         self._build_fingers()
 
     # -- configuration ---------------------------------------------------------------------------
+    def _new_hand_imu(self, placement: MetacarpusImu) -> HandImu:
+        return HandImu(placement, DEFAULT_GRAVITY_WORLD, self.settings.sensor_timeout_s)
+
     def _make_estimator(self, geom: FingerGeometry, theta0: np.ndarray | None, extra=()) -> FingerEstimator:
         return make_estimator(self._estimator, geom, initial_theta=theta0, extra_couplings=tuple(extra))
 
@@ -284,6 +292,11 @@ class HandSession:
                 self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
         elif isinstance(msg, Calibration):
             self.apply_calibration(msg.overrides())
+            if msg.metacarpus is not None:
+                old = self._hand_imu.placement
+                self._hand_imu = self._new_hand_imu(MetacarpusImu(
+                    tuple(msg.metacarpus.position) if msg.metacarpus.position is not None else old.position_m,
+                    tuple(msg.metacarpus.mounting) if msg.metacarpus.mounting is not None else old.mounting))
         elif isinstance(msg, Hello):
             if msg.hand != self.hand:
                 self.hand = msg.hand
@@ -328,7 +341,7 @@ class HandSession:
         return sid in self._sensor_ids
 
     def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
-        if not self._known_sensor(sid):
+        if not self._known_sensor(sid) and sid != METACARPUS_SENSOR_ID:
             self._drop("unknown_sensor")
             return
         newest = self._newest_imu_t
@@ -357,6 +370,7 @@ class HandSession:
         self._next_frame_t = None
         self._tick_t = None
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+        self._hand_imu = self._new_hand_imu(self._hand_imu.placement)
         self._build_fingers()
 
     # -- processing ---------------------------------------------------------------------------------
@@ -393,20 +407,27 @@ class HandSession:
             self.counters.filter_resets += 1
             self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
             return []
+        if METACARPUS_SENSOR_ID in tick:
+            self._hand_imu.add(t, *tick[METACARPUS_SENSOR_ID])
         if hand is None:
             return []                           # no pose seen yet: nothing to fuse with
-        if tracking and not self._tracking and self._lost_since is not None:
+        # the back-of-hand IMU keeps the hand's rotation and acceleration known through an occlusion
+        imu_live = self._hand_imu.live(t) and (tracking or self._hand_motion is not None)
+        known = tracking or imu_live
+        if known and not self._hand_known and self._lost_since is not None:
             for fs in self._fingers.values():
                 fs.estimator.hand_tracked(True)
                 fs.estimator.reference_lost(t - self._lost_since)
             self._lost_since = None
-        elif not tracking and self._tracking:
+        elif not known and self._hand_known:
             self._lost_since = t
             for fs in self._fingers.values():
                 fs.estimator.hand_tracked(False)
-        if not tracking and self._hand_motion is not None and self._tick_t is not None:
+        if imu_live:
+            hand = self._hand_imu.aid(t, hand if tracking else self._hand_motion, tracking)
+        elif not tracking and self._hand_motion is not None and self._tick_t is not None:
             hand = self._dead_reckoned_hand(t - self._tick_t)
-        self._hand_motion, self._tracking, self._tick_t = hand, tracking, t
+        self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
         for name, fs in self._fingers.items():
             self._update_finger(name, fs, t, hand, tick)
         self._apply_references(t)

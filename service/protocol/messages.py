@@ -35,6 +35,8 @@ MAX_BATCH_SAMPLES = 4096
 """Largest ``imu_batch`` accepted, samples."""
 
 SENSOR_ID_PATTERN = r"^(thumb|index|middle|ring|little)\.[0-2]$"
+IMU_ID_PATTERN = r"^((thumb|index|middle|ring|little)\.[0-2]|metacarpus)$"
+"""An ``imu`` sample comes from a finger sensor or from the optional IMU on the back of the hand."""
 
 MAX_TIME_S = 1e10
 MAX_GYRO_RAD_S = 100.0
@@ -117,9 +119,24 @@ class FingerCalibration(_Message):
     sensors: list[SensorCalibration] | None = None
 
 
+class MetacarpusCalibration(_Message):
+    """Where the optional IMU on the back of the hand (sensor id ``metacarpus``) sits: its position
+    and the rotation of its frame in the metacarpus frame; unset fields keep the default (the middle
+    of the back of the hand, axes along the metacarpus frame's)."""
+
+    position: BaseOffsetVec | None = None
+    mounting: Quat | None = None
+
+    @field_validator("mounting")
+    @classmethod
+    def _unit(cls, q):
+        return _check_unit(q, "mounting")
+
+
 class Calibration(_Message):
     type: Literal["calibration"]
     fingers: dict[Literal["thumb", "index", "middle", "ring", "little"], FingerCalibration] = {}
+    metacarpus: MetacarpusCalibration | None = None
 
     def overrides(self) -> dict:
         """The ``fingers`` object with unset fields removed, for ``HandCalibration.with_overrides``."""
@@ -147,7 +164,7 @@ class Pose(_Message):
 
 class ImuSample(_Message):
     t: Time
-    id: Annotated[str, Field(pattern=SENSOR_ID_PATTERN)]
+    id: Annotated[str, Field(pattern=IMU_ID_PATTERN)]
     gyr: GyroVec
     acc: AccVec
 

@@ -157,6 +157,25 @@ def _misaligned(rng: np.random.Generator, bound_rad: float) -> np.ndarray:
     return Rotation.from_rotvec(axis * rng.uniform(0.0, bound_rad)).as_matrix()
 
 
+def draw_sensor(rng: np.random.Generator, p: RealisticProfile) -> SensorDraw:
+    """One IMU's errors (the order of draws is fixed)."""
+    return SensorDraw(
+        gyr_matrix=_sensitivity_matrix(rng, p.scale_bound, p.cross_axis_bound),
+        acc_matrix=_sensitivity_matrix(rng, p.scale_bound, p.cross_axis_bound),
+        gyr_offset=rng.uniform(-1.0, 1.0, 3) * p.gyro_offset_bound_rad_s,
+        acc_offset=rng.uniform(-1.0, 1.0, 3) * np.asarray(p.acc_offset_bound_m_s2),
+        gyr_drift=rng.uniform(-1.0, 1.0, 3) * p.gyro_drift_bound_rad_s2,
+        acc_drift=rng.uniform(-1.0, 1.0, 3) * p.acc_drift_bound_m_s3,
+        tissue_hz=float(rng.uniform(*p.tissue_hz)),
+        tissue_damping=float(rng.uniform(*p.tissue_damping)),
+    )
+
+
+def misaligned(rng: np.random.Generator, bound_rad: float) -> np.ndarray:
+    """A rotation by up to ``bound_rad`` about a random axis (a sensor's mounting misalignment)."""
+    return _misaligned(rng, bound_rad)
+
+
 def draw_subject(rng: np.random.Generator, profile: RealisticProfile, nominal: HandCalibration,
                  optical: OpticalModel) -> SubjectDraw:
     """Draw every realistic term for one run (the order of draws is fixed: reproducible per seed).
@@ -173,16 +192,7 @@ def draw_subject(rng: np.random.Generator, profile: RealisticProfile, nominal: H
             mount = _misaligned(rng, p.mounting_bound_rad) @ s.mounting_matrix()
             offset = min(s.offset_m * scale[s.phalanx], lengths[s.phalanx])
             placed.append(replace(s, offset_m=float(offset), mounting=tuple(float(v) for v in matrix_to_quat(mount))))
-            sensors[s.id] = SensorDraw(
-                gyr_matrix=_sensitivity_matrix(rng, p.scale_bound, p.cross_axis_bound),
-                acc_matrix=_sensitivity_matrix(rng, p.scale_bound, p.cross_axis_bound),
-                gyr_offset=rng.uniform(-1.0, 1.0, 3) * p.gyro_offset_bound_rad_s,
-                acc_offset=rng.uniform(-1.0, 1.0, 3) * np.asarray(p.acc_offset_bound_m_s2),
-                gyr_drift=rng.uniform(-1.0, 1.0, 3) * p.gyro_drift_bound_rad_s2,
-                acc_drift=rng.uniform(-1.0, 1.0, 3) * p.acc_drift_bound_m_s3,
-                tissue_hz=float(rng.uniform(*p.tissue_hz)),
-                tissue_damping=float(rng.uniform(*p.tissue_damping)),
-            )
+            sensors[s.id] = draw_sensor(rng, p)
         fingers[name] = replace(geom, lengths_m=lengths, coupling=coupling if geom.n_phalanges == 3 else geom.coupling,
                                 sensors=tuple(placed))
     optical = replace(optical,

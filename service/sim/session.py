@@ -17,11 +17,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..model.frames import DEFAULT_GRAVITY_WORLD, matrix_to_quat
-from ..model.hand import HandCalibration, calibration_message, default_calibration, joint_to_phalanx_angles
-from ..model.kinematics import BaseMotion, ideal_imu
+from ..model.hand import METACARPUS_SENSOR_ID, HandCalibration, MetacarpusImu, calibration_message, default_calibration, \
+    joint_to_phalanx_angles
+from ..model.kinematics import BaseMotion, ideal_imu, metacarpus_imu
 from ..protocol.messages import PROTOCOL_VERSION
 from .errors import ImuErrorModel, OpticalModel
-from .realistic import RealisticProfile, SubjectDraw, draw_subject, measure, soft_tissue
+from .realistic import RealisticProfile, SubjectDraw, draw_sensor, draw_subject, measure, misaligned, soft_tissue
 from .reference import with_reference_hold
 from .motions import FingerMotion, HandTrajectory, make_finger_motion, make_hand_motion
 
@@ -50,6 +51,9 @@ class SimConfig:
         t0_s: source clock at the first sample, s.
         fingers: simulate only these fingers' sensors (None: all).
         duration_s: length of the run, s (None: the motion's duration; longer runs hold the last pose).
+        metacarpus_imu: the glove also has an IMU on the back of the hand (sensor id ``metacarpus``,
+            ``MetacarpusImu()`` placement, the same error profile; its errors are drawn from a
+            generator of their own, so every other draw is the same with or without it).
     """
 
     motion: str = "grasp"
@@ -69,6 +73,7 @@ class SimConfig:
     reference_hold_s: float = 0.0
     finger_motion: FingerMotion | None = field(default=None, compare=False)
     hand_trajectory: HandTrajectory | None = field(default=None, compare=False)
+    metacarpus_imu: bool = False
 
 
 @dataclass
@@ -102,6 +107,10 @@ class SimulatedSession:
     optical: OpticalModel
     subject: SubjectDraw | None = None
     """The realistic profile's draws (true geometry, coupling, sensor errors); None for the paper's series."""
+    metacarpus_gyr: np.ndarray | None = None
+    """(N,3) readings of the IMU on the back of the hand (``SimConfig.metacarpus_imu``), rad/s; else None."""
+    metacarpus_acc: np.ndarray | None = None
+    """(N,3) its accelerometer readings, m/s²."""
 
     @property
     def true_calibration(self) -> HandCalibration:
@@ -119,7 +128,11 @@ class SimulatedSession:
         """Protocol-v1 messages in arrival order (poses arrive ``latency_s`` after their ``t``)."""
         yield {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": self.calibration.hand,
                "source": f"fingertrack-sim motion={self.config.motion} noise={self.config.noise} seed={self.config.seed}"}
-        yield calibration_message(self.calibration)
+        calibration = calibration_message(self.calibration)
+        if self.metacarpus_gyr is not None:
+            placement = MetacarpusImu()
+            calibration["metacarpus"] = {"position": list(placement.position_m), "mounting": list(placement.mounting)}
+        yield calibration
         t_pose_arrival = self.pose_t + self.optical.latency_s
         truth_q = matrix_to_quat(self.base.rotation) if include_truth else None
         i_pose, n_pose = 0, len(self.pose_t)
@@ -131,6 +144,9 @@ class SimulatedSession:
             tf = float(t)
             for s, sid in enumerate(self.sensor_ids):
                 yield {"type": "imu", "t": tf, "id": sid, "gyr": self.gyr[n, s].tolist(), "acc": self.acc[n, s].tolist()}
+            if self.metacarpus_gyr is not None:
+                yield {"type": "imu", "t": tf, "id": METACARPUS_SENSOR_ID, "gyr": self.metacarpus_gyr[n].tolist(),
+                       "acc": self.metacarpus_acc[n].tolist()}
             if hold_end is not None and tf >= hold_end:
                 yield {"type": "reference_pose", "t0": float(self.t[0]), "t1": hold_end, "pose": "flat"}
                 hold_end = None
@@ -215,6 +231,9 @@ def simulate(config: SimConfig) -> SimulatedSession:
         offsets = (np.array([subject.sensors[s].gyr_offset for s in sensor_ids]).reshape(-1, 3),
                    np.array([subject.sensors[s].acc_offset for s in sensor_ids]).reshape(-1, 3))
 
+    hand_gyr, hand_acc = (_metacarpus_readings(config, base, gravity, t_rel, errors if subject is None else None)
+                          if config.metacarpus_imu else (None, None))
+
     m = int(np.floor(duration * optical.rate_hz + 1e-9)) + 1
     pose_t_rel = np.arange(m) / optical.rate_hz
     pose_base = hand_traj.base_motion(pose_t_rel)
@@ -228,7 +247,26 @@ def simulate(config: SimConfig) -> SimulatedSession:
         joint_angles=angles, joint_rates=rates, base=base,
         pose_t=config.t0_s + pose_t_rel, pose_position=pos, pose_orientation=quat,
         pose_valid=optical.valid_mask(pose_t_rel), optical=optical, subject=subject,
+        metacarpus_gyr=hand_gyr, metacarpus_acc=hand_acc,
     )
+
+
+def _metacarpus_readings(config: SimConfig, base: BaseMotion, gravity: np.ndarray, t_rel: np.ndarray,
+                         errors: ImuErrorModel | None) -> tuple[np.ndarray, np.ndarray]:
+    """The back-of-hand IMU's readings (N,3) each, from a generator of its own: ``errors`` for the
+    paper's series, else (None) the realistic profile with its own mounting misalignment."""
+    rng = np.random.default_rng([config.seed, 7])
+    nominal = MetacarpusImu()
+    if errors is not None:
+        ideal = metacarpus_imu(nominal, base, gravity)
+        offsets = errors.draw_offsets(rng, 1)
+        gyr, acc = errors.corrupt(rng, ideal.gyr[:, None], ideal.acc[:, None], config.rate_hz, offsets)
+        return gyr[:, 0], acc[:, 0]
+    profile = config.profile or RealisticProfile()
+    mount = misaligned(rng, profile.mounting_bound_rad) @ nominal.mounting_matrix()
+    true = MetacarpusImu(nominal.position_m, tuple(float(v) for v in matrix_to_quat(mount)))
+    ideal = metacarpus_imu(true, base, gravity)
+    return measure(rng, profile, draw_sensor(rng, profile), t_rel, ideal.gyr, ideal.acc)
 
 
 def write_recording(session: SimulatedSession, path: str | Path, include_truth: bool = True) -> int:
