@@ -576,8 +576,9 @@ class HandSession:
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:
-    # a sum is non-finite if any term is (NaN and infinities propagate); cheaper than isfinite per element
-    return math.isfinite(sum(float(a.sum()) for a in arrays if a is not None))
+    # a sum is non-finite if any term is (NaN and infinities propagate); cheaper than isfinite per element,
+    # and on these few values plain Python sums beat numpy's per-call cost
+    return math.isfinite(sum(sum(np.ravel(a).tolist()) for a in arrays if a is not None))
 
 
 def _finite_motion(hand: BaseMotion) -> bool:
