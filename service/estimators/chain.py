@@ -76,6 +76,12 @@ Not used: the coupling as a soft constraint. With the default placement (sensors
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
 on all three phalanges it would be, and is left for later. The hand kinematics are taken as given
 (from the optics); their errors are not states.
+
+Implementation: the filter runs as one compiled numba call per finger and tick (``chain_kernel.run``:
+every sensor, batch row and sample over flat float64 arrays; ``run`` makes one call for a whole
+batch). ``_step_reference`` is the same filter in numpy, the reference the kernel is tested equal to
+(``tests/test_chain_kernel.py``, 1e-9); the setting ``implementation="reference"`` runs it instead.
+A change to the filter goes into both.
 """
 from __future__ import annotations
 
