@@ -21,6 +21,7 @@ from __future__ import annotations
 import cProfile
 import io
 import json
+import os
 import pstats
 import statistics
 import time
@@ -69,6 +70,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = PipelineSettings(estimator=estimator, estimator_params=params or {})
+    load_before = _load_average()
     lines = recording_lines(seconds, batched=batched)
     data_s = seconds
     t0 = time.process_time()
@@ -86,6 +88,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
         "runs": runs,
         "cpu_s_per_s": {"best": totals[best] / data_s, "median": statistics.median(totals) / data_s},
         "stages_best_cpu_s_per_s": {k: runs[best][k] / data_s for k in STAGES},
+        "load_average_1min": [load_before, _load_average()],
     }
     top = ""
     if profile:
@@ -106,13 +109,23 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
     return summary
 
 
+def _load_average() -> float | None:
+    """The machine's 1-minute load average (other work inflates CPU time too); None where unknown."""
+    try:
+        return os.getloadavg()[0]
+    except (AttributeError, OSError):
+        return None
+
+
 def _summary(r: dict) -> str:
     s = r["stages_best_cpu_s_per_s"]
     lines = [
         f"One hand, {r['seconds_of_data']:g} s of realistic data ({r['lines']} messages"
         f"{', each tick in one imu_batch' if r['batched'] else ', one imu message per sample'}, {r['frames']} frames), "
         f"estimator {r['estimator']}{' ' + json.dumps(r['params']) if r['params'] else ''}; CPU time of this process, "
-        f"best and median of {r['repeats']} passes; kernel load/compile pass {r['warm_up_cpu_s']:.2f} CPU s (not counted).",
+        f"best and median of {r['repeats']} passes; kernel load/compile pass {r['warm_up_cpu_s']:.2f} CPU s (not counted); "
+        f"load average {' -> '.join('?' if v is None else f'{v:.1f}' for v in r['load_average_1min'])} "
+        f"on {os.cpu_count()} cores.",
         "",
         "| stage | CPU s per s of data (best) | % of a core |",
         "|---|---|---|",
