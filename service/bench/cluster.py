@@ -71,7 +71,7 @@ def _listening(port: int) -> bool:
 
 
 @contextlib.contextmanager
-def nats_server(folder: str, log, start_timeout_s: float = 30.0):
+def nats_server(folder: str, log, start_timeout_s: float = 300.0):
     """A nats-server with JetStream on a free localhost port, storing in ``folder``, writing to the
     file ``log``; yields its URL and stops it on exit."""
     binary = nats_server_binary()
@@ -103,7 +103,7 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 
 @contextlib.contextmanager
-def cluster(workers: int, start_timeout_s: float = 30.0):
+def cluster(workers: int, start_timeout_s: float = 300.0):
     """nats-server + ``workers`` workers + a gateway; everything is stopped on exit."""
     procs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "bus.log", "w+") as logs, \

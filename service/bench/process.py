@@ -57,11 +57,12 @@ class ServiceProcess:
 
 
 @contextlib.contextmanager
-def service_process(start_timeout_s: float = 20.0, extra_settings: dict | None = None,
+def service_process(start_timeout_s: float = 300.0, extra_settings: dict | None = None,
                     log_path: str | Path | None = None):
     """Start ``fingertrack serve`` with fresh source/viewer/admin tokens; yields a
     :class:`ServiceProcess`, terminates the service on exit. A service that does not become healthy
-    raises ``RuntimeError`` with its log. ``log_path``: keep the service's stderr there (else it goes
+    (within ``start_timeout_s``, a bound for a failure only: a start compiles the kernels first when
+    their cache is cold, which took over 20 s on a busy machine) raises ``RuntimeError`` with its log. ``log_path``: keep the service's stderr there (else it goes
     with the temporary folder)."""
     from clients.client import wait_healthy
 
