@@ -279,7 +279,9 @@ def test_hostile_encodings_get_error_replies_and_the_connection_stays(server):
     assert code == 1008 and reason.startswith("unsupported protocol 999")
 
 
-def test_a_defect_while_processing_is_answered_and_the_connection_stays(server, monkeypatch):
+def test_a_defect_while_processing_is_answered_and_the_connection_stays(monkeypatch):
+    """The defect is injected in this process: the session's hand runs on the event loop here
+    (``hand_workers=0``); a hand worker process answers the same way (``hands.worker``)."""
     from service.api.sessions import LiveSession
     ingest = LiveSession.ingest
 
@@ -289,10 +291,12 @@ def test_a_defect_while_processing_is_answered_and_the_connection_stays(server, 
         return await ingest(self, raw, parsed)
     monkeypatch.setattr(LiveSession, "ingest", faulty)
 
-    async def go():
+    async def go(server):
         async with connect(f"{server.ws_url}/v1/ingest/defect?token={SOURCE}") as ws:
             return await _replies(ws, [HELLO, {"type": "pose", "t": 1.0, "valid": False}, _messages()[1]])
-    replies = asyncio.run(go())
+    settings = ServiceSettings.load(port=0, admin_token=ADMIN, tokens={SOURCE: "source"}, hand_workers=0)
+    with ServerThread(settings) as server:
+        replies = asyncio.run(go(server))
     assert [[r["code"] for r in rs] for rs in replies[1:]] == [["internal_error"], []]
     assert "TypeError while processing pose" in replies[1][0]["detail"] and "injected" not in replies[1][0]["detail"]
 

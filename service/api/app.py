@@ -1,7 +1,8 @@
 """The FastAPI application, assembled: settings, sessions and metrics on ``app.state``, the routes
 (``routes/``: ``rest``, ``ingest``, ``stream``), the lifespan (recordings flushed periodically,
-idle sessions removed, connections stuck in a send dropped, a graceful drain at shutdown; with ``settings.bus`` the
-connection to the hand workers) and the web viewer.
+idle sessions removed, connections stuck in a send dropped, a graceful drain at shutdown; the hand
+worker processes, ``hands.pool`` and ``settings.hand_workers``, or with ``settings.bus`` the
+connection to the bus's hand workers) and the web viewer.
 
 Endpoints:
 
@@ -31,6 +32,7 @@ from fastapi.staticfiles import StaticFiles
 
 from ..estimators.warm import warm_off_loop
 from .config import ServiceSettings
+from .hands.pool import HandPool
 from .metrics import Metrics
 from .routes import ingest, rest, schema, stream
 from .routes.socket import drop_stuck
@@ -57,16 +59,23 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                 sessions.flush_recordings()
                 sessions.evict_idle(time.monotonic())
                 drop_stuck(sessions, metrics, settings.subscriber_send_timeout_s, time.monotonic())
-        await warm_off_loop(settings.estimator)      # the default estimator's kernels, before serving
-        task = asyncio.create_task(housekeeping())
         if settings.bus is not None:                 # a gateway: sessions run in hand workers
             from ..bus.gateway import GatewayBus
             sessions.bus = await GatewayBus.connect(settings.bus)
+        elif settings.hand_workers:                  # hands in worker processes of this machine
+            sessions.pool = HandPool(settings, metrics)
+            await sessions.pool.start()
+            await sessions.pool.wait_ready()         # each has the default estimator's kernels loaded
+        else:
+            await warm_off_loop(settings.estimator)  # the default estimator's kernels, before serving
+        task = asyncio.create_task(housekeeping())
         yield
         task.cancel()
         await sessions.drain()
         if sessions.bus is not None:
             await sessions.bus.close()
+        if sessions.pool is not None:
+            await sessions.pool.close()
 
     app = FastAPIOffline(title="fingertrack", version="0.1.0", lifespan=lifespan,
                   description="Finger tracking for VR hand interaction: protocol v1 over WebSocket, REST config.")

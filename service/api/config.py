@@ -87,6 +87,8 @@ class ServiceSettings(BaseSettings):
     max_connections_per_token: int = Field(32, ge=1, description="open WebSockets per (non-admin) token")
     idle_timeout_s: float = Field(300.0, gt=0, description="a session with no source and no subscriber for this long "
                                   "is removed and its recording closed, s")
+    hand_workers: int = Field(2, ge=0, le=64, description="worker processes that run the sessions' hands (each "
+                              "session in one of them); 0: every hand on the web process's event loop")
     bus: str | None = Field(None, pattern=r"^(nats|tls)://\S+$", description="NATS URL (nats://HOST:PORT): run as a gateway whose sessions run in "
                             "'fingertrack worker' processes; None: everything in this process")
 

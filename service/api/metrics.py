@@ -17,6 +17,8 @@ class Metrics:
                                   "could not keep up with their source", ["session"], registry=self.registry)
         self.disconnects = Counter("fingertrack_disconnects", "connections the service dropped, by reason", ["reason"],
                                    registry=self.registry)
+        self.worker_restarts = Counter("fingertrack_hand_worker_restarts", "hand worker processes restarted after "
+                                       "they ended (a crash, a kill)", registry=self.registry)
         self.sessions = Gauge("fingertrack_sessions", "live sessions", registry=self.registry)
         self.subscribers = Gauge("fingertrack_subscribers", "connected subscribers", registry=self.registry)
         self.latency = Histogram("fingertrack_ingest_to_send_seconds", "time from receiving a source message to sending "

@@ -27,6 +27,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from gestures.recognizer import GestureSettings
 from ..estimators.registry import EstimatorSpec
+from ..estimators.warm import warm_ahead
 from ..pipeline.hand import Dropped, PipelineSettings
 from ..pipeline.tracked import TrackedHand
 from ..protocol.messages import dump_message
@@ -144,7 +145,7 @@ class LiveSession:
         self.settings = settings
         self.metrics = metrics
         self.config = SessionConfig(estimator=settings.estimator, record=settings.record_all)
-        self.hand = TrackedHand(settings=PipelineSettings(estimator=settings.estimator, output_rate_hz=settings.output_rate_hz))
+        self.hand: TrackedHand | None = self._make_hand()
         self.subscribers: set[Subscriber] = set()
         self.recorder: Recorder | None = None
         self.source: Any = None
@@ -163,6 +164,11 @@ class LiveSession:
         self._lock = asyncio.Lock()
         self._apply_recording()
 
+    def _make_hand(self) -> TrackedHand | None:
+        """The session's hand, run here (``None`` in a session whose hand runs in another process)."""
+        return TrackedHand(settings=PipelineSettings(estimator=self.settings.estimator,
+                                                     output_rate_hz=self.settings.output_rate_hz))
+
     @property
     def sources(self) -> int:
         return int(self.source is not None)
@@ -180,9 +186,11 @@ class LiveSession:
             self.recorder.close()
             self.recorder = None
 
-    def update_config(self, change: SessionConfigChange | dict) -> dict:
-        """Validate everything first (a dict as a ``SessionConfigChange``), then apply: a bad change
-        changes nothing."""
+    def checked_config(self, change: SessionConfigChange | dict) -> tuple[EstimatorSpec, dict, GestureSettings, bool]:
+        """A configuration change (a dict as a ``SessionConfigChange``) validated against the current
+        configuration: the estimator, its parameters, the gesture settings and whether to record, as
+        they would be after it (nothing changes here; ``ValueError``/``ValidationError`` naming what
+        is wrong)."""
         change = SessionConfigChange.model_validate(change)
         current = self.config
         estimator = current.estimator if change.estimator is None else change.estimator
@@ -196,9 +204,17 @@ class LiveSession:
         record = current.record if change.record is None else change.record
         if record and self.settings.record_dir is None:
             raise ValueError("record: the service has no record_dir; start it with one to record sessions")
-        if (estimator, params) != (self.config.estimator, self.config.estimator_params):
+        return spec, params, gestures, record
+
+    def update_config(self, change: SessionConfigChange | dict) -> dict:
+        """Validate everything first (a dict as a ``SessionConfigChange``), then apply: a bad change
+        changes nothing."""
+        spec, params, gestures, record = self.checked_config(change)
+        if (spec.name, params) != (self.config.estimator, self.config.estimator_params):
+            # the estimator's kernels are compiled in another process before the hand switches to it
+            warm_ahead(spec.name, params)
             self.hand.set_estimator(spec)
-        self.config = SessionConfig(estimator=estimator, estimator_params=params, gestures=gestures, record=record)
+        self.config = SessionConfig(estimator=spec.name, estimator_params=params, gestures=gestures, record=record)
         self.hand.set_gesture_settings(gestures)
         self._apply_recording()
         return self.config.model_dump()
@@ -253,7 +269,7 @@ class LiveSession:
                     self.metrics.dropped_frames.labels(self.name).inc(dropped)
 
     def summary(self) -> dict:
-        return {"session": self.name, "hand": self.hand.hand, "sources": self.sources,
+        return {"session": self.name, "hand": self.hand.hand if self.hand is not None else None, "sources": self.sources,
                 "subscribers": len(self.subscribers), "frames_out": self.frames_out,
                 "dropped_subscriber_frames": self.dropped_frames, "overloaded": self.overloaded,
                 "config": self.config.model_dump(),
@@ -283,6 +299,9 @@ class Sessions:
         self.closing = False
         self.bus = None
         """A ``bus.gateway.GatewayBus`` when the hands run in workers (``settings.bus``), else None."""
+        self.pool = None
+        """A ``hands.pool.HandPool`` when the hands run in this machine's worker processes
+        (``settings.hand_workers``), else None (every hand on the event loop)."""
         self.connections: dict[str, int] = {}
         """Open WebSockets per (non-admin) token."""
         self.waiting: dict[str, set[Subscriber]] = {}
@@ -309,8 +328,9 @@ class Sessions:
             mine = 0 if owner is None else sum(1 for x in self.by_name.values() if x.owner == owner)
             if mine >= self.settings.max_sessions_per_token:
                 raise SessionFull(f"this token already has {mine} live sessions (the limit per token)")
-            live = self.by_name[name] = (LiveSession(name, self.settings, self.metrics) if self.bus is None
-                                         else self.bus.session(name, self.settings, self.metrics))
+            backend = self.bus or self.pool
+            live = self.by_name[name] = (LiveSession(name, self.settings, self.metrics) if backend is None
+                                         else backend.session(name, self.settings, self.metrics))
             live.owner = owner
             live.subscribers.update(self.waiting.pop(name, ()))   # its waiting viewers, before any frame
             live.touch()

@@ -15,17 +15,15 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
-import math
 import time
 import uuid
-from dataclasses import dataclass, field
 
 from nats.js.api import KeyValueConfig, StorageType
 from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 
 from ..api.config import ServiceSettings, redacted_url
 from ..api.metrics import Metrics
-from ..api.outgoing import Outgoing
+from ..api.hands.owner import OutputSink, first_time as _first_time
 from ..api.replies import drop_replies, failure_reply
 from ..api.sessions import LiveSession
 from ..protocol import ProtocolError, parse_message
@@ -38,46 +36,6 @@ from .subjects import (ASSIGN, BUCKET, LEASE_S, PROBE_TIMEOUT_S, RENEW_S, WORKER
 log = logging.getLogger("fingertrack.bus")
 STATE_MAX_AGE_S = 3600.0
 """a session nobody has renewed for this long leaves the key-value bucket, s"""
-
-
-def _first_time(raw: dict) -> float | None:
-    """The source time of a message, if it carries one."""
-    if "t" in raw:
-        return float(raw["t"])
-    if raw.get("type") == "imu_batch" and raw.get("samples"):
-        return float(raw["samples"][0]["t"])
-    return None
-
-
-@dataclass(eq=False)
-class OutputSink:
-    """The owned session's subscriber: frames and events leave on ``ft.out.<s>`` with the session's
-    ``seq`` (continued across a change of owner), and the last frame is kept for the lease's state."""
-
-    rate_hz: float
-    resume_after: tuple[int, float] | None = None   # (seq, t) of the previous owner's last state
-    seq_offset: int = 0
-    last_seq: int = 0
-    last_t: float | None = None
-    last_angles: dict = field(default_factory=dict)
-    pending: list = field(default_factory=list)
-    binary: bool = True
-    dropped: int = 0
-
-    def put(self, item: Outgoing, t_ingest: float) -> int:
-        msg = item.message
-        if msg["type"] == "frame":
-            if self.resume_after is not None:
-                seq0, t0 = self.resume_after
-                # the previous owner may have sent frames after its last state: every one of them lies
-                # on its frame grid before this frame's time, so this seq is above all of theirs
-                self.seq_offset = seq0 + max(1, math.ceil((msg["t"] - t0) * self.rate_hz)) + 1 - msg["seq"]
-                self.resume_after = None
-            msg["seq"] += self.seq_offset
-            self.last_seq, self.last_t = msg["seq"], msg["t"]
-            self.last_angles = {f: {j: v for j, v in a.items() if j != "mode"} for f, a in msg["fingers"].items()}
-        self.pending.append(item.packed())
-        return 0
 
 
 class OwnedSession:

@@ -97,6 +97,16 @@ def warm(name: str, params: dict | None = None) -> None:
     gyr, acc = np.zeros((n, 3)), np.tile([0.0, 9.81, 0.0], (n, 1))
     for k in range(3):
         estimator.update(0.005 * k, gyr, acc, hand)
+    _WARM.add(name)
+
+
+def is_warm(name: str) -> bool:
+    """Whether a hand of this process can switch to estimator ``name`` without compiling: it has no
+    kernels, or ``warm`` ran for it here (unknown names: True, their validation answers)."""
+    from .registry import REGISTRY
+
+    cls = REGISTRY.get(name)
+    return cls is None or not cls.jit_kernels or name in _WARM
 
 
 async def warm_off_loop(name: str, params: dict | None = None) -> None:

@@ -150,6 +150,9 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
                 gone = True
 
     async def reply(code: str, detail: str, **fields) -> None:
+        """An error reply about this message, after those about every earlier one (a session whose hand
+        runs in a worker process answers its messages later: ``settled``)."""
+        await live.settled()
         await say(send_error, metrics, code, detail, **fields)
 
     greeted = False
@@ -176,6 +179,7 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
                     await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(f"unsupported protocol {shown}"))
                 return
             greeted = True
+            await live.settled()
             await say(send, server_hello(session))
         elif not greeted:
             await reply("expected_hello", f"the first message must be hello, got {msg.type}")

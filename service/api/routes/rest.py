@@ -9,7 +9,6 @@ from fastapi import APIRouter, Depends, HTTPException, Request, Security
 from fastapi.responses import HTMLResponse, JSONResponse, Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from ...estimators.warm import warm_ahead
 from ...protocol import PROTOCOL_VERSION
 from ..deps import MetricsDep, Role, SessionsDep, existing_session, session_or_new
 from ..sessions import LiveSession, SessionConfig, SessionConfigChange
@@ -64,8 +63,6 @@ def put_config(session: str, change: SessionConfigChange, sessions: SessionsDep)
     # a plain function (FastAPI's thread pool), as before: a bus session's change waits for its worker
     live = session_or_new(session, sessions)
     values = change.model_dump(exclude_unset=True, exclude_none=True)
-    # the estimator's kernels are compiled in another process before the session switches to it
-    warm_ahead(values.get("estimator", live.config.estimator), values.get("estimator_params"))
     try:
         return live.update_config(values)
     except ValidationError as err:

@@ -1,0 +1,360 @@
+"""The web process's side of the hand workers: ``HandPool`` starts ``settings.hand_workers`` worker
+processes (``hands.worker``) and gives each new session to the one with the fewest sessions;
+``ProcessSession`` looks like a ``LiveSession`` to the API (subscribers' bounded queues, recording,
+sync barriers) while its hand runs in that worker.
+
+The web process only moves messages: a validated source message goes to the worker at once
+(pipelined: ``ingest`` does not wait for the hand; at most ``WINDOW`` messages of a session are
+unanswered, beyond that the source waits); the worker's replies become the source's error replies,
+and its frames and gesture events are fanned out to the subscribers (encoded once per format). What
+is sent to a worker within one turn of the event loop goes in one write (a batch).
+
+A worker that dies (a crash, a kill) is restarted in its slot: its sessions are opened again from
+their compact state (``hands.owner``: hello, calibration, configuration, the last frame's ``seq``, time
+and joint angles, applied as a reference pose) and every source message the dead worker had not
+answered is sent again, in order, so no source message is lost. What is lost: the hand's filter
+state beyond the joint angles (covariances, learned sensor offsets), the optical track and the
+gesture recogniser's state (an active gesture starts again), and the time the new process needs to
+start (its sessions' frames come late then, other workers' sessions go on). Counted per session as
+``worker_restarts`` and ``resent_after_restart`` (``GET /v1/sessions``) and in
+``fingertrack_hand_worker_restarts_total``.
+"""
+from __future__ import annotations
+
+import asyncio
+import collections
+import itertools
+import json
+import logging
+import socket
+import sys
+import threading
+import time
+
+import msgpack
+
+from ..config import ServiceSettings
+from ..metrics import Metrics
+from gestures.recognizer import GestureSettings
+
+from ..sessions import LiveSession, SessionConfig, SessionConfigChange
+from .worker import HEADER, frame
+
+log = logging.getLogger("fingertrack")
+WINDOW = 512
+"""source messages of one session on their way to its worker at once (more: the source waits)"""
+RESTART_BACKOFF_S = 1.0
+"""pause before restarting a worker that died before it was ready, s"""
+CONFIG_WAIT_S = 300.0
+"""longest wait for a worker to apply a configuration change (it may compile an estimator first), s"""
+
+
+class WorkerLink:
+    """One worker slot: its process (replaced when it dies), the socket to it and its sessions."""
+
+    def __init__(self, pool: "HandPool", slot: int):
+        self.pool = pool
+        self.slot = slot
+        self.proc: asyncio.subprocess.Process | None = None
+        self.pid: int | None = None
+        self.ready = asyncio.Event()
+        self.sessions: dict[int, ProcessSession] = {}
+        self.restarts = 0
+        self._writer: asyncio.StreamWriter | None = None
+        self._out: list = []
+        self._held: list = []                       # while restarting: messages other than source messages
+        self._restarting = False
+        self._flush_scheduled = False
+        self._tasks: list[asyncio.Task] = []
+
+    async def start(self) -> None:
+        parent, child = socket.socketpair()
+        self.ready.clear()
+        try:
+            self.proc = await asyncio.create_subprocess_exec(
+                sys.executable, "-m", "service.api.hands.worker", str(child.fileno()), json.dumps(self.pool.worker_settings),
+                pass_fds=(child.fileno(),))
+        finally:
+            child.close()
+        self.pid = self.proc.pid
+        reader, self._writer = await asyncio.open_unix_connection(sock=parent)
+        self._tasks = [asyncio.create_task(self._read(reader)), asyncio.create_task(self._watch(self.proc))]
+        self._flush()
+
+    def send(self, message: list) -> None:
+        """Queue a message for the worker; what is queued within one turn of the loop goes in one write.
+        While the worker restarts, only ``close`` is held here: each session's ``reopen`` sends the rest
+        (its state, its unanswered source messages and configuration changes)."""
+        if self._restarting:
+            if message[0] == "close":
+                self._held.append(message)
+            return
+        self._out.append(message)
+        if not self._flush_scheduled:
+            self._flush_scheduled = True
+            asyncio.get_running_loop().call_soon(self._flush)
+
+    def _flush(self) -> None:
+        self._flush_scheduled = False
+        if self._out and self._writer is not None and not self._writer.is_closing():
+            self._writer.write(frame(self._out))
+            self._out = []
+
+    async def _read(self, reader: asyncio.StreamReader) -> None:
+        try:
+            while True:
+                size, = HEADER.unpack(await reader.readexactly(HEADER.size))
+                batch = msgpack.unpackb(await reader.readexactly(size))
+                for message in batch:
+                    self._dispatch(message)
+        except (asyncio.IncompleteReadError, ConnectionError):
+            return                                  # the process ended: _watch restarts it
+
+    def _dispatch(self, message: list) -> None:
+        kind = message[0]
+        if kind == "ready":
+            self.ready.set()
+            return
+        live = self.sessions.get(message[1])
+        if live is None:
+            return
+        if kind == "out":
+            live.on_output(message[2], message[3])
+        elif kind == "rep":
+            live.on_reply(message[2], message[3])
+        elif kind == "cfgrep":
+            live.on_config_reply(message[2], message[3], message[4])
+
+    async def _watch(self, proc: asyncio.subprocess.Process) -> None:
+        code = await proc.wait()
+        if self.pool.closing:
+            return
+        was_ready = self.ready.is_set()
+        self.restarts += 1
+        self.pool.metrics.worker_restarts.inc()
+        log.warning("hand worker %d (pid %d) ended with %s; restarting it, its %d session(s) continue",
+                    self.slot, proc.pid, code, len(self.sessions))
+        if self._writer is not None:
+            self._writer.close()
+        self._restarting = True
+        self._writer, self._out, self._held = None, [], [m for m in self._out if m[0] == "close"]
+        if not was_ready:
+            await asyncio.sleep(RESTART_BACKOFF_S)  # it died starting: do not restart in a tight loop
+        await self.start()
+        self._restarting = False
+        for live in list(self.sessions.values()):
+            live.reopen()
+        held, self._held = self._held, []
+        for message in held:
+            self.send(message)
+
+    async def stop(self) -> None:
+        for task in self._tasks:
+            if task is not asyncio.current_task():
+                task.cancel()
+        if self._writer is not None:
+            self._writer.close()                    # the worker ends at the end of its input
+        if self.proc is not None and self.proc.returncode is None:
+            try:
+                await asyncio.wait_for(self.proc.wait(), 5.0)
+            except asyncio.TimeoutError:
+                self.proc.kill()
+                await self.proc.wait()
+
+
+class HandPool:
+    """The embedded service's hand worker processes (module docstring)."""
+
+    def __init__(self, settings: ServiceSettings, metrics: Metrics):
+        self.settings = settings
+        self.metrics = metrics
+        self.worker_settings = {"estimator": settings.estimator, "output_rate_hz": settings.output_rate_hz}
+        self.links = [WorkerLink(self, i) for i in range(settings.hand_workers)]
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.closing = False
+        self._sids = itertools.count(1)
+
+    async def start(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        await asyncio.gather(*(link.start() for link in self.links))
+
+    async def wait_ready(self) -> None:
+        """Until every worker has loaded the default estimator and reads messages."""
+        await asyncio.gather(*(link.ready.wait() for link in self.links))
+
+    async def close(self) -> None:
+        self.closing = True
+        await asyncio.gather(*(link.stop() for link in self.links))
+
+    def session(self, name: str, settings: ServiceSettings, metrics: Metrics) -> "ProcessSession":
+        """A new session on the worker with the fewest sessions (from the loop or a thread of the API)."""
+        link = min(self.links, key=lambda x: len(x.sessions))
+        return ProcessSession(name, settings, metrics, link, next(self._sids))
+
+
+class ProcessSession(LiveSession):
+    """A session whose hand runs in a worker process (module docstring)."""
+
+    def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics, link: WorkerLink, sid: int):
+        super().__init__(name, settings, metrics)
+        self.link, self.sid = link, sid
+        self.hand_name: str | None = None
+        self.hello: dict | None = None
+        self.calibration: dict | None = None
+        self.last_frame: dict | None = None
+        self.restarts = 0
+        self.resent = 0
+        self._n = 0
+        self._pending: dict[int, tuple[str, float | None, dict, float]] = {}   # n -> (type, t, raw, t_ingest)
+        self._replied = asyncio.Event()
+        self._errors: collections.deque = collections.deque()
+        self._error_task: asyncio.Task | None = None
+        self._source_error = None
+        self._config_n = itertools.count(1)
+        self._config_waits: dict[int, tuple[threading.Event, list, list]] = {}   # n -> (answered, result, request)
+        link.sessions[sid] = self
+        self._to_worker(["open", sid, name, None])
+
+    def _make_hand(self):
+        return None                                 # it runs in the worker
+
+    def _to_worker(self, message: list) -> None:
+        """Send from the event loop or from a thread of the API (in order either way)."""
+        loop = self.link.pool.loop
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            self.link.send(message)
+        else:
+            loop.call_soon_threadsafe(self.link.send, message)
+
+    def state(self) -> dict:
+        """The compact session state a restarted worker continues from (``hands.owner``)."""
+        frame_ = self.last_frame or {}
+        angles = {f: {j: v for j, v in a.items() if j != "mode"} for f, a in frame_.get("fingers", {}).items()}
+        config = self.config.model_dump(exclude={"record"})
+        return {"session": self.name, "worker": self.link.pid, "seq": frame_.get("seq", 0), "t": frame_.get("t"),
+                "angles": angles or None, "hello": self.hello, "calibration": self.calibration, "config": config}
+
+    def reopen(self) -> None:
+        """After the worker was restarted: the session from its state, then every unanswered message."""
+        self.restarts += 1
+        self.link.send(["open", self.sid, self.name, self.state()])
+        for n in sorted(self._pending):
+            self.resent += 1
+            self.link.send(["src", self.sid, n, self._pending[n][2]])
+        for n in sorted(self._config_waits):        # changes the dead worker had not answered
+            self.link.send(self._config_waits[n][2])
+
+    # -- source messages ---------------------------------------------------------------------------
+    def attach_source(self, send_error) -> None:
+        self._source_error = send_error
+
+    async def ingest(self, raw: dict, parsed) -> None:
+        while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker
+            self._replied.clear()
+            await self._replied.wait()
+        self.metrics.messages_in.labels(self.name).inc()
+        if self.recorder is not None:
+            from ...protocol.messages import dump_message
+            self.recorder.write(dump_message(parsed))
+        try:
+            msgpack.packb(raw)
+        except (OverflowError, TypeError, ValueError):   # e.g. a 30-digit integer in an unknown field
+            from ...protocol.messages import dump_message
+            raw = dump_message(parsed)
+        if parsed.type == "hello":
+            self.hello = raw
+            self.hand_name = raw.get("hand", self.hand_name)
+        self._n += 1
+        self._pending[self._n] = (parsed.type, getattr(parsed, "t", None), raw, time.perf_counter())
+        self.link.send(["src", self.sid, self._n, raw])
+        return None
+
+    def on_output(self, n: int, message: dict) -> None:
+        pending = self._pending.get(n)
+        if message.get("type") == "frame":
+            if self.last_frame is not None and message["seq"] <= self.last_frame["seq"]:
+                return                              # already passed on (cannot happen without a restart)
+            self.last_frame = message
+            self.hand_name = message.get("hand", self.hand_name)
+        self._fan_out([message], pending[3] if pending else time.perf_counter())
+
+    def on_reply(self, n: int, errors: list) -> None:
+        entry = self._pending.pop(n, None)
+        if entry is not None and entry[0] == "calibration" and not errors:
+            self.calibration = entry[2]
+        if errors and self._source_error is not None:
+            self._errors.extend(errors)
+            if self._error_task is None or self._error_task.done():
+                self._error_task = asyncio.get_running_loop().create_task(self._send_errors())
+        self._replied.set()
+
+    async def _send_errors(self) -> None:
+        while self._errors:
+            code, detail = self._errors.popleft()
+            try:
+                await self._source_error(code, detail)
+            except Exception:                       # the source went away: its replies with it
+                self._errors.clear()
+        self._replied.set()
+
+    async def settled(self) -> None:
+        """Every message ingested so far was answered and its error reply sent: what ``sync`` waits for."""
+        while self._pending or self._errors or (self._error_task is not None and not self._error_task.done()):
+            self._replied.clear()
+            await self._replied.wait()
+
+    # -- configuration (from a thread of the API) -------------------------------------------------
+    def _request(self, kind: str, body) -> dict:
+        n, done, box = next(self._config_n), threading.Event(), []
+        request = [kind, self.sid, n, body]
+        self._config_waits[n] = (done, box, request)
+        self._to_worker(request)
+        if not done.wait(CONFIG_WAIT_S):
+            self._config_waits.pop(n, None)
+            raise ValueError(f"the hand worker did not answer within {CONFIG_WAIT_S:g} s; the change may apply later")
+        result, error = box
+        if error is not None:
+            raise ValueError(error)
+        return result
+
+    def on_config_reply(self, n: int, result, error) -> None:
+        waiting = self._config_waits.pop(n, None)
+        if waiting is not None:
+            waiting[1].extend((result, error))
+            waiting[0].set()
+
+    def update_config(self, change) -> dict:
+        """Validated here (a bad change changes nothing), applied by the worker (which may compile the
+        estimator's kernels first, in a separate process, while every session goes on), then kept here."""
+        spec, params, gestures, record = self.checked_config(change)
+        remote = SessionConfigChange.model_validate(change).model_dump(exclude_none=True, exclude={"record"})
+        if remote:
+            applied = self._request("cfg", remote)
+            self.config = SessionConfig.model_validate({**applied, "record": record})
+        else:
+            self.config = self.config.model_copy(update={"record": record})
+        self._apply_recording()
+        return self.config.model_dump()
+
+    def enrol(self, segments: list) -> dict:
+        """Fitted by the worker, which holds the recent frames (``LiveSession.enrol``)."""
+        result = self._request("enrol", segments)
+        self.config = self.config.model_copy(update={"gestures": GestureSettings.model_validate(result["gestures"])})
+        return result
+
+    def summary(self) -> dict:
+        out = super().summary()
+        out["hand"] = self.hand_name or "right"
+        out["worker"] = {"slot": self.link.slot, "pid": self.link.pid, "restarts": self.restarts,
+                         "resent_after_restart": self.resent}
+        return out
+
+    def close(self) -> None:
+        super().close()
+        self.link.sessions.pop(self.sid, None)
+        if not self.link.pool.closing:
+            self._to_worker(["close", self.sid])

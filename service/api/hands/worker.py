@@ -1,0 +1,253 @@
+"""A hand worker process of the embedded service (``python -m service.api.hands.worker FD SETTINGS``).
+
+It owns the sessions the web process opens on it and runs their hands (``TrackedHand``, through the
+same ``LiveSession`` the in-process service uses). It talks to the web process over one stream socket
+(file descriptor ``FD``): frames of 4-byte big-endian length + MessagePack, each frame a list of
+messages (a batch: everything that came in at once is handled before the outputs go back in one write,
+at the latest every ``FLUSH_S`` of processing). ``SETTINGS`` is a JSON object of the few service
+settings a hand needs (no secrets).
+
+Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a session number ``sid``):
+
+* ``["open", sid, name, state]``: own the session; ``state`` is the compact session state of
+  ``hands.owner`` (``None`` for a new session; after a restart of a worker its last state, so the
+  hand continues from its last estimate);
+* ``["src", sid, n, raw]``: a validated source message, numbered ``n`` per session;
+* ``["cfg", sid, n, change]`` / ``["enrol", sid, n, segments]``: a configuration change / a gesture
+  enrolment; an estimator whose kernels this process has not loaded is first compiled into the cache
+  by a separate process while the worker goes on serving (the session keeps its old estimator until
+  then), then loaded here and applied;
+* ``["close", sid]``.
+
+Worker -> web process:
+
+* ``["out", sid, n, message]``: a ``frame`` or ``gesture`` message caused by source message ``n``
+  (``seq`` continued across a restart), always before the reply to ``n``;
+* ``["rep", sid, n, errors]``: source message ``n`` handled; ``errors`` lists the error replies the
+  source gets, ``[code, detail]`` as the in-process service gives them (``api.replies``);
+* ``["cfgrep", sid, n, result, error]``: the applied configuration (or the enrolment's result), or the
+  reason it was refused;
+* ``["ready", pid]`` once, when the default estimator is loaded and messages are read.
+
+The process ends when the web process closes its end of the socket.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import select
+import socket
+import struct
+import subprocess
+import sys
+import time
+
+import msgpack
+
+from ...protocol import ProtocolError, parse_message
+from ...estimators.warm import is_warm, warm
+from ..config import ServiceSettings
+from ..metrics import Metrics
+from ..outgoing import Outgoing
+from ..replies import drop_replies, failure_reply
+from ..sessions import LiveSession
+from .owner import OutputSink, resume_reference
+
+HEADER = struct.Struct(">I")
+FLUSH_S = 0.002
+"""outputs go back at least this often while a batch is being handled, s"""
+WARM_POLL_S = 0.05
+"""how often a worker compiling kernels in a separate process looks whether it has finished, s"""
+
+
+def _plain(value):
+    """A numpy scalar or array as the Python number or list MessagePack can carry."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"cannot send a {type(value).__name__}")
+
+
+def frame(messages: list) -> bytes:
+    data = msgpack.packb(messages, default=_plain)
+    return HEADER.pack(len(data)) + data
+
+
+class OwnedHand:
+    """One session this worker owns: its ``LiveSession`` (no subscribers: the frames go back to the web
+    process) and what a restarted worker needs to continue it (``hands.owner``)."""
+
+    def __init__(self, name: str, settings: ServiceSettings, metrics: Metrics, state: dict | None):
+        self.live = LiveSession(name, settings, metrics)
+        self.sink = OutputSink(settings.output_rate_hz, packed=False)
+        self.resume_angles: dict | None = None
+        if state:
+            for raw in (state.get("hello"), state.get("calibration")):
+                if raw is not None:
+                    self.handle(raw)
+            self.sink.pending.clear()
+            try:
+                self.live.update_config({k: v for k, v in (state.get("config") or {}).items() if k != "record"})
+            except ValueError:
+                pass                                # e.g. an estimator unknown here: its defaults
+            if state.get("seq"):
+                self.sink.resume_after = (int(state["seq"]), float(state["t"]))
+            self.resume_angles = state.get("angles") or None
+
+    def handle(self, raw: dict) -> list[list[str]]:
+        """One source message through the hand; its outputs are in ``sink.pending``. Returns the error
+        replies the source gets, ``[code, detail]`` (the same as the in-process service's)."""
+        try:
+            msg = parse_message(raw)
+        except ProtocolError as err:                # validated by the web process: only a version skew
+            return [[err.code, err.detail]]
+        if self.resume_angles is not None and (ref := resume_reference(self.resume_angles, raw)) is not None:
+            self.resume_angles = None
+            try:
+                self.live.hand.accept(parse_message(ref))
+            except (ProtocolError, ValueError):
+                pass                                # angles the protocol refuses: start as a new session
+        try:
+            dropped = self.live.hand.accept(msg)
+            for group in self.live.hand.outputs():
+                for out in group:
+                    self.sink.put(Outgoing(out), 0.0)
+        except Exception as err:                    # bad input, or a defect (logged in one line)
+            return [list(failure_reply(self.live.name, msg, err))]
+        return [list(reply) for reply in drop_replies(msg, dropped)]
+
+
+class Worker:
+    def __init__(self, sock: socket.socket, settings: ServiceSettings):
+        self.sock = sock
+        self.settings = settings
+        self.metrics = Metrics()
+        self.hands: dict[int, OwnedHand] = {}
+        self.out: list = []
+        self.warming: dict[str, subprocess.Popen] = {}      # estimator name -> its compiling process
+        self.waiting: list[list] = []                         # cfg/enrol messages in order, until warm
+
+    def send(self) -> None:
+        if self.out:
+            self.sock.sendall(frame(self.out))
+            self.out = []
+
+    def run(self) -> None:
+        buf = bytearray()
+        while True:
+            timeout = WARM_POLL_S if self.warming else None
+            readable, _, _ = select.select([self.sock], [], [], timeout)
+            if readable:
+                chunk = self.sock.recv(1 << 20)
+                if not chunk:
+                    return                          # the web process is gone
+                buf += chunk
+                while len(buf) >= HEADER.size:
+                    (size,) = HEADER.unpack_from(buf)
+                    if len(buf) < HEADER.size + size:
+                        break
+                    batch = msgpack.unpackb(bytes(buf[HEADER.size:HEADER.size + size]))
+                    del buf[:HEADER.size + size]
+                    self.handle_batch(batch)
+            self.poll_warming()
+            self.send()
+
+    def handle_batch(self, batch: list) -> None:
+        flushed = time.perf_counter()
+        for message in batch:
+            self.dispatch(message)
+            if time.perf_counter() - flushed > FLUSH_S:
+                self.send()
+                flushed = time.perf_counter()
+
+    def dispatch(self, message: list) -> None:
+        kind, sid = message[0], message[1]
+        if kind == "src":
+            owned = self.hands.get(sid)
+            if owned is None:
+                return
+            n, raw = message[2], message[3]
+            errors = owned.handle(raw)
+            self.out.extend(["out", sid, n, m] for m in owned.sink.pending)
+            owned.sink.pending.clear()
+            self.out.append(["rep", sid, n, errors])
+        elif kind == "open":
+            self.hands[sid] = OwnedHand(message[2], self.settings, self.metrics, message[3])
+        elif kind == "close":
+            owned = self.hands.pop(sid, None)
+            if owned is not None:
+                owned.live.close()
+        elif kind in ("cfg", "enrol"):
+            name = self.estimator_of(message)
+            if name is not None and not is_warm(name) and name not in self.warming:
+                self.warming[name] = subprocess.Popen([sys.executable, "-m", "service.estimators.warm", name],
+                                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            self.waiting.append(message)
+            self.apply_waiting()
+
+    @staticmethod
+    def estimator_of(message: list) -> str | None:
+        body = message[3]
+        return body.get("estimator") if message[0] == "cfg" and isinstance(body, dict) else None
+
+    def poll_warming(self) -> None:
+        """Kernels compiled into the cache by their separate process are loaded here (quick), then the
+        changes that waited for them are applied."""
+        done = [name for name, proc in self.warming.items() if proc.poll() is not None]
+        for name in done:
+            del self.warming[name]
+            try:
+                warm(name)                          # from the cache (compiles here if the cache failed)
+            except ValueError:
+                pass
+        if done:
+            self.apply_waiting()
+
+    def apply_waiting(self) -> None:
+        """Apply the waiting changes in order, per session, up to the first whose estimator is not warm."""
+        blocked, still = set(), []
+        for message in self.waiting:
+            name = self.estimator_of(message)
+            if message[1] in blocked or (name is not None and not is_warm(name) and name in self.warming):
+                blocked.add(message[1])
+                still.append(message)
+            else:
+                self.configure(message)
+        self.waiting = still
+
+    def configure(self, message: list) -> None:
+        kind, sid, n, body = message
+        owned = self.hands.get(sid)
+        if owned is None:
+            self.out.append(["cfgrep", sid, n, None, "the session is gone"])
+            return
+        try:
+            result = owned.live.update_config(body) if kind == "cfg" else owned.live.enrol(body)
+        except ValueError as err:
+            self.out.append(["cfgrep", sid, n, None, str(err)])
+            return
+        self.out.append(["cfgrep", sid, n, result, None])
+
+
+def main(argv: list[str]) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s hand worker %(process)d: %(message)s")
+    fd, given = int(argv[0]), json.loads(argv[1])
+    sock = socket.socket(fileno=fd)
+    sock.setblocking(True)
+    settings = ServiceSettings(**given, record_all=False, record_dir=None)
+    try:
+        warm(settings.estimator)                    # the default estimator's kernels before any session
+    except ValueError:
+        pass
+    worker = Worker(sock, settings)
+    worker.out.append(["ready", os.getpid()])
+    worker.send()
+    try:
+        worker.run()
+    except (BrokenPipeError, ConnectionResetError):
+        pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

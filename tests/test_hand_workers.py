@@ -1,0 +1,135 @@
+"""The embedded service's hand worker processes (``service.api.hands``), against a real server
+(uvicorn on a free localhost port) with real WebSocket clients: a killed worker is restarted and its
+session goes on while the other worker's session never notices; a session switched to an estimator
+whose kernels this worker has not loaded does not stall another session of the same worker. Waits are
+for events and counts; timeouts only bound a failure."""
+import asyncio
+import os
+import signal
+import time
+
+import pytest
+
+from clients.client import Publisher, Subscription, rest
+from clients.glove import source_messages
+from service.api.config import ServiceSettings
+from service.api.server import ServerThread
+from service.sim.session import SimConfig
+
+SOURCE, VIEWER, ADMIN = "src-token-w", "view-token-w", "admin-token-w"
+RATE_HZ = 90.0
+
+
+def _settings(workers: int) -> ServiceSettings:
+    return ServiceSettings.load(port=0, admin_token=ADMIN, tokens={SOURCE: "source", VIEWER: "viewer"},
+                                hand_workers=workers, subscriber_queue_frames=10_000, output_rate_hz=RATE_HZ)
+
+
+def _sessions(server) -> dict:
+    return {s["session"]: s for s in rest(server.url, "GET", "/v1/sessions", ADMIN)[1]}
+
+
+async def _until(condition, what: str, timeout_s: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out after {timeout_s:g} s waiting for {what}"
+        await asyncio.sleep(0.02)
+
+
+async def _collect(sub: Subscription, frames: list) -> None:
+    async for m in sub:
+        if m["type"] == "frame":
+            frames.append(m)
+
+
+def _messages(hand: str, seconds: float, seed: int) -> list[tuple[float, dict]]:
+    return source_messages(SimConfig(motion="sequence", hand=hand, noise="white", seed=seed, duration_s=seconds))
+
+
+async def _stream(url: str, session: str, hand: str, msgs, paced: bool, sync_every: int = 50,
+                  stop: asyncio.Event | None = None) -> None:
+    """One glove: every message in order (in real time when ``paced``), a sync every ``sync_every``."""
+    pub = Publisher(url, session, SOURCE, hand=hand, source="worker-test")
+    t0_wall, t0 = time.perf_counter(), msgs[0][0]
+    for k, (arrival, m) in enumerate(msgs):
+        if stop is not None and stop.is_set():
+            break
+        if paced:
+            await asyncio.sleep(max(0.0, t0_wall + (arrival - t0) - time.perf_counter()))
+        await pub.send(m)
+        if k % sync_every == sync_every - 1:
+            await pub.sync()
+    await pub.close()                               # syncs: every message is handled when it returns
+
+
+def test_a_killed_hand_worker_is_restarted_and_its_session_goes_on_while_the_other_worker_s_does_not_notice():
+    msgs = {"right": _messages("right", 6.0, 1), "left": _messages("left", 6.0, 2)}
+    with ServerThread(_settings(2)) as server:
+        async def run():
+            frames = {"a": [], "b": []}
+            subs = {name: Subscription(server.ws_url, name, VIEWER) for name in frames}
+            tasks = [asyncio.create_task(_collect(subs[n], frames[n])) for n in frames]
+            await _until(lambda: all(s.server_hello is not None for s in subs.values()), "the subscriptions")
+            streams = [asyncio.create_task(_stream(server.url, "a", "right", msgs["right"], paced=False)),
+                       asyncio.create_task(_stream(server.url, "b", "left", msgs["left"], paced=False))]
+            await _until(lambda: len(frames["a"]) >= 100, "100 frames of session a")
+            workers = {n: s["worker"] for n, s in (await asyncio.to_thread(_sessions, server)).items()}
+            assert workers["a"]["pid"] != workers["b"]["pid"]        # one session per worker
+            killed_at = len(frames["a"])
+            os.kill(workers["a"]["pid"], signal.SIGKILL)
+            await asyncio.gather(*streams)
+            summary = await asyncio.to_thread(_sessions, server)
+            await _until(lambda: all(len(frames[n]) >= summary[n]["frames_out"] for n in frames),
+                         "every frame the service sent")
+            for sub in subs.values():
+                await sub.close()
+            for task in tasks:
+                task.cancel()
+            return frames, killed_at, workers, summary
+        frames, killed_at, workers, summary = asyncio.run(run())
+    a, b = frames["a"], frames["b"]
+    # session a: continued by a new process of its worker slot, from the last estimate, in order
+    assert summary["a"]["worker"]["restarts"] == 1 and summary["a"]["worker"]["pid"] != workers["a"]["pid"]
+    assert len(a) > killed_at + 100, "session a's frames did not go on after its worker was killed"
+    assert all(x["seq"] < y["seq"] and x["t"] < y["t"] for x, y in zip(a, a[1:]))
+    assert {f["hand"] for f in a} == {"right"}
+    assert a[-1]["t"] > msgs["right"][-1][0] - 0.2            # to the end of its source's data
+    # session b, on the other worker: every frame, in order, no gap, none of a's
+    assert summary["b"]["worker"]["restarts"] == 0
+    assert [f["seq"] for f in b] == list(range(1, len(b) + 1)) and len(b) == summary["b"]["frames_out"]
+    assert {f["hand"] for f in b} == {"left"}
+
+
+def test_switching_a_session_to_an_estimator_not_loaded_in_its_worker_does_not_stall_another_session():
+    """Both sessions on one worker. While session b's switch to ``inertial`` is pending (its kernels are
+    compiled or loaded by a separate process first), session a, streaming in real time, gets every
+    frame of whole 100 ms windows of its stream time."""
+    with ServerThread(_settings(1)) as server:
+        async def run():
+            frames: list = []
+            sub = Subscription(server.ws_url, "a", VIEWER)
+            collector = asyncio.create_task(_collect(sub, frames))
+            await _until(lambda: sub.server_hello is not None, "the subscription")
+            stop = asyncio.Event()
+            a = asyncio.create_task(_stream(server.url, "a", "right", _messages("right", 20.0, 3), paced=True,
+                                            sync_every=1_000_000, stop=stop))
+            await _stream(server.url, "b", "left", _messages("left", 1.0, 4), paced=False)
+            await _until(lambda: len(frames) >= 20, "session a's first frames")
+            before = len(frames)
+            status, body = await asyncio.to_thread(rest, server.url, "PUT", "/v1/sessions/b/config", ADMIN,
+                                                   {"estimator": "inertial"}, timeout_s=300.0)
+            during = frames[before:]
+            stop.set()
+            await a
+            await sub.close()
+            collector.cancel()
+            return status, body, during, await asyncio.to_thread(_sessions, server)
+        status, body, during, summary = asyncio.run(run())
+    assert status == 200 and body["estimator"] == "inertial", body
+    assert summary["b"]["config"]["estimator"] == "inertial"
+    windows: dict[int, int] = {}
+    for f in during:
+        windows[int(f["t"] // 0.1)] = windows.get(int(f["t"] // 0.1), 0) + 1
+    full = [w for w, count in windows.items() if count >= int(0.1 * RATE_HZ)]
+    assert len(full) >= 3, f"session a's frames while b switched, per 100 ms window: {sorted(windows.items())}"
+    assert summary["a"]["worker"]["pid"] == summary["b"]["worker"]["pid"]
