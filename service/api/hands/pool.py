@@ -107,6 +107,9 @@ class WorkerLink:
                 batch = msgpack.unpackb(await reader.readexactly(size))
                 for message in batch:
                     self._dispatch(message)
+                    if message[0] == "out":
+                        # the subscribers' senders go out before the next frame (their queues are bounded)
+                        await asyncio.sleep(0)
         except (asyncio.IncompleteReadError, ConnectionError):
             return                                  # the process ended: _watch restarts it
 

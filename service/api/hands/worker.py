@@ -46,7 +46,7 @@ import time
 import msgpack
 
 from ...protocol import ProtocolError, parse_message
-from ...estimators.warm import is_warm, warm
+from ...estimators.warm import is_warm, warm, warm_ahead
 from ..config import ServiceSettings
 from ..metrics import Metrics
 from ..outgoing import Outgoing
@@ -235,10 +235,7 @@ def main(argv: list[str]) -> int:
     sock = socket.socket(fileno=fd)
     sock.setblocking(True)
     settings = ServiceSettings(**given, record_all=False, record_dir=None)
-    try:
-        warm(settings.estimator)                    # the default estimator's kernels before any session
-    except ValueError:
-        pass
+    warm_ahead(settings.estimator)                  # the pipeline's and the default estimator's kernels first
     worker = Worker(sock, settings)
     worker.out.append(["ready", os.getpid()])
     worker.send()
