@@ -339,10 +339,13 @@ class Sessions:
 
     def subscribe(self, name: str, sub: Subscriber) -> LiveSession | None:
         """Add a subscriber to the session ``name``; ``None`` if there is none yet: then it waits (it
-        joins the session when a source creates it). A bad name raises ``ValueError``."""
+        joins the session when a source creates it, here or, on the bus, when the session's first
+        output reaches this gateway). A bad name raises ``ValueError``."""
         live = self.get(name, create=False)
         if live is None:
             self.waiting.setdefault(name, set()).add(sub)
+            if self.bus is not None:          # its source may stream into another gateway
+                self.bus.watch(self, name)
         else:
             live.subscribers.add(sub)
             live.touch()

@@ -100,6 +100,9 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
     await _until_delivered(url, names, received, subscribers, admin)
     drain = time.perf_counter() - wall0 - wall
     errors = sum(len(p.errors) for p in pubs)                 # after closing: replies to the last messages included
+    # a subscriber that reconnects loses what its old connection had queued: neither delivered nor dropped
+    reconnects = sum(s.reconnects for s in subs.values())
+    glove_reconnects = sum(getattr(p, "reconnects", 0) for p in pubs)
     for s in subs.values():
         await s.close()
     for t in tasks:
@@ -112,7 +115,8 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
     delays = [r[0] - (first_send[n] + (r[4] - m[0][0])) for n, m in zip(names, msgs)
               for k in range(subscribers) for r in received[(n, k)]]
     return {"names": names, "hands_of": {n: c.hand for n, c in zip(names, configs)}, "received": received,
-            "delays": delays, "killed": killed, "probe": probed,
+            "delays": delays, "killed": killed, "probe": probed, "subscriber_reconnects": reconnects,
+            "glove_reconnects": glove_reconnects,
             "wall_s": wall, "drain_s": drain, "generator_cpu_s": generator_cpu, "errors": errors,
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
@@ -261,6 +265,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                "max": float(delay.max())} if delay.size else None),
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
         "source_errors": int(lvl["errors"]),
+        "subscriber_reconnects": lvl["subscriber_reconnects"], "glove_reconnects": lvl["glove_reconnects"],
         "service_cpu_share": service_share,
         "bus_workers": bus_workers, "gateways": gateways if bus_workers is not None else None,
         "hand_workers": hand_workers,
@@ -321,8 +326,8 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
              "| hands | frames produced | delivered / expected | dropped | send -> receive p50 / p99, ms | "
              "behind schedule p50 / p99 / max, ms | service still busy after the stream, s | "
              "service CPU, % of a core | generator CPU, % | integrity violations | source errors | "
-             "/health p50 / p99, ms | /metrics p50 / p99, ms |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "/health p50 / p99, ms | /metrics p50 / p99, ms | reconnects: subscribers / gloves |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         lat = lv["latency_ms"]
         lat_s = "-" if lat is None else f"{lat['p50']:.1f} / {lat['p99']:.1f}"
@@ -332,7 +337,8 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
         probe = lv.get("probe") or {}
         lines.append(f"| {lv['hands']} | {lv['frames_produced']} | {lv['frames_delivered']} / {lv['frames_expected']} | "
                      f"{lv['frames_dropped']} | {lat_s} | {delay_s} | {lv['drain_after_stream_s']:.1f} | {cpu} | {100 * lv['generator_cpu_share']:.0f} | "
-                     f"{lv['integrity_violations']} | {lv['source_errors']} | {_ms(probe.get('health'))} | {_ms(probe.get('metrics'))} |")
+                     f"{lv['integrity_violations']} | {lv['source_errors']} | {_ms(probe.get('health'))} | {_ms(probe.get('metrics'))} | "
+                     f"{lv.get('subscriber_reconnects', '-')} / {lv.get('glove_reconnects', '-')} |")
     front = "web process" if bus_workers is None else "gateways"
     lines += ["", f"| hands | workers' CPU, % of a core | {front}' CPU, % | worker killed | sessions on it | "
               "kill -> first frame after it, max s | frames never produced | source messages resent / lost |",
@@ -353,7 +359,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "frame's arrival after the moment its tick's data were due to be sent; it includes the pipeline's "
               "deliberate alignment wait (optical latency 20 ms + reorder window 20 ms) and grows without bound when "
               "the service falls behind. /health and /metrics: response times measured during the stream by a probe "
-              "in its own process (one request each every 50 ms, admin token). Each level runs in a fresh service; "
+              "in its own process (one request each every 50 ms, admin token). Reconnects: a subscriber whose connection "
+              "dropped (e.g. a keepalive timeout on a starved machine) loses the frames its old connection had queued, "
+              "which are then neither delivered nor counted as dropped. Each level runs in a fresh service; "
               "the generator (gloves and subscribers, one process) shares the machine with it."]
     text = "\n".join(lines) + "\n"
     if out is not None:

@@ -21,7 +21,7 @@ from nats.errors import TimeoutError as NatsTimeout
 
 from ..api.config import ServiceSettings
 from ..api.metrics import Metrics
-from ..api.sessions import LiveSession
+from ..api.sessions import LiveSession, SessionFull
 from .subjects import (ASSIGN, REPLY_WAIT_S, close, config_subject, connect, output_subject, pack, source_subject,
                        unpack)
 
@@ -40,6 +40,7 @@ class GatewayBus:
     def __init__(self, nc, loop: asyncio.AbstractEventLoop):
         self.nc = nc
         self.loop = loop
+        self._watching: set[str] = set()
 
     @staticmethod
     async def connect(url: str) -> "GatewayBus":
@@ -72,6 +73,43 @@ class GatewayBus:
                 if not (await self.assign(name)).get("claimed"):
                     return UNCONFIRMED
         return None
+
+    def watch(self, sessions, name: str) -> None:
+        """Viewers wait here for a session no source of this gateway has created: its source may stream
+        into another gateway. Its first output on ``ft.out.<s>`` creates the session here (the waiting
+        viewers join it, ``Sessions.get``); outputs are passed on until the session's own subscription
+        is in place (a frame seen twice is dropped by its ``seq``). The watch ends with it, or when
+        nobody waits any more."""
+        if name in self._watching:
+            return
+        self._watching.add(name)
+
+        async def on_output(msg) -> None:
+            live = sessions.by_name.get(name)
+            if live is None:
+                if not sessions.waiting.get(name):
+                    await end()                     # every waiting viewer left
+                    return
+                try:
+                    live = sessions.get(name, create=True)
+                except (SessionFull, ValueError):   # a full table: the viewers go on waiting
+                    return
+            if not isinstance(live, BusSession) or live._subscribed.is_set():
+                await end()                         # its own subscription has this message and the next
+                return
+            await live._on_output(msg)
+
+        async def end() -> None:
+            sub = subscription.pop(0) if subscription else None
+            self._watching.discard(name)
+            if sub is not None:
+                await sub.unsubscribe()
+
+        subscription: list = []
+
+        async def start() -> None:
+            subscription.append(await self.nc.subscribe(output_subject(name), cb=on_output))
+        self.loop.create_task(start())
 
     def session(self, name: str, settings: ServiceSettings, metrics: Metrics) -> "BusSession":
         return BusSession(name, settings, metrics, self)

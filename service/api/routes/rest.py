@@ -27,8 +27,11 @@ def index():
     return HTMLResponse(INDEX_PAGE)
 
 
+# health and metrics are coroutines: answered on the event loop at once, not after a hop through the
+# thread pool, whose thread has to win the interpreter lock from a busy loop first
+
 @router.get("/health")
-def health():
+async def health():
     return {"status": "ok"}
 
 
@@ -90,6 +93,6 @@ def post_enrolment(body: EnrolmentRequest, live: Annotated[LiveSession, Depends(
 
 
 @router.get("/metrics")
-def get_metrics(metrics: MetricsDep, role: Annotated[str, Security(Role("metrics"))]):
+async def get_metrics(metrics: MetricsDep, role: Annotated[str, Security(Role("metrics"))]):
     """Prometheus text; series labelled by session to admins only."""
     return Response(metrics.render(admin=role == "admin"), media_type="text/plain; version=0.0.4")
