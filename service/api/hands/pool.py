@@ -208,7 +208,7 @@ class ProcessSession(LiveSession):
         self.restarts = 0
         self.resent = 0
         self._n = 0
-        self._pending: dict[int, tuple[str, float | None, dict, float]] = {}   # n -> (type, t, raw, t_ingest)
+        self._pending: dict[int, tuple] = {}        # n -> (type, MessagePack, t_ingest, calibration or None)
         self._replied = asyncio.Event()
         self._errors: collections.deque = collections.deque()
         self._error_task: asyncio.Task | None = None
@@ -247,7 +247,7 @@ class ProcessSession(LiveSession):
         self.link.send(["open", self.sid, self.name, self.state()])
         for n in sorted(self._pending):
             self.resent += 1
-            self.link.send(["src", self.sid, n, self._pending[n][2]])
+            self.link.send(["src", self.sid, n, self._pending[n][1]])
         for n in sorted(self._config_waits):        # changes the dead worker had not answered
             self.link.send(self._config_waits[n][2])
 
@@ -264,16 +264,18 @@ class ProcessSession(LiveSession):
             from ...protocol.messages import dump_message
             self.recorder.write(dump_message(parsed))
         try:
-            msgpack.packb(raw)
+            packed = msgpack.packb(raw)             # once: kept as it is for a restarted worker
         except (OverflowError, TypeError, ValueError):   # e.g. a 30-digit integer in an unknown field
             from ...protocol.messages import dump_message
             raw = dump_message(parsed)
+            packed = msgpack.packb(raw)
         if parsed.type == "hello":
             self.hello = raw
             self.hand_name = raw.get("hand", self.hand_name)
         self._n += 1
-        self._pending[self._n] = (parsed.type, getattr(parsed, "t", None), raw, time.perf_counter())
-        self.link.send(["src", self.sid, self._n, raw])
+        kept = raw if parsed.type == "calibration" else None     # the session's state, once it is accepted
+        self._pending[self._n] = (parsed.type, packed, time.perf_counter(), kept)
+        self.link.send(["src", self.sid, self._n, packed])
         return None
 
     def on_output(self, n: int, message: dict) -> None:
@@ -283,12 +285,12 @@ class ProcessSession(LiveSession):
                 return                              # already passed on (cannot happen without a restart)
             self.last_frame = message
             self.hand_name = message.get("hand", self.hand_name)
-        self._fan_out([message], pending[3] if pending else time.perf_counter())
+        self._fan_out([message], pending[2] if pending else time.perf_counter())
 
     def on_reply(self, n: int, errors: list) -> None:
         entry = self._pending.pop(n, None)
         if entry is not None and entry[0] == "calibration" and not errors:
-            self.calibration = entry[2]
+            self.calibration = entry[3]
         if errors and self._source_error is not None:
             self._errors.extend(errors)
             if self._error_task is None or self._error_task.done():

@@ -12,7 +12,8 @@ Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a ses
 * ``["open", sid, name, state]``: own the session; ``state`` is the compact session state of
   ``hands.owner`` (``None`` for a new session; after a restart of a worker its last state, so the
   hand continues from its last estimate);
-* ``["src", sid, n, raw]``: a validated source message, numbered ``n`` per session;
+* ``["src", sid, n, raw]``: a validated source message (packed once more, as MessagePack bytes, so
+  that the web process packs it once and can send it again as it is), numbered ``n`` per session;
 * ``["cfg", sid, n, change]`` / ``["enrol", sid, n, segments]``: a configuration change / a gesture
   enrolment; an estimator whose kernels this process has not loaded is first compiled into the cache
   by a separate process while the worker goes on serving (the session keeps its old estimator until
@@ -167,7 +168,7 @@ class Worker:
             if owned is None:
                 return
             n, raw = message[2], message[3]
-            errors = owned.handle(raw)
+            errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw)
             self.out.extend(["out", sid, n, m] for m in owned.sink.pending)
             owned.sink.pending.clear()
             self.out.append(["rep", sid, n, errors])
