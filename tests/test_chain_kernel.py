@@ -1,6 +1,7 @@
 """The compiled ``chain`` kernel (``estimators/chain_kernel.py``) equals its numpy reference
 (``implementation="reference"``) to 1e-9: on random states and inputs (every branch: saturated gyro
-and accelerometer, untracked hand, hand jerk, batch rows, every finger shape) and on a realistic
+and accelerometer, untracked hand, hand jerk, batch rows, every finger shape), for a whole hand in one
+call (``ChainHand``: five fingers, one of them on a single sensor, each with its own step), and on a realistic
 simulated recording through the hand pipeline with a saturated sample, a dropped sample, a sensor
 falling silent, an optical loss and a reference pose."""
 from dataclasses import replace
@@ -8,7 +9,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.estimators.chain import Chain, ChainSettings
+from service.estimators.chain import Chain, ChainHand, ChainSettings
 from service.estimators.chain_kernel import N_STATE
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
@@ -67,6 +68,46 @@ def test_kernel_step_equals_the_reference_on_random_inputs(finger, batch, extra)
         for key in ("x", "rate", "hand_acc"):
             np.testing.assert_allclose(new_c[key], new_r[key], rtol=0, atol=TOL, err_msg=key)
         np.testing.assert_allclose(new_c["P"], new_r["P"], rtol=1e-9, atol=1e-15)
+
+
+def test_one_call_for_the_hand_equals_the_reference_finger_by_finger():
+    rng = np.random.default_rng(11)
+    settings = dict(hand_jerk_time_s=0.01, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
+    calib = default_calibration("right")
+    pairs = []
+    for name, geom in calib.fingers.items():
+        extra = ()
+        if name == "ring":               # a sensor silent: one sensor left, closed by a second coupling
+            geom, extra = replace(geom, sensors=geom.sensors[1:]), ((0, 1.0),)
+        compiled = Chain(geom, ChainSettings(**settings), extra_couplings=extra)
+        reference = Chain(geom, ChainSettings(**settings, implementation="reference"), extra_couplings=extra)
+        state, t0 = _random_state(rng, compiled), rng.uniform(0.0, 0.01)
+        for est in (compiled, reference):
+            est._state, est._t_last = {k: v.copy() for k, v in state.items()}, t0
+        pairs.append((compiled, reference))
+    together = ChainHand()
+    for tick, t in enumerate((0.02, 0.03, 0.045, 0.05)):
+        if tick == 2:                    # a known configuration replaces one finger's state: stacked again
+            for est in pairs[1]:
+                est.known_configuration(np.array([0.3, 0.5, 0.4]), 0.05)
+        for compiled, reference in pairs:
+            compiled._hand_untracked = reference._hand_untracked = bool(rng.integers(2))
+        hand = _random_hand(rng, ())
+        gyr = [rng.normal(0.0, 4.0, (c.n_sensors, 3)) for c, _ in pairs]
+        acc = [rng.normal(0.0, 12.0, (c.n_sensors, 3)) for c, _ in pairs]
+        gyr[0][0, 1] = 31.0 if tick == 1 else gyr[0][0, 1]       # past the gyro's full scale
+        acc[3][-1, 2] = -160.0 if tick == 3 else acc[3][-1, 2]   # past the accelerometer's
+        assert all(ChainHand.takes(c, t) for c, _ in pairs)
+        phi, modes, phalanx_start, sensor_start = together.advance(t, [c for c, _ in pairs], np.concatenate(gyr),
+                                                                   np.concatenate(acc), hand)
+        for f, (compiled, reference) in enumerate(pairs):
+            est = reference.update_trusted(t, gyr[f], acc[f], hand)
+            np.testing.assert_allclose(phi[phalanx_start[f]:phalanx_start[f + 1]], est.phi, rtol=0, atol=TOL)
+            assert modes[sensor_start[f]:sensor_start[f + 1]] == est.mode.tolist()
+            for key in ("x", "rate", "hand_acc"):
+                np.testing.assert_allclose(compiled._state[key], reference._state[key], rtol=0, atol=TOL, err_msg=key)
+            np.testing.assert_allclose(compiled._state["P"], reference._state["P"], rtol=1e-9, atol=1e-15)
+            assert compiled.last_t == t
 
 
 def _faulty_recording():

@@ -356,7 +356,8 @@ def samples_from_session(session, finger: str, hand: BaseMotion | None = None) -
 def finger_mode(modes: np.ndarray) -> str:
     """One word for a finger from its sensors' modes: ``fast`` if any sensor integrates, ``none`` if
     any has no information, ``slow`` if all observe, else ``fused``."""
-    codes = np.asarray(modes).ravel().tolist()        # a few codes: plain Python beats numpy calls
+    # a few codes: plain Python beats numpy calls
+    codes = modes if isinstance(modes, list) else np.asarray(modes).ravel().tolist()
     if MODE_FAST in codes:
         return MODE_NAMES[MODE_FAST]
     if MODE_NO_INFO in codes:

@@ -138,7 +138,7 @@ class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
     jit_kernels = True
-    kernels = (K.run,)
+    kernels = (K.run, K.run_hand)
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
@@ -374,3 +374,72 @@ class Chain(FingerEstimator):
         # "fast" while the accelerometer carries little weight (eq. 6 bound above g/2), else "fused"
         mode = np.where(mu > 0.5 * np.linalg.norm(self.gravity_world), MODE_FAST, MODE_FUSED).astype(np.int8)
         return {"x": x, "P": P, "rate": rate_meas, "hand_acc": np.array(hand.acceleration, dtype=float)}, theta, mode
+
+
+class ChainHand:
+    """The fingers of one hand that run ``chain``'s compiled kernel, advanced together by one kernel
+    call per tick (``chain_kernel.run_hand``) instead of one call per finger: the same arithmetic per
+    finger, so the same numbers as ``update`` on each (``tests/test_chain_kernel.py``).
+
+    The fingers' states live in stacked arrays kept here; each estimator's state holds views of its
+    rows, so the estimator stays whole (``inherit``, ``reference_lost``, a later ``update`` of its own
+    read and write the same numbers). An estimator whose state was replaced since the last tick (a
+    ``known_configuration``, a rebuild) is stacked again before the call."""
+
+    def __init__(self):
+        self._members: list[tuple[Chain, dict]] = []
+        self._sizes: tuple[np.ndarray, np.ndarray] | None = None
+
+    @staticmethod
+    def takes(estimator, t: float) -> bool:
+        """Whether ``estimator`` can be advanced to ``t`` here: a started compiled ``chain`` of one
+        finger (no batch) whose last sample is before ``t``."""
+        return (type(estimator) is Chain and estimator._compiled and not estimator.batch_shape
+                and estimator._state is not None and t > estimator._t_last)
+
+    def _stack(self, estimators: list[Chain], hand_acc) -> None:
+        states = [e._state for e in estimators]
+        ns = [e.n_sensors for e in estimators]
+        nph = [e.geom.n_phalanges for e in estimators]
+        sensor_start = np.concatenate([[0], np.cumsum(ns)]).astype(np.int64)
+        phalanx_start = np.concatenate([[0], np.cumsum(nph)]).astype(np.int64)
+        geo = [e._geometry_vector for e in estimators]
+        self._x = np.ascontiguousarray(np.concatenate([np.reshape(s["x"], (-1, N_STATE)) for s in states]), dtype=float)
+        self._p = np.ascontiguousarray(np.concatenate([np.reshape(s["P"], (-1, N_STATE, N_STATE)) for s in states]),
+                                       dtype=float)
+        self._rate = np.ascontiguousarray(np.concatenate([np.reshape(s["rate"], (-1,)) for s in states]), dtype=float)
+        self._hand_acc = np.array([s["hand_acc"] if s.get("hand_acc") is not None else hand_acc for s in states], dtype=float)
+        self._st = np.ascontiguousarray([e._settings_vector for e in estimators], dtype=float)
+        self._geo = np.ascontiguousarray(np.concatenate(geo), dtype=float)
+        self._geo_start = np.concatenate([[0], np.cumsum([len(g) for g in geo])]).astype(np.int64)
+        self._sensor_start, self._phalanx_start = sensor_start, phalanx_start
+        self._theta = np.empty(int(sensor_start[-1]))
+        self._phal = np.empty(int(phalanx_start[-1]))
+        self._members = []
+        for f, e in enumerate(estimators):
+            s0, s1 = sensor_start[f], sensor_start[f + 1]
+            e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
+            self._members.append((e, e._state))
+
+    def _stacked(self, estimators: list[Chain]) -> bool:
+        members = self._members
+        return len(members) == len(estimators) and all(
+            e is m and e._state is s for e, (m, s) in zip(estimators, members))
+
+    def advance(self, t: float, estimators: list[Chain], gyr: np.ndarray, acc: np.ndarray, hand) -> tuple:
+        """Every estimator (each ``takes`` it) one sample further to ``t``: ``gyr`` and ``acc`` (S, 3) are
+        their sensors' samples, finger after finger in each one's sensor order. Returns the joint
+        angles of all of them (one flat array, finger after finger), the mode codes (one list, sensor
+        after sensor) and the finger boundaries in both (``phalanx_start``, ``sensor_start``)."""
+        if not self._stacked(estimators):
+            self._stack(estimators, hand.acceleration)
+        dts = np.array([t - e._t_last for e in estimators])
+        untracked = np.array([e._hand_untracked for e in estimators])
+        phi = np.empty(self._phal.shape[0])
+        mode = np.empty(self._theta.shape[0], dtype=np.int8)
+        K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
+                   np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
+                   self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode)
+        for e in estimators:
+            e._t_last = t
+        return phi, mode.tolist(), self._phalanx_start.tolist(), self._sensor_start.tolist()

@@ -68,6 +68,34 @@ def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode):
+    """One finger: ``_finger`` (below) as a compiled entry point."""
+    _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode)
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
+             out_theta, out_phi, out_phal, out_mode):
+    """One tick of several fingers (a hand) in one call: finger ``f`` is ``_finger`` on its rows of the
+    stacked arrays, the same arithmetic as ``run`` on that finger alone. Its sensors are rows
+    ``sensor_start[f]:sensor_start[f + 1]`` of ``x`` (S, 14), ``p`` (S, 14, 14), ``rates`` (S), ``gyr``
+    and ``acc`` (S, 3), ``out_theta`` and ``out_mode`` (S); its joints entries
+    ``phalanx_start[f]:phalanx_start[f + 1]`` of ``out_phi`` and ``out_phal``; its constants
+    ``geo[geo_start[f]:geo_start[f + 1]]``; its own step ``dts[f]`` (0 right after it starts), last
+    hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 12) and ``untracked[f]``. The
+    hand's motion ``hand`` (18) is shared."""
+    hand1 = hand.reshape(1, 1, HAND_SIZE)
+    for f in range(dts.shape[0]):
+        s0, s1 = sensor_start[f], sensor_start[f + 1]
+        q0, q1 = phalanx_start[f], phalanx_start[f + 1]
+        ns, nph = s1 - s0, q1 - q0
+        _finger(x[s0:s1].reshape(1, ns, N_STATE), p[s0:s1].reshape(1, ns, N_STATE, N_STATE), rates[s0:s1].reshape(1, ns),
+                hand_acc[f:f + 1], dts[f:f + 1], gyr[s0:s1].reshape(1, 1, ns, 3), acc[s0:s1].reshape(1, 1, ns, 3), hand1,
+                st[f], geo[geo_start[f]:geo_start[f + 1]], untracked[f], out_theta[s0:s1].reshape(1, 1, ns),
+                out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns))
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode):
     """Advance the state (``x``, ``p``, ``rates``, ``hand_acc``, in place) by every sample ``i`` of
     ``dts`` (``dt = 0`` is the first sample after initialisation: no prediction, no rate change).
     Outputs per sample: the filter's per-sensor angle ``out_theta`` (N, B, S), the joint angles on the

@@ -97,6 +97,9 @@ def warm(name: str, params: dict | None = None) -> None:
     gyr, acc = np.zeros((n, 3)), np.tile([0.0, 9.81, 0.0], (n, 1))
     for k in range(3):
         estimator.update(0.005 * k, gyr, acc, hand)
+    from .chain import ChainHand
+    if ChainHand.takes(estimator, 0.015):           # the hand pipeline's one call for all its fingers
+        ChainHand().advance(0.015, [estimator], gyr, acc, hand)
     _WARM.add(name)
 
 

@@ -35,6 +35,7 @@ from scipy.spatial.transform import Rotation
 from pydantic import BaseModel, ConfigDict, Field
 
 from ..estimators.base import FingerEstimator, finger_mode
+from ..estimators.chain import ChainHand
 from ..estimators.registry import EstimatorSpec, make_estimator
 from ..model.frames import DEFAULT_GRAVITY_WORLD
 from ..model.hand import METACARPUS_SENSOR_ID, FingerGeometry, HandCalibration, MetacarpusImu, default_calibration, \
@@ -195,6 +196,7 @@ class HandSession:
         self._tracking = False
         self._lost_since: float | None = None
         self._fingers: dict[str, FingerState] = {}
+        self._together = ChainHand()        # the fingers advanced in one kernel call per tick
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
         self._hand_known = False            # the hand's acceleration is known (optics, or the back-of-hand IMU)
@@ -428,8 +430,15 @@ class HandSession:
         elif not tracking and self._hand_motion is not None and self._tick_t is not None:
             hand = self._dead_reckoned_hand(t - self._tick_t)
         self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
-        for name, fs in self._fingers.items():
-            self._update_finger(name, fs, t, hand, tick)
+        together = []
+        for fs in self._fingers.values():
+            if self._prepare_finger(fs, t, tick):
+                if ChainHand.takes(fs.estimator, t):
+                    together.append(fs)
+                else:
+                    self._update_finger(fs, t, hand)
+        if together:
+            self._update_together(together, t, hand)
         self._apply_references(t)
         return self._emit_frames(t)
 
@@ -470,18 +479,23 @@ class HandSession:
         return tuple(s.id for s in geom.sensors
                      if s.id in self._last_sample and t - self._last_sample[s.id][0] <= self.settings.sensor_timeout_s)
 
-    def _update_finger(self, name: str, fs: FingerState, t: float, hand: BaseMotion, tick: dict) -> None:
+    def _prepare_finger(self, fs: FingerState, t: float, tick: dict) -> bool:
+        """Rebuild the finger's estimator if its live sensors changed; whether it has any to update."""
         active = fs.active_sensors
         # every sensor of the finger active and sampled in this tick: nothing can have changed
         if not (len(active) == len(fs.geom.sensors) and all(s in tick for s in active)):
             live = self._live_sensors(fs.geom, t)
             if live != active:
-                self._reconfigure(name, fs, live)
+                self._reconfigure(fs, live)
         if not fs.active_sensors:
             fs.mode = "none"
-            return
-        gyr = np.array([self._last_sample[s][1] for s in fs.active_sensors])
-        acc = np.array([self._last_sample[s][2] for s in fs.active_sensors])
+            return False
+        return True
+
+    def _update_finger(self, fs: FingerState, t: float, hand: BaseMotion) -> None:
+        last = self._last_sample
+        gyr = np.array([last[s][1] for s in fs.active_sensors])
+        acc = np.array([last[s][2] for s in fs.active_sensors])
         if fs.estimator.started and t <= fs.estimator.last_t:   # cannot happen with increasing ticks; be safe
             return
         try:
@@ -494,6 +508,23 @@ class HandSession:
             return
         fs.phi = est.phi
         fs.mode = finger_mode(est.mode)
+
+    def _update_together(self, fingers: list[FingerState], t: float, hand: BaseMotion) -> None:
+        """Fingers whose estimators advance in one kernel call (``ChainHand``): the same as
+        ``_update_finger`` on each."""
+        last = self._last_sample
+        sensors = [s for fs in fingers for s in fs.active_sensors]
+        gyr = np.array([last[s][1] for s in sensors])
+        acc = np.array([last[s][2] for s in sensors])
+        phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
+        finite = math.isfinite(sum(phi.tolist()))
+        for f, fs in enumerate(fingers):
+            finger_phi = phi[phalanx_start[f]:phalanx_start[f + 1]]
+            if not finite and not _all_finite(finger_phi):
+                self._reset_finger(fs)
+                continue
+            fs.phi = finger_phi
+            fs.mode = finger_mode(modes[sensor_start[f]:sensor_start[f + 1]])
 
     def _reset_finger(self, fs: FingerState) -> None:
         """A filter that diverged (non-finite estimate, or a numerical failure) restarts from the
@@ -512,7 +543,7 @@ class HandSession:
             fs.active_sensors = ()
         fs.mode = "none"
 
-    def _reconfigure(self, name: str, fs: FingerState, live: tuple[str, ...]) -> None:
+    def _reconfigure(self, fs: FingerState, live: tuple[str, ...]) -> None:
         fs.active_sensors = live
         if not live:
             return
