@@ -76,7 +76,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                                occlusions_s=tuple(args.occlusion))
     config = SimConfig(motion=args.motion, t_m_s=args.tm, hand=args.hand, hand_motion=args.hand_motion,
                        noise=args.noise, seed=args.seed, rate_hz=args.rate, optical=optical,
-                       reference_hold_s=args.reference_pose or 0.0)
+                       reference_hold_s=args.reference_pose or 0.0, metacarpus_imu=args.metacarpus_imu)
     session = simulate(config)
     out = Path(args.out)
     if out.parent and not out.parent.exists():
@@ -320,7 +320,8 @@ def _cmd_glove(args: argparse.Namespace) -> int:
     from .sim.session import SimConfig
 
     config = SimConfig(motion=args.motion, t_m_s=args.tm, hand=args.hand, noise=args.noise, seed=args.seed,
-                       rate_hz=args.rate, hand_motion=args.hand_motion, reference_hold_s=args.reference_pose or 0.0)
+                       rate_hz=args.rate, hand_motion=args.hand_motion, reference_hold_s=args.reference_pose or 0.0,
+                       metacarpus_imu=args.metacarpus_imu)
 
     async def run():
         pub = await stream_glove(args.url, args.session, args.token, config)
@@ -523,6 +524,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--no-truth", action="store_true", help="leave out the truth messages")
     sim.add_argument("--reference-pose", type=_positive_float, default=None, metavar="SECONDS",
                      help="hold the hand flat this long first and record a reference_pose message")
+    sim.add_argument("--metacarpus-imu", action="store_true",
+                     help="the glove also has an IMU on the back of the hand (sensor id metacarpus)")
     sim.add_argument("--out", required=True, help="output recording, JSON Lines")
     sim.set_defaults(func=_cmd_simulate)
 
@@ -570,6 +573,8 @@ def build_parser() -> argparse.ArgumentParser:
     glv.add_argument("--seed", type=int, default=0, help="random seed of the sensor errors (default 0)")
     glv.add_argument("--reference-pose", type=_positive_float, default=None, metavar="SECONDS",
                      help="hold the hand flat this long first and send a reference_pose message when done")
+    glv.add_argument("--metacarpus-imu", action="store_true",
+                     help="also stream an IMU on the back of the hand (sensor id metacarpus)")
     glv.set_defaults(func=_cmd_glove)
 
     wat = sub.add_parser("watch", help="subscribe and print gesture events and live joint angles")
