@@ -13,6 +13,7 @@ length) behind its MCP joint along the thumb's base direction.
 """
 from __future__ import annotations
 
+import functools
 from typing import Mapping
 
 import numpy as np
@@ -82,6 +83,22 @@ def joint_poses(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
     return {n: (positions[n], quats[k]) for k, n in enumerate(JOINT_NAMES)}
 
 
+_radii: dict[int, tuple[HandCalibration, tuple[float, ...]]] = {}
+
+
+def joint_radii_list(calib: HandCalibration) -> tuple[float, ...]:
+    """``joint_radii`` in ``JOINT_NAMES`` order, kept per calibration object."""
+    hit = _radii.get(id(calib))
+    if hit is not None and hit[0] is calib:
+        return hit[1]
+    radii = joint_radii(calib)
+    out = tuple(radii[n] for n in JOINT_NAMES)
+    if len(_radii) >= 64:
+        _radii.clear()
+    _radii[id(calib)] = (calib, out)
+    return out
+
+
 def joint_radii(calib: HandCalibration) -> dict[str, float]:
     """``name -> radius`` (m) of each OpenXR joint, from the anthropometric breadths above and the
     calibrated phalanx lengths."""
@@ -96,6 +113,14 @@ def joint_radii(calib: HandCalibration) -> dict[str, float]:
                          ("distal", _INDEX_DIP_RADIUS_M), ("tip", _INDEX_DIP_RADIUS_M)):
             radii[f"{finger}_{joint}"] = scale * r
     return {n: radii[n] for n in JOINT_NAMES}
+
+
+@functools.lru_cache(maxsize=256)
+def joint_tracked_list(optics_tracking: bool, fingers_measured: tuple[tuple[str, bool], ...]) -> tuple[bool, ...]:
+    """``joint_tracked`` in ``JOINT_NAMES`` order for ``fingers_measured`` as ``(finger, measured)`` pairs;
+    remembered (a hand has few such combinations, and a frame needs one)."""
+    tracked = joint_tracked(optics_tracking, dict(fingers_measured))
+    return tuple(tracked[n] for n in JOINT_NAMES)
 
 
 def joint_tracked(optics_tracking: bool, fingers_measured: Mapping[str, bool]) -> dict[str, bool]:
@@ -144,6 +169,14 @@ def _packed_calibration(calib: HandCalibration) -> np.ndarray:
 def joint_poses_compiled(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
                          hand_rotation: np.ndarray, hand_position: np.ndarray) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``joint_poses`` in one compiled call (same arguments, same result to rounding)."""
+    positions, quats = joint_pose_arrays(calib, joint_angles, hand_rotation, hand_position)
+    return {n: (positions[k], quats[k]) for k, n in enumerate(JOINT_NAMES)}
+
+
+def joint_pose_arrays(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
+                      hand_rotation: np.ndarray, hand_position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``joint_poses_compiled`` as two arrays in ``JOINT_NAMES`` order: positions (26, 3) and
+    quaternions (26, 4)."""
     from .openxr_kernel import joint_poses as kernel
 
     phi = np.zeros((len(_FINGER_ORDER), 3))
@@ -154,4 +187,4 @@ def joint_poses_compiled(calib: HandCalibration, joint_angles: dict[str, np.ndar
     quats = np.empty((len(JOINT_NAMES), 4))
     kernel(_packed_calibration(calib), phi, np.ascontiguousarray(hand_rotation, dtype=float),
            np.ascontiguousarray(hand_position, dtype=float), positions, quats)
-    return {n: (positions[k], quats[k]) for k, n in enumerate(JOINT_NAMES)}
+    return positions, quats

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from collections.abc import Mapping
 from typing import Any, Iterator
 
 import numpy as np
@@ -42,7 +43,7 @@ from ..model.hand import METACARPUS_SENSOR_ID, FingerGeometry, HandCalibration, 
     joint_to_phalanx_angles
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
-from ..model.openxr import joint_poses_compiled, joint_radii, joint_tracked
+from ..model.openxr import JOINT_NAMES, joint_pose_arrays, joint_radii, joint_radii_list, joint_tracked_list
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
@@ -145,6 +146,30 @@ class FingerState:
     mode: str = "none"
 
 
+class JointPoses(Mapping):
+    """``name -> (position, quaternion)`` of the 26 OpenXR joints over the two arrays the kernel wrote
+    (rows in ``JOINT_NAMES`` order): a joint's pair is made when it is read (the gesture layer reads
+    three of them), not 26 for every frame."""
+
+    __slots__ = ("positions", "quats")
+
+    def __init__(self, positions: np.ndarray, quats: np.ndarray):
+        self.positions, self.quats = positions, quats
+
+    def __getitem__(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        k = _JOINT_INDEX[name]
+        return self.positions[k], self.quats[k]
+
+    def __iter__(self):
+        return iter(JOINT_NAMES)
+
+    def __len__(self) -> int:
+        return len(JOINT_NAMES)
+
+
+_JOINT_INDEX = {n: k for k, n in enumerate(JOINT_NAMES)}
+
+
 @dataclass
 class HandFrame:
     """What the pipeline knows at one output time (source clock, s)."""
@@ -156,7 +181,7 @@ class HandFrame:
     modes: dict[str, str]
     hand_rotation: np.ndarray                   # metacarpus to world
     hand_position: np.ndarray
-    joints: dict[str, tuple[np.ndarray, np.ndarray]]
+    joints: Mapping[str, tuple[np.ndarray, np.ndarray]]
     status: FrameStatusDict
     tracked: dict[str, bool] = field(default_factory=dict)   # per joint; a joint not listed is tracked
 
@@ -166,10 +191,19 @@ class HandFrame:
         for f, phi in self.joint_angles.items():
             names = calib.finger(f).joint_names
             # the finger's joint names (mcp, pip, dip; the thumb mcp, ip) are read from the calibration
-            fingers[f] = {**{n: float(v) for n, v in zip(names, phi)}, "mode": self.modes[f]}  # type: ignore[typeddict-item]
-        radii = joint_radii(calib)
-        joints: dict[str, JointPoseDict] = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
-                                                "tracked": self.tracked.get(n, True)} for n, (p, q) in self.joints.items()}
+            angles = dict(zip(names, np.asarray(phi, dtype=float).tolist()))
+            angles["mode"] = self.modes[f]
+            fingers[f] = angles  # type: ignore[assignment]
+        tracked = self.tracked
+        if isinstance(self.joints, JointPoses):         # the pipeline's: two ``tolist`` calls for all 26
+            positions, quats = self.joints.positions.tolist(), self.joints.quats.tolist()
+            joints: dict[str, JointPoseDict] = {
+                n: {"position": p, "orientation": q, "radius": r, "tracked": tracked.get(n, True)}
+                for n, p, q, r in zip(JOINT_NAMES, positions, quats, joint_radii_list(calib))}
+        else:
+            radii = joint_radii(calib)
+            joints = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
+                          "tracked": tracked.get(n, True)} for n, (p, q) in self.joints.items()}
         return {
             "type": "frame", "t": self.t, "seq": self.seq, "hand": self.hand, "fingers": fingers,
             "joints": joints, "status": self.status,
@@ -186,8 +220,8 @@ class HandSession:
         self.calibration = calibration or default_calibration(hand)  # type: ignore[arg-type]
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
         self.counters = Counters()
-        self._pending: dict[float, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
-        self._last_sample: dict[str, tuple[float, np.ndarray, np.ndarray]] = {}
+        self._pending: dict[float, dict[str, tuple[list[float], list[float]]]] = {}    # t -> id -> (gyr, acc)
+        self._last_sample: dict[str, tuple[float, list[float], list[float]]] = {}
         self._processed_t: float | None = None
         self._newest_imu_t: float | None = None
         self._next_frame_t: float | None = None
@@ -282,11 +316,10 @@ class HandSession:
         self._dropped[reason] += count
 
     def _accept(self, msg) -> None:
-        if isinstance(msg, Imu):
-            self._add_imu(msg.t, msg.id, msg.gyr, msg.acc)
-        elif isinstance(msg, ImuBatch):
-            for s in msg.samples:
-                self._add_imu(s.t, s.id, s.gyr, s.acc)
+        if isinstance(msg, ImuBatch):
+            self._add_imu(msg.samples)
+        elif isinstance(msg, Imu):
+            self._add_imu((msg,))
         elif isinstance(msg, Pose):
             if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
                 self._drop("late")
@@ -335,33 +368,44 @@ class HandSession:
                     fs.phi = np.asarray(phi, dtype=float)
             self.counters.references_applied += 1
 
-    def _known_sensor(self, sid: str) -> bool:
-        """Whether the calibration places sensor ``sid`` (its ids kept per calibration object)."""
+    def _known_sensor_ids(self) -> frozenset[str]:
+        """The sensor ids the calibration places, and the back-of-hand IMU's (kept per calibration object)."""
         calibration = self.calibration
         if self._sensor_ids_of is not calibration:
-            self._sensor_ids_of, self._sensor_ids = calibration, frozenset(calibration.sensor_ids)
-        return sid in self._sensor_ids
+            self._sensor_ids_of = calibration
+            self._sensor_ids = frozenset(calibration.sensor_ids) | {METACARPUS_SENSOR_ID}
+        return self._sensor_ids
 
-    def _add_imu(self, t: float, sid: str, gyr, acc) -> None:
-        if not self._known_sensor(sid) and sid != METACARPUS_SENSOR_ID:
-            self._drop("unknown_sensor")
-            return
-        newest = self._newest_imu_t
-        if newest is not None and abs(t - newest) > self.settings.clock_step_s:
-            self._clock_step()
-            newest = None
-        if self._processed_t is not None and t <= self._processed_t:
-            self._drop("late")
-            return
-        tick = self._pending.setdefault(t, {})
-        if sid in tick:
-            self._drop("duplicate")
-            return
-        tick[sid] = (np.asarray(gyr, dtype=float), np.asarray(acc, dtype=float))
-        self._newest_imu_t = t if newest is None else max(newest, t)
-        if len(self._pending) > self.settings.max_pending_ticks:
-            oldest = min(self._pending)
-            self._drop("overflow", len(self._pending.pop(oldest)))
+    def _add_imu(self, samples) -> None:
+        """Samples (each with ``t``, ``id``, ``gyr``, ``acc``; the vectors are the validated messages'
+        lists, kept as they are) into the table of pending ticks."""
+        known = self._known_sensor_ids()
+        clock_step_s, max_pending = self.settings.clock_step_s, self.settings.max_pending_ticks
+        for sample in samples:
+            t, sid = sample.t, sample.id
+            if sid not in known:
+                self._drop("unknown_sensor")
+                continue
+            newest = self._newest_imu_t
+            if newest is not None and abs(t - newest) > clock_step_s:
+                self._clock_step()
+                newest = None
+            processed = self._processed_t
+            if processed is not None and t <= processed:
+                self._drop("late")
+                continue
+            pending = self._pending
+            tick = pending.get(t)
+            if tick is None:
+                tick = pending[t] = {}
+            elif sid in tick:
+                self._drop("duplicate")
+                continue
+            tick[sid] = (sample.gyr, sample.acc)
+            self._newest_imu_t = t if newest is None or t > newest else newest
+            if len(pending) > max_pending:
+                oldest = min(pending)
+                self._drop("overflow", len(pending.pop(oldest)))
 
     def _clock_step(self) -> None:
         self.counters.clock_steps += 1
@@ -579,8 +623,10 @@ class HandSession:
         assert hand is not None
         angles = {n: fs.phi.copy() for n, fs in self._fingers.items()}
         modes = {n: fs.mode for n, fs in self._fingers.items()}
-        joints = joint_poses_compiled(self.calibration, angles, hand.rotation, hand.position)
-        tracked = joint_tracked(self._tracking, {n: bool(fs.active_sensors) for n, fs in self._fingers.items()})
+        positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position)
+        joints = JointPoses(positions, quats)
+        measured = tuple((n, bool(fs.active_sensors)) for n, fs in self._fingers.items())
+        tracked = dict(zip(JOINT_NAMES, joint_tracked_list(self._tracking, measured)))
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
                          joints, self.status(t), tracked)
@@ -613,5 +659,5 @@ def _all_finite(*arrays: np.ndarray) -> bool:
 
 
 def _finite_motion(hand: BaseMotion) -> bool:
-    return _all_finite(hand.rotation, hand.position, hand.velocity, hand.acceleration, hand.angular_velocity,
-                       hand.angular_acceleration)
+    # ``flat`` (rotation, acceleration, angular velocity and acceleration) is what the kernels read anyway
+    return _all_finite(hand.flat, hand.position, hand.velocity)
