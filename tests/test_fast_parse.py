@@ -1,11 +1,20 @@
 """``protocol.parse_input`` (``orjson`` for samples and poses) gives exactly what the standard path
 (the standard library's ``json`` through ``decode``, then ``parse_message``) gives: the same value and
-message for good input, the same error code and detail for bad input."""
+message for good input, the same error code and detail for bad input. ``protocol.encode`` (``orjson``
+for JSON text where safe) writes the same values as the standard library, and exactly its text
+wherever a ``null`` is written (NaN and infinity among them) or it refuses the message."""
+import dataclasses
+import enum
 import json
+import math
+
+import orjson
 
 import pytest
 
-from service.protocol import ProtocolError, decode, parse_input, parse_message
+from service.pipeline.tracked import replay
+from service.protocol import ProtocolError, decode, encode, parse_input, parse_message
+from service.protocol.wire import finite_copy
 from service.sim.session import SimConfig, simulate
 
 IMU = '{"type":"imu","t":0.5,"id":"index.1","gyr":[0.1,-0.2,0.3],"acc":[0.0,9.81,0.1]%s}'
@@ -57,3 +66,47 @@ def test_fast_parse_equals_the_standard_path_on_a_recording():
     assert {json.loads(t)["type"] for t in texts} >= {"imu", "pose", "hello", "calibration", "truth"}
     for text in texts:
         assert _fast(text) == _standard(text)
+
+
+def _standard_text(message):
+    return json.dumps(finite_copy(message), separators=(",", ":"), allow_nan=False)
+
+
+def test_fast_encode_writes_the_standard_values_of_a_recording():
+    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=3, duration_s=1.5)
+    outputs = list(replay(parse_message(m) for m in simulate(config).messages(include_truth=False)))
+    outputs.append({"type": "gesture", "t": 1.0, "ray": None, "confidence": 1e-5})
+    assert len(outputs) > 100 and any("null" in _standard_text(m) for m in outputs)
+    for message in outputs:          # every one finite: written by orjson, with the standard values
+        text = encode(message, False)
+        assert text == orjson.dumps(message).decode()
+        assert json.loads(text) == json.loads(_standard_text(message))
+
+
+class _Colour(str, enum.Enum):
+    RED = "red"
+
+
+@dataclasses.dataclass
+class _Point:
+    x: float
+
+
+@pytest.mark.parametrize("message", [
+    {"type": "frame", "joints": {"palm": {"position": [0.0, math.nan, 1e-7], "orientation": [0.0, 0.0, 0.0, 1.0]}}},
+    {"type": "gesture", "ray": {"origin": [math.inf, 0.0, 0.0], "direction": [-math.inf, 1.0, 0.0]}},
+    {"type": "frame", "t": 1e-5, "status": {"age_s": None}, "fingers": {"index": {"mcp": -math.nan}}},
+    {"type": "hello", "note": "caf\u00e9"},
+    {"type": "x", 1: 2.0, "big": 123456789012345678901234567890},
+    {"type": "x", "colour": _Colour.RED},
+])
+def test_fast_encode_gives_the_standard_text_where_it_could_differ(message):
+    assert encode(message, False) == _standard_text(message)
+
+
+def test_fast_encode_refuses_what_the_standard_library_refuses():
+    for message in ({"type": "x", "point": _Point(1.0)}, {"type": "x", "values": {1.5}}):
+        with pytest.raises(TypeError):
+            json.dumps(message)
+        with pytest.raises(TypeError):
+            encode(message, False)
