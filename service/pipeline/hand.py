@@ -144,6 +144,10 @@ class FingerState:
     active_sensors: tuple[str, ...]
     phi: np.ndarray
     mode: str = "none"
+    sensor_ids: frozenset[str] = field(init=False)
+
+    def __post_init__(self):
+        self.sensor_ids = frozenset(s.id for s in self.geom.sensors)
 
 
 class JointPoses(Mapping):
@@ -527,7 +531,7 @@ class HandSession:
         """Rebuild the finger's estimator if its live sensors changed; whether it has any to update."""
         active = fs.active_sensors
         # every sensor of the finger active and sampled in this tick: nothing can have changed
-        if not (len(active) == len(fs.geom.sensors) and all(s in tick for s in active)):
+        if not (len(active) == len(fs.sensor_ids) and tick.keys() >= fs.sensor_ids):
             live = self._live_sensors(fs.geom, t)
             if live != active:
                 self._reconfigure(fs, live)
