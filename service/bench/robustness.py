@@ -795,7 +795,8 @@ def run_extremes(out: Path, seconds: float, seed: int, reply_timeout_s: float = 
     rows, i, life = [], 0, 0
     while i < len(todo) and life <= MAX_RESTARTS:
         log = out / "logs" / f"extremes-{life}.log"
-        with service_process(log_path=log) as svc:
+        # every probe streams into a session of its own, all with one source token: above its quota of 8
+        with service_process(log_path=log, extra_settings={"max_sessions_per_token": len(todo) + 1}) as svc:
             while i < len(todo):
                 name, make = todo[i]
                 row = asyncio.run(_extreme_trial(svc, f"extreme-{i}", make, seconds, seconds / 3, msgs, reply_timeout_s))
