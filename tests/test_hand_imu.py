@@ -105,3 +105,18 @@ def test_orientation_through_an_occlusion(rotating_hand):
     assert lost.sum() > 50 and lost0.sum() > 50
     assert rot_imu[lost].max() < 1.0, rot_imu[lost].max()
     assert rot_imu[lost].max() < rot_opt[lost0].max()
+
+
+def test_linear_map_fit_recovers_a_known_map():
+    """Noise-free observations y = M x + c over varied x: the recursive fit with a weak prior recovers
+    M and c (a closed form: the least-squares solution of an exactly consistent system)."""
+    from service.pipeline.hand_imu import LinearMapFit
+    rng = np.random.default_rng(3)
+    m = Rotation.from_rotvec([0.05, -0.03, 0.08]).as_matrix() @ np.diag([1.02, 0.97, 1.01])
+    c = np.array([0.1, -0.2, 0.05])
+    fit = LinearMapFit(np.eye(3), noise_std=1e-3, map_std=0.05, offset_std=0.1)
+    for _ in range(400):
+        x = rng.normal(0.0, 1.0, 3)
+        fit.update(x, 1.0, m @ x + c, forget=1.0)
+    np.testing.assert_allclose(fit.map, m, atol=1e-5)
+    np.testing.assert_allclose(fit.offset, c, atol=1e-5)

@@ -19,7 +19,8 @@ fast reach by about half the window. An IMU fixed to the metacarpus measures bot
   specific force at the sensor (``R_Mᵀ(a_opt + α×r + ω×(ω×r) - g_world)``, ``r = R_M p``), so that
   they are known when the optics are lost. The accelerometer's own acceleration is not used while
   the optics track: on tuning trials (``bench accuracy`` seeds 500-503, 8 s, ``chain`` with the
-  reference pose, pooled RMS over every scored joint sample) it made a rotating hand's fingers worse
+  reference pose and its linear-map states on, as they were then; pooled RMS over every scored joint
+  sample) it made a rotating hand's fingers worse
   (4.07 deg against 3.76 with the optics' acceleration and 3.81 without the IMU) and fast reaches no
   better (3.47 against 3.46 and 3.60): its scale and cross-axis errors (a few per cent of g, changing
   with the hand's orientation) cost more than the optical fit's lag;
@@ -54,6 +55,29 @@ PRIOR_ACC_OFFSET_STD_M_S2 = 0.5
 """Prior std of the accelerometer offset (MPU-9250: ±60-80 mg), m/s²."""
 
 
+class LinearMapFit:
+    """Recursive least squares of ``y = M x + c`` (3-vectors) with exponential forgetting and a prior
+    ``M = prior_map``, ``c = 0`` (regressor ``z = [x, scale]``, ``Θ = [Mᵀ; cᵀ]``): each prior std is
+    expressed against the measurement's noise ``noise_std`` as a pseudo-observation weight."""
+
+    def __init__(self, prior_map: np.ndarray, noise_std: float, map_std: float, offset_std: float):
+        w_map, w_off = (noise_std / map_std) ** 2, (noise_std / offset_std) ** 2
+        self._prior_info = np.diag([w_map, w_map, w_map, w_off])
+        self._prior_cross = self._prior_info @ np.vstack([prior_map.T, np.zeros((1, 3))])
+        self._info = np.zeros((4, 4))
+        self._cross = np.zeros((4, 3))
+        self.map = prior_map.copy()
+        self.offset = np.zeros(3)
+
+    def update(self, x: np.ndarray, scale: float, y: np.ndarray, forget: float) -> None:
+        """One observation ``y ≈ M x + c · scale``; older ones weigh ``forget`` times less."""
+        z = np.append(x, scale)
+        self._info = forget * self._info + np.outer(z, z)
+        self._cross = forget * self._cross + np.outer(z, y)
+        theta = np.linalg.solve(self._info + self._prior_info, self._cross + self._prior_cross)
+        self.map, self.offset = theta[:3].T, theta[3]
+
+
 class HandImu:
     """One hand's back-of-hand IMU (module docstring). ``add`` its samples, ``aid`` the hand's
     kinematics at each tick. Deterministic: the same samples and poses give the same numbers."""
@@ -64,26 +88,14 @@ class HandImu:
         self.lever = np.asarray(placement.position_m, dtype=float)
         self.gravity_world = np.asarray(gravity_world, dtype=float)
         self.timeout_s = timeout_s
-        self.acc_offset = np.zeros(3)
         self._last: tuple[float, np.ndarray, np.ndarray] | None = None
         self._prev_t: float | None = None
         self._prev_omega: np.ndarray | None = None
-        # recursive least squares of Δθ = A ∫g dt + c Δt: regressor z = [∫g dt, Δt], Θ = [Aᵀ; cᵀ]
-        w_map, w_off = (OPTICAL_INCREMENT_STD_RAD / PRIOR_MAP_STD) ** 2, (OPTICAL_INCREMENT_STD_RAD / PRIOR_OFFSET_STD_RAD_S) ** 2
-        self._prior_info = np.diag([w_map, w_map, w_map, w_off])
-        self._prior_cross = self._prior_info @ np.vstack([self.mount.T, np.zeros((1, 3))])
-        self._info = np.zeros((4, 4))
-        self._cross = np.zeros((4, 3))
-        self.gyr_map = self.mount.copy()
-        self.gyr_offset = np.zeros(3)
+        # Δθ = A ∫g dt + c Δt against the optical rotation increments; f_opt = A_f f + c_f against the
+        # optics' specific force
+        self.gyr_fit = LinearMapFit(self.mount, OPTICAL_INCREMENT_STD_RAD, PRIOR_MAP_STD, PRIOR_OFFSET_STD_RAD_S)
+        self.acc_fit = LinearMapFit(self.mount, OPTICAL_FORCE_STD_M_S2, PRIOR_MAP_STD, PRIOR_ACC_OFFSET_STD_M_S2)
         self._increment: tuple[np.ndarray, np.ndarray, float] | None = None   # (R at start, ∫g dt, Δt)
-        # the same for the accelerometer against the optics' specific force: f_opt = A_f f + c_f
-        w_map, w_off = (OPTICAL_FORCE_STD_M_S2 / PRIOR_MAP_STD) ** 2, (OPTICAL_FORCE_STD_M_S2 / PRIOR_ACC_OFFSET_STD_M_S2) ** 2
-        self._acc_prior_info = np.diag([w_map, w_map, w_map, w_off])
-        self._acc_prior_cross = self._acc_prior_info @ np.vstack([self.mount.T, np.zeros((1, 3))])
-        self._acc_info = np.zeros((4, 4))
-        self._acc_cross = np.zeros((4, 3))
-        self.acc_map = self.mount.copy()
 
     def add(self, t: float, gyr: np.ndarray, acc: np.ndarray) -> None:
         self._last = (t, np.asarray(gyr, dtype=float), np.asarray(acc, dtype=float))
@@ -103,21 +115,16 @@ class HandImu:
             self._calibrate(rot, gyr, dt)
         else:
             self._increment = None
-        w_body = self.gyr_map @ gyr + self.gyr_offset              # metacarpus frame
+        w_body = self.gyr_fit.map @ gyr + self.gyr_fit.offset      # metacarpus frame
         if tracking:
             # the optics' view of the force, to fit the accelerometer's map and offset to
             r_opt = rot @ self.lever
             a_opt = hand.acceleration + np.cross(hand.angular_acceleration, r_opt) + \
                 np.cross(hand.angular_velocity, np.cross(hand.angular_velocity, r_opt))
-            z = np.append(acc, 1.0)
-            forget = np.exp(-dt / CALIBRATION_MEMORY_S)
-            self._acc_info = forget * self._acc_info + np.outer(z, z)
-            self._acc_cross = forget * self._acc_cross + np.outer(z, rot.T @ (a_opt - self.gravity_world))
-            theta = np.linalg.solve(self._acc_info + self._acc_prior_info, self._acc_cross + self._acc_prior_cross)
-            self.acc_map, self.acc_offset = theta[:3].T, -theta[3]
+            self.acc_fit.update(acc, 1.0, rot.T @ (a_opt - self.gravity_world), np.exp(-dt / CALIBRATION_MEMORY_S))
         else:
             rot = rot @ Rotation.from_rotvec(w_body * dt).as_matrix()
-        f_body = self.acc_map @ acc - self.acc_offset
+        f_body = self.acc_fit.map @ acc + self.acc_fit.offset
         omega = rot @ w_body
         # α = R dω_body/dt (the body-frame derivative; differencing the world-frame ω would carry
         # the optical orientation's jitter)
@@ -144,10 +151,5 @@ class HandImu:
             self._increment = (start, integral, elapsed)
             return
         turned = Rotation.from_matrix(start.T @ rot).as_rotvec()
-        z = np.append(integral, elapsed)
-        forget = np.exp(-elapsed / CALIBRATION_MEMORY_S)
-        self._info = forget * self._info + np.outer(z, z)
-        self._cross = forget * self._cross + np.outer(z, turned)
-        theta = np.linalg.solve(self._info + self._prior_info, self._cross + self._prior_cross)
-        self.gyr_map, self.gyr_offset = theta[:3].T, theta[3]
+        self.gyr_fit.update(integral, elapsed, turned, np.exp(-elapsed / CALIBRATION_MEMORY_S))
         self._increment = (rot.copy(), np.zeros(3), 0.0)
