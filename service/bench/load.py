@@ -97,7 +97,7 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
     generator_cpu = time.process_time() - cpu0
     for p in pubs:
         await p.close()                                       # returns once the service has handled everything sent (sync)
-    await _until_delivered(url, names, received, subscribers, admin)
+    accounts = await _until_delivered(urls, names, received, subscribers, admin)
     drain = time.perf_counter() - wall0 - wall
     errors = sum(len(p.errors) for p in pubs)                 # after closing: replies to the last messages included
     # a subscriber that reconnects loses what its old connection had queued: neither delivered nor dropped
@@ -116,25 +116,48 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
               for k in range(subscribers) for r in received[(n, k)]]
     return {"names": names, "hands_of": {n: c.hand for n, c in zip(names, configs)}, "received": received,
             "delays": delays, "killed": killed, "probe": probed, "subscriber_reconnects": reconnects,
+            "accounts": accounts,
             "glove_reconnects": glove_reconnects,
             "wall_s": wall, "drain_s": drain, "generator_cpu_s": generator_cpu, "errors": errors,
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
 
-async def _until_delivered(url: str, names: list[str], received: dict, subscribers: int, admin: str,
-                           timeout_s: float = 120.0) -> None:
+def _accounts(urls: list[str], names: list[str], summaries: list[dict], received: dict, subscribers: int) -> dict:
+    """Per session, over every gateway (or the one service): frames the service sent out to this
+    level's subscribers (each gateway's ``frames_out`` times its subscribers of the session), dropped
+    for slow subscribers, and delivered; subscriber k of session i listens at gateway (i + k) mod G."""
+    out = {}
+    for i, n in enumerate(names):
+        expected = dropped = produced = 0
+        for g, by_name in enumerate(summaries):
+            here = [k for k in range(subscribers) if (i + k) % len(urls) == g]
+            if n in by_name and here:
+                expected += by_name[n]["frames_out"] * len(here)
+                dropped += by_name[n]["dropped_subscriber_frames"]
+            if n in by_name:
+                produced = max(produced, by_name[n]["frames_out"])
+        out[n] = {"expected": expected, "dropped": dropped, "produced": produced,
+                  "delivered": sum(len(received[(n, k)]) for k in range(subscribers))}
+    return out
+
+
+async def _until_delivered(urls: list[str], names: list[str], received: dict, subscribers: int, admin: str,
+                           timeout_s: float = 120.0) -> dict:
     """Wait until every frame the service produced was received or counted as dropped, for every
-    subscriber (the service has handled all it was sent once the gloves are closed). Bounded: after
-    ``timeout_s`` the accounting shows what is missing."""
+    subscriber (the service has handled all it was sent once the gloves are closed); returns the
+    accounts (``_accounts``). Bounded: after ``timeout_s`` the accounts show what is missing."""
     from clients.client import rest
 
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        _, sessions = await asyncio.to_thread(rest, url, "GET", "/v1/sessions", admin)
-        by_name = {s["session"]: s for s in sessions}
-        if all(n in by_name and sum(len(received[(n, k)]) for k in range(subscribers))
-               + by_name[n]["dropped_subscriber_frames"] >= by_name[n]["frames_out"] * subscribers for n in names):
-            return
+    while True:
+        summaries = []
+        for url in urls:
+            _, sessions = await asyncio.to_thread(rest, url, "GET", "/v1/sessions", admin)
+            summaries.append({s["session"]: s for s in sessions})
+        accounts = _accounts(urls, names, summaries, received, subscribers)
+        if all(a["delivered"] + a["dropped"] >= a["expected"] for a in accounts.values()) \
+                or time.monotonic() > deadline:
+            return accounts
         await asyncio.sleep(0.05)
 
 
@@ -238,15 +261,16 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         lvl = asyncio.run(_level(urls, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
                                  service_cpu, kill))
         w0, w1 = (readings[0], readings[1]) if len(readings) >= 2 else (None, None)
-        _, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
-    by_name = {s["session"]: s for s in sessions}
+        summaries = [rest(url, "GET", "/v1/sessions", svc.admin)[1] for url in urls]
+    every = [x for sessions in summaries for x in sessions if x["session"] in lvl["names"]]   # all gateways
+    by_name = {x["session"]: x for x in every}
     if lvl["killed"]:
-        lvl["killed"]["messages_lost"] = sum(by_name[n].get("lost_to_failover", 0) for n in lvl["names"] if n in by_name)
-        lvl["killed"]["messages_resent"] = sum(by_name[n].get("resent_after_failover", 0)
-                                               + by_name[n].get("worker", {}).get("resent_after_restart", 0)
-                                               for n in lvl["names"] if n in by_name)
-    produced = sum(by_name[n]["frames_out"] for n in lvl["names"] if n in by_name)
-    dropped = sum(by_name[n]["dropped_subscriber_frames"] for n in lvl["names"] if n in by_name)
+        lvl["killed"]["messages_lost"] = sum(x.get("lost_to_failover", 0) for x in every)
+        lvl["killed"]["messages_resent"] = sum(x.get("resent_after_failover", 0)
+                                               + x.get("worker", {}).get("resent_after_restart", 0) for x in every)
+    accounts = lvl["accounts"]
+    produced = sum(a["produced"] for a in accounts.values())
+    dropped = sum(a["dropped"] for a in accounts.values())
     rows = [r for v in lvl["received"].values() for r in v]
     lat = np.array([r[1] for r in rows if np.isfinite(r[1])]) * 1e3
     delay = np.array(lvl["delays"]) * 1e3
@@ -256,7 +280,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
     return {
         "hands": hands, "subscribers_per_hand": subscribers, "seconds": seconds, "binary": binary,
         "sessions_seen": sum(1 for n in lvl["names"] if n in by_name),
-        "frames_produced": int(produced), "frames_expected": int(produced * subscribers),
+        "frames_produced": int(produced), "frames_expected": int(sum(a["expected"] for a in accounts.values())),
         "frames_delivered": int(delivered), "frames_dropped": int(dropped),
         "per_subscriber_min": int(min((len(v) for v in lvl["received"].values()), default=0)),
         "latency_ms": ({"p50": float(np.percentile(lat, 50)), "p99": float(np.percentile(lat, 99)),

@@ -9,14 +9,15 @@ unanswered, beyond that the source waits); the worker's replies become the sourc
 and its frames and gesture events are fanned out to the subscribers (encoded once per format). What
 is sent to a worker within one turn of the event loop goes in one write (a batch).
 
-A worker that dies (a crash, a kill) is restarted in its slot: its sessions are opened again from
-their compact state (``hands.owner``: hello, calibration, configuration, the last frame's ``seq``, time
-and joint angles, applied as a reference pose) and every source message the dead worker had not
-answered is sent again, in order, so no source message is lost. What is lost: the hand's filter
-state beyond the joint angles (covariances, learned sensor offsets), the optical track and the
-gesture recogniser's state (an active gesture starts again), and the time the new process needs to
-start (its sessions' frames come late then, other workers' sessions go on). Counted per session as
-``worker_restarts`` and ``resent_after_restart`` (``GET /v1/sessions``) and in
+A worker that dies (a crash, a kill) is replaced by a new process in its slot, and its sessions move
+at once to the live worker with the fewest sessions (with no other worker ready, they wait for the new
+process): each is opened again from its compact state (``hands.owner``: hello, calibration,
+configuration, the last frame's ``seq``, time and joint angles, applied as a reference pose) and every
+source message the dead worker had not answered is sent again, in order, so no source message is lost.
+What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
+the optical track and the gesture recogniser's state (an active gesture starts again), and the time
+the move takes (its sessions' frames come late then; other workers' sessions go on). Counted per
+session as ``worker.restarts`` and ``worker.resent_after_restart`` (``GET /v1/sessions``) and in
 ``fingertrack_hand_worker_restarts_total``.
 """
 from __future__ import annotations
@@ -129,18 +130,31 @@ class WorkerLink:
             live.on_config_reply(message[2], message[3], message[4])
 
     async def _watch(self, proc: asyncio.subprocess.Process) -> None:
+        """When the process ends (unless the service is closing): its sessions move to the live worker
+        with the fewest sessions (or, with none ready, stay for the new process), and the slot gets a
+        new process."""
         code = await proc.wait()
         if self.pool.closing:
             return
         was_ready = self.ready.is_set()
+        self.ready.clear()
+        self._restarting = True
         self.restarts += 1
         self.pool.metrics.worker_restarts.inc()
-        log.warning("hand worker %d (pid %d) ended with %s; restarting it, its %d session(s) continue",
-                    self.slot, proc.pid, code, len(self.sessions))
+        await asyncio.gather(self._tasks[0], return_exceptions=True)   # what it sent before it died comes first
         if self._writer is not None:
             self._writer.close()
-        self._restarting = True
         self._writer, self._out, self._held = None, [], [m for m in self._out if m[0] == "close"]
+        others = [x for x in self.pool.links if x is not self and x.ready.is_set() and not x._restarting]
+        log.warning("hand worker %d (pid %d) ended with %s; %d session(s) continue %s", self.slot, proc.pid, code,
+                    len(self.sessions), "on the other workers" if others else "when it has restarted")
+        if others:
+            for live in list(self.sessions.values()):
+                target = min(others, key=lambda x: len(x.sessions))
+                del self.sessions[live.sid]
+                live.link = target
+                target.sessions[live.sid] = live
+                live.reopen()
         if not was_ready:
             await asyncio.sleep(RESTART_BACKOFF_S)  # it died starting: do not restart in a tight loop
         await self.start()
@@ -231,7 +245,7 @@ class ProcessSession(LiveSession):
         if running is loop:
             self.link.send(message)
         else:
-            loop.call_soon_threadsafe(self.link.send, message)
+            loop.call_soon_threadsafe(lambda: self.link.send(message))   # its link then (it may move)
 
     def state(self) -> dict:
         """The compact session state a restarted worker continues from (``hands.owner``)."""
@@ -242,7 +256,8 @@ class ProcessSession(LiveSession):
                 "angles": angles or None, "hello": self.hello, "calibration": self.calibration, "config": config}
 
     def reopen(self) -> None:
-        """After the worker was restarted: the session from its state, then every unanswered message."""
+        """After its worker died, on its new worker: the session from its state, then every unanswered
+        message and configuration change."""
         self.restarts += 1
         self.link.send(["open", self.sid, self.name, self.state()])
         for n in sorted(self._pending):
