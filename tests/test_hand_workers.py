@@ -20,9 +20,9 @@ SOURCE, VIEWER, ADMIN = "src-token-w", "view-token-w", "admin-token-w"
 RATE_HZ = 90.0
 
 
-def _settings(workers: int) -> ServiceSettings:
+def _settings(workers: int, **extra) -> ServiceSettings:
     return ServiceSettings.load(port=0, admin_token=ADMIN, tokens={SOURCE: "source", VIEWER: "viewer"},
-                                hand_workers=workers, subscriber_queue_frames=10_000, output_rate_hz=RATE_HZ)
+                                hand_workers=workers, subscriber_queue_frames=10_000, output_rate_hz=RATE_HZ, **extra)
 
 
 def _sessions(server) -> dict:
@@ -62,9 +62,12 @@ async def _stream(url: str, session: str, hand: str, msgs, paced: bool, sync_eve
     await pub.close()                               # syncs: every message is handled when it returns
 
 
-def test_a_killed_hand_worker_is_restarted_and_its_session_goes_on_while_the_other_worker_s_does_not_notice():
+@pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "stopped"])
+def test_a_dead_or_stuck_hand_worker_s_session_moves_on_while_the_other_worker_s_does_not_notice(how):
+    """SIGKILL: the worker is gone; SIGSTOP: it is stuck, owes answers and is killed after
+    ``hand_worker_stall_s``. Either way its session continues on the other worker."""
     msgs = {"right": _messages("right", 6.0, 1), "left": _messages("left", 6.0, 2)}
-    with ServerThread(_settings(2)) as server:
+    with ServerThread(_settings(2, hand_worker_stall_s=5.0)) as server:
         async def run():
             frames = {"a": [], "b": []}
             subs = {name: Subscription(server.ws_url, name, VIEWER) for name in frames}
@@ -76,7 +79,7 @@ def test_a_killed_hand_worker_is_restarted_and_its_session_goes_on_while_the_oth
             workers = {n: s["worker"] for n, s in (await asyncio.to_thread(_sessions, server)).items()}
             assert workers["a"]["pid"] != workers["b"]["pid"]        # one session per worker
             killed_at = len(frames["a"])
-            os.kill(workers["a"]["pid"], signal.SIGKILL)
+            os.kill(workers["a"]["pid"], how)
             await asyncio.gather(*streams)
             summary = await asyncio.to_thread(_sessions, server)
             await _until(lambda: all(len(frames[n]) >= summary[n]["frames_out"] for n in frames),

@@ -89,6 +89,8 @@ class ServiceSettings(BaseSettings):
                                   "is removed and its recording closed, s")
     hand_workers: int = Field(2, ge=0, le=64, description="worker processes that run the sessions' hands (each "
                               "session in one of them); 0: every hand on the web process's event loop")
+    hand_worker_stall_s: float = Field(10.0, gt=0, le=600, description="a hand worker that answers nothing for this "
+                                       "long while it owes answers is killed and its sessions move to the others, s")
     bus: str | None = Field(None, pattern=r"^(nats|tls)://\S+$", description="NATS URL (nats://HOST:PORT): run as a gateway whose sessions run in "
                             "'fingertrack worker' processes; None: everything in this process")
 

@@ -14,7 +14,9 @@ at once to the live worker with the fewest sessions (with no other worker ready,
 process): each is opened again from its compact state (``hands.owner``: hello, calibration,
 configuration, the last frame's ``seq``, time and joint angles, applied as a reference pose) and every
 source message the dead worker had not answered is sent again, in order, so no source message is lost.
-What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
+A worker that answers nothing for ``hand_worker_stall_s`` while it owes answers (stuck in a loop,
+stopped) is killed and handled the same way, so a stuck worker holds its sessions up for that long
+at most. What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
 the optical track and the gesture recogniser's state (an active gesture starts again), and the time
 the move takes (its sessions' frames come late then; other workers' sessions go on). Counted per
 session as ``worker.restarts`` and ``worker.resent_after_restart`` (``GET /v1/sessions``) and in
@@ -67,6 +69,8 @@ class WorkerLink:
         self._restarting = False
         self._flush_scheduled = False
         self._tasks: list[asyncio.Task] = []
+        self.heard = time.monotonic()
+        """when the worker last sent anything (monotonic s)"""
 
     async def start(self) -> None:
         parent, child = socket.socketpair()
@@ -106,6 +110,7 @@ class WorkerLink:
             while True:
                 size, = HEADER.unpack(await reader.readexactly(HEADER.size))
                 batch = msgpack.unpackb(await reader.readexactly(size))
+                self.heard = time.monotonic()
                 for message in batch:
                     self._dispatch(message)
                     if message[0] == "out":
@@ -165,6 +170,11 @@ class WorkerLink:
         for message in held:
             self.send(message)
 
+    def stalled(self, now: float, limit_s: float) -> bool:
+        """A ready worker that owes source messages an answer and has sent nothing for ``limit_s``."""
+        return (self.ready.is_set() and not self._restarting and self.proc is not None and self.proc.returncode is None
+                and now - self.heard > limit_s and any(live._pending for live in self.sessions.values()))
+
     async def stop(self) -> None:
         for task in self._tasks:
             if task is not asyncio.current_task():
@@ -190,10 +200,25 @@ class HandPool:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.closing = False
         self._sids = itertools.count(1)
+        self._watchdog: asyncio.Task | None = None
 
     async def start(self) -> None:
         self.loop = asyncio.get_running_loop()
         await asyncio.gather(*(link.start() for link in self.links))
+        self._watchdog = asyncio.create_task(self._watch_stalls())
+
+    async def _watch_stalls(self) -> None:
+        """A worker stuck for ``hand_worker_stall_s`` (an endless loop, a stopped process) is killed:
+        its sessions move to the other workers as after a crash."""
+        limit = self.settings.hand_worker_stall_s
+        while True:
+            await asyncio.sleep(min(1.0, limit / 4))
+            now = time.monotonic()
+            for link in self.links:
+                if link.stalled(now, limit):
+                    log.warning("hand worker %d (pid %d) answered nothing for %.1f s while it owed answers; "
+                                "killing it, its sessions move", link.slot, link.pid, now - link.heard)
+                    link.proc.kill()
 
     async def wait_ready(self) -> None:
         """Until every worker has loaded the default estimator and reads messages."""
@@ -201,6 +226,8 @@ class HandPool:
 
     async def close(self) -> None:
         self.closing = True
+        if self._watchdog is not None:
+            self._watchdog.cancel()
         await asyncio.gather(*(link.stop() for link in self.links))
 
     def session(self, name: str, settings: ServiceSettings, metrics: Metrics) -> "ProcessSession":
