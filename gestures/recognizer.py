@@ -16,11 +16,12 @@ Discrete gestures, at most one at a time, priority grasp > point > pinch > open:
 * ``point``: index curl at most ``point_index_enter`` and middle, ring and little at least
   ``point_others_enter`` (thumb free);
 * ``pinch``: thumb and index tips within ``pinch_enter_m`` (stays until beyond ``pinch_exit_m``)
-  while middle, ring and little are not curled into a fist (mean curl at most
-  ``pinch_others_curl_max``: when a pointing hand closes into a fist the index tip sweeps past the
-  thumb tip, which is not a pinch) and not closing fast (their mean curl rising by at most
-  ``pinch_others_rate_max`` per second: a fist whose index and thumb close first passes through a
-  pinch-like pose);
+  while middle, ring and little are not curled into a fist and not about to be: their mean curl,
+  extrapolated ``PINCH_LOOKAHEAD_S`` (0.15 s) ahead at its current rate, at most
+  ``pinch_others_curl_max`` (when a pointing hand closes into a fist the index tip sweeps past the
+  thumb tip, which is not a pinch; a closing fist passes the pinch distance while the other fingers
+  are still half way), and not closing fast (their mean curl rising by at most
+  ``pinch_others_rate_max`` per second);
 * ``open``: every long finger's curl at most ``open_curl_enter`` and the thumb's at most
   ``open_thumb_enter``.
 
@@ -52,6 +53,9 @@ LONG = ("index", "middle", "ring", "little")
 OTHERS = ("middle", "ring", "little")
 RATE_TAU_S = 0.03
 """Time constant of the low-pass on the other fingers' curl rate, s."""
+PINCH_LOOKAHEAD_S = 0.15
+"""How far ahead the mean curl of middle, ring and little is extrapolated (at its current rate) for the
+pinch guard against a closing fist, s."""
 HISTORY_FRAMES = 6000
 """Frames of features kept for enrolment (``gestures.enrolment``): about 66 s at 90 Hz."""
 
@@ -69,14 +73,15 @@ class GestureSettings(BaseModel):
     point_index_exit: float = Field(0.35, ge=0.0, le=1.0, description="pointing ends above this index curl")
     point_others_enter: float = Field(0.6, ge=0.0, le=1.0, description="middle/ring/little curl at least this to start pointing")
     point_others_exit: float = Field(0.45, ge=0.0, le=1.0, description="pointing ends when one of them falls below this")
-    pinch_enter_m: float = Field(0.02, gt=0.0, description="pinch starts with the thumb and index tips this close, m")
-    pinch_exit_m: float = Field(0.03, gt=0.0, description="pinch ends beyond this tip distance, m")
+    pinch_enter_m: float = Field(0.024, gt=0.0, description="pinch starts with the thumb and index tips this close, m")
+    pinch_exit_m: float = Field(0.032, gt=0.0, description="pinch ends beyond this tip distance, m")
     pinch_others_curl_max: float = Field(0.75, ge=0.0, le=1.0, description="a pinch starts only while the mean curl of "
-                                         "middle, ring and little is at most this (a closing fist sweeps the tips past each other)")
-    open_curl_enter: float = Field(0.1, ge=0.0, le=1.0, description="open starts with every long finger's curl below this")
-    open_curl_exit: float = Field(0.2, ge=0.0, le=1.0, description="open ends when one long finger's curl exceeds this")
-    open_thumb_enter: float = Field(0.2, ge=0.0, le=1.0, description="thumb curl at most this to start open")
-    open_thumb_exit: float = Field(0.35, ge=0.0, le=1.0, description="open ends above this thumb curl")
+                                         "middle, ring and little, extrapolated PINCH_LOOKAHEAD_S ahead at its rate, is at "
+                                         "most this (a closing fist sweeps the tips past each other)")
+    open_curl_enter: float = Field(0.17, ge=0.0, le=1.0, description="open starts with every long finger's curl below this")
+    open_curl_exit: float = Field(0.22, ge=0.0, le=1.0, description="open ends when one long finger's curl exceeds this")
+    open_thumb_enter: float = Field(0.3, ge=0.0, le=1.0, description="thumb curl at most this to start open")
+    open_thumb_exit: float = Field(0.45, ge=0.0, le=1.0, description="open ends above this thumb curl")
     pinch_others_rate_max: float = Field(2.0, gt=0.0, description="a pinch starts only while the mean curl of middle, "
                                          "ring and little rises no faster than this, 1/s (a hand closing into a fist "
                                          "passes through a pinch-like pose)")
@@ -120,6 +125,7 @@ QUANTITIES: dict[str, Callable[[Features], float]] = {
     "others_curl_mean": lambda x: float(np.mean([x.curl[f] for f in OTHERS])),
     "pinch_distance_m": lambda x: x.pinch_distance_m,
     "others_curl_rate": lambda x: x.others_curl_rate,
+    "others_curl_ahead": lambda x: float(np.mean([x.curl[f] for f in OTHERS])) + PINCH_LOOKAHEAD_S * x.others_curl_rate,
 }
 """The scalar quantities the rules threshold, by name (curls dimensionless, distances in metres)."""
 
@@ -171,7 +177,7 @@ RULES: dict[str, GestureRule] = {
     "point": GestureRule("point", (Condition("index_curl", False, "point_index_enter", "point_index_exit", 0.0),
                                    Condition("others_curl_min", True, "point_others_enter", "point_others_exit", 1.0))),
     "pinch": GestureRule("pinch", (Condition("pinch_distance_m", False, "pinch_enter_m", "pinch_exit_m", 0.0),
-                                   Condition("others_curl_mean", False, "pinch_others_curl_max", None, 0.0),
+                                   Condition("others_curl_ahead", False, "pinch_others_curl_max", None, 0.0),
                                    Condition("others_curl_rate", False, "pinch_others_rate_max", None, 0.0))),
     "open": GestureRule("open", (Condition("long_curl_max", False, "open_curl_enter", "open_curl_exit", 0.0),
                                  Condition("thumb_curl", False, "open_thumb_enter", "open_thumb_exit", 0.0))),

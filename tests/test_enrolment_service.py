@@ -43,7 +43,7 @@ def test_enrolment_over_rest_fits_a_wide_pinch_and_names_bad_segments(server):
                  "start_s": s.start_s + s.transition_s + 0.2, "end_s": s.end_s - 0.1} for s in steps]
     status, body = rest(server.url, "POST", "/v1/sessions/enrol1/enrolment", ADMIN, {"segments": segments})
     assert status == 200, body
-    assert body["gestures"]["pinch_enter_m"] > 0.035 and body["changes"]["pinch_enter_m"]["old"] == 0.02
+    assert body["gestures"]["pinch_enter_m"] > 0.035 and body["changes"]["pinch_enter_m"]["old"] == GestureSettings().pinch_enter_m
     status, config_now = rest(server.url, "GET", "/v1/sessions/enrol1/config", ADMIN)
     assert config_now["gestures"]["pinch_enter_m"] == body["gestures"]["pinch_enter_m"]
     # bad requests: clear reasons, nothing changed

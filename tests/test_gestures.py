@@ -8,7 +8,8 @@ from service.model.openxr import joint_poses
 from service.pipeline.hand import HandFrame
 
 CALIB = default_calibration("right")
-RELAXED = {"thumb": (10, 10), "index": (10, 15, 15), "middle": (10, 15, 15), "ring": (10, 15, 15), "little": (10, 15, 15)}
+# a relaxed hand at rest (as the simulator's rest poses: MCP 15-28 deg, PIP 20-32 deg): no gesture
+RELAXED = {"thumb": (15, 15), "index": (20, 25, 25), "middle": (20, 25, 25), "ring": (20, 25, 25), "little": (20, 25, 25)}
 
 
 def frame(t, **angles_deg):
