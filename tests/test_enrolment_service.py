@@ -7,6 +7,7 @@ import pytest
 
 from clients.client import Publisher, rest
 from clients.glove import source_messages
+from gestures.recognizer import GestureSettings
 from service.api.config import ServiceSettings
 from service.api.server import ServerThread
 from service.sim.gesture_script import Subject, Trial, enrolment_steps
