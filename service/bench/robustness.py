@@ -874,11 +874,11 @@ def run_never_readers(out: Path, readers: int, stream_seconds: float, wait_secon
             status, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
             s = next((x for x in sessions if x["session"] == "slow"), {}) if status == 200 else {}
             registered = s.get("subscribers")
-            if registered == 0 or time.monotonic() - t_end > wait_seconds:
+            queued = _send_queue_bytes(port)                 # let go: unregistered and their buffers freed
+            if (registered == 0 and queued == 0) or time.monotonic() - t_end > wait_seconds:
                 break
             time.sleep(0.5)
         waited = time.monotonic() - t_end
-        queued = _send_queue_bytes(port)
         fds = svc.fds()
         dropped = s.get("dropped_subscriber_frames")
         for sock in socks:

@@ -82,6 +82,15 @@ def _overload_reply(data: dict, backlog: IngestBacklog) -> tuple[str, str]:
                           "processed); dropped. Send less, or wait for the answer to a sync")
 
 
+async def _close_quietly(ws: WebSocket, code: int, reason: str) -> None:
+    """Close a connection that may be gone already (its peer left): then there is nothing to close
+    (the failed close used to end in a 'Task exception was never retrieved' traceback in the log)."""
+    try:
+        await ws.close(code=code, reason=reason)
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        pass
+
+
 async def claim_source(ws: WebSocket, live: LiveSession, metrics: Metrics) -> bool:
     """Make this connection the session's source. One source per session: a connection of the same
     token takes over (the older one is closed), another token is refused (1008 with the reason)."""
@@ -94,7 +103,7 @@ async def claim_source(ws: WebSocket, live: LiveSession, metrics: Metrics) -> bo
                            reason=close_reason(f"session {live.name!r} already has a source; one source per session"))
             return False
         metrics.disconnects.labels("replaced").inc()
-        asyncio.create_task(old.close(code=WS_POLICY_VIOLATION, reason="replaced by a newer connection of the same token"))
+        asyncio.create_task(_close_quietly(old, WS_POLICY_VIOLATION, "replaced by a newer connection of the same token"))
     live.source, live.source_token = ws, token
     live.touch()
     return True
