@@ -494,10 +494,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.which == "gestures":
         from .bench import gestures
         print(gestures.run(args.out, quick=args.quick, workers=args.workers, cache_dir=args.frames_cache,
-                            trials=args.trials))
+                            trials=args.trials, idle_trials=args.idle_trials))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     raise ValueError(f"unknown benchmark {args.which!r}")
+
+
+def _gesture_idle_plan() -> dict:
+    from .bench import gestures
+    return gestures.FULL_IDLE
 
 
 def _gesture_plan(quick: bool) -> dict:
@@ -648,6 +653,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")
     b.add_argument("--trials", type=_positive_int, default=None,
                    help="only the first N trials of the run (default: all)")
+    b.add_argument("--idle-trials", type=_non_negative_int, default=None,
+                   help=f"only the first N idle trials (the visitor means nothing; {len(_gesture_idle_plan()['seeds'])} "
+                        f"of {_gesture_idle_plan()['duration_s']:g} s in the full run, scored for false activations; default: all)")
     b.add_argument("--frames-cache", default=None, metavar="DIR",
                    help="keep each trial's pipeline frames in DIR and reuse them, so recogniser changes are rescored "
                         "without rerunning the pipeline (clear it when the simulator or pipeline changes; default: none)")

@@ -10,7 +10,7 @@ from service.bench import gestures
 from service.model.openxr import joint_poses
 from service.pipeline.hand import HandFrame
 from service.sim.gesture_script import (ONSET_FRACTION, Step, Subject, Trial, enrolment_steps, gesture_pose,
-                                        make_trial, quintic_time, tip_distance_m)
+                                        make_idle_trial, make_trial, quintic_time, tip_distance_m)
 
 
 def truth_record(trial: Trial, rate_hz: float = 90.0) -> dict:
@@ -107,6 +107,29 @@ def test_enrolment_moves_the_pinch_threshold_toward_a_wide_pinch_and_then_detect
     assert sum(after["false_activations"].values()) == 0
 
 
+def test_the_rate_bound_is_the_exact_poisson_upper_limit():
+    from scipy.optimize import brentq
+    from scipy.stats import poisson
+    assert gestures.poisson_upper_per_min(0, 10.0) == pytest.approx(-np.log(0.05) / 10.0, rel=1e-9)
+    for k in (1, 4):       # the rate at which k or fewer events in 20 min have probability 5 %
+        rate = brentq(lambda lam: poisson.cdf(k, lam * 20.0) - 0.05, 1e-6, 10.0)
+        assert gestures.poisson_upper_per_min(k, 20.0) == pytest.approx(rate, rel=1e-6)
+
+
+def test_an_idle_trial_means_nothing_is_mostly_rest_and_the_true_hand_fires_nothing():
+    trial = make_idle_trial(7, 60.0)
+    scored = [s for s in trial.steps if s.start_s >= trial.scored_from_s]
+    assert {s.intent for s in trial.steps} == {"none"}
+    rest = sum(s.end_s - s.start_s for s in scored if s.kind == "rest")
+    assert rest / (trial.duration_s - trial.scored_from_s) > 0.7
+    assert len({s.pose["index"] for s in scored if s.kind == "rest"}) > 3       # the relaxed pose drifts
+    rec = truth_record(trial)
+    rec["runs"] = {"default": gestures.recognise(rec["frames"])}
+    s = gestures.score_trial(rec, "default")
+    assert s["minutes"]["rest"] > 0.7 and sum(s["false_activations"].values()) == 0
+    assert sum(s[g]["detected"] for g in gestures.GESTURE_NAMES) == 0
+
+
 def test_enrolment_rejects_missing_labels():
     from gestures.enrolment import EnrolmentError
     with pytest.raises(EnrolmentError, match="'grasp' has 0 frames"):
@@ -133,6 +156,9 @@ def test_quick_results_file_has_every_figure(quick):
     assert set(d["confusion"]) == {"point", "grasp", "pinch", "open", "none"}
     assert d["ray_error_deg"]["frames"] > 0
     assert 0.0 < res["alignment_delay_s"]["p50"] < 0.2
+    assert res["idle_trials"] == 1 and res["idle_minutes"] > 0
+    assert res["variants"]["default"]["false_activations_idle"]["rest"]["minutes"] > 0
+    assert res["variants"]["vector"]["false_activations_idle"] is None
     text = (out / "summary.md").read_text()
     assert "| meant \\ shown |" in text and "| vector |" in text
 

@@ -9,6 +9,11 @@ output. Sensor errors: the realistic profile where the simulator has it, else of
 noise ('both'); the optical tracker at its defaults (90 Hz, 20 ms latency, jitter). The pipeline is
 told the hand's size but not the coupling, and gets no true start.
 
+Idle trials (``make_idle_trial``) give the false-activation figures enough time in which the visitor
+means nothing: minutes of rest (the relaxed pose drifting every 4-12 s) with an occasional distractor,
+on the same moving hand; they run through the default estimator and the true hand only and count in
+the false-activation rates (with their 95 % Poisson upper bounds), not in F1.
+
 Each trial's messages run through the hand pipeline (``HandSession``, as the service runs it) with
 the default estimator and with ``vector``; the recogniser runs on its frames. Variants scored on the
 same trials:
@@ -55,7 +60,7 @@ from ..model.openxr import joint_poses
 from ..pipeline.hand import HandFrame, HandSession, PipelineSettings
 from ..protocol import parse_message
 from ..sim.errors import NOISE_KINDS
-from ..sim.gesture_script import GESTURE_NAMES, INTENTS, Trial, make_trial
+from ..sim.gesture_script import GESTURE_NAMES, INTENTS, Trial, make_idle_trial, make_trial
 from ..sim.session import SimConfig, simulate
 
 WINDOW_S = 0.15
@@ -67,6 +72,12 @@ VARIANTS = ("default", "enrolled", "vector", "truth", "truth+5deg")
 QUICK = {"seeds": (101, 102), "duration_s": 20.0}
 FULL = {"seeds": tuple(range(1, 13)), "duration_s": 60.0}
 """Trials of the quick and the full run (``--trials N`` takes the first N seeds of the full run)."""
+QUICK_IDLE = {"seeds": (1101,), "duration_s": 15.0}
+FULL_IDLE = {"seeds": (1001, 1002, 1003, 1004, 1005, 1006, 1007, 1008, 1009, 1010), "duration_s": 120.0}
+"""Idle trials (``make_idle_trial``: the visitor means nothing) of the quick and the full run, scored for
+false activations only (``--idle-trials N`` takes the first N); the variants that need no second pipeline
+run or enrolment: ``default``, ``truth``, ``truth+5deg``."""
+IDLE_VARIANTS = ("default", "truth", "truth+5deg")
 
 
 # -- running a trial --------------------------------------------------------------------------------
@@ -144,25 +155,26 @@ def _enrolment_samples(trial: Trial, frames: list[HandFrame]) -> dict:
     return samples
 
 
-def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = None) -> dict:
+def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = None, idle: bool = False) -> dict:
     """The expensive part of a trial: the pipeline's frames with the default estimator and with
     ``vector``, the true hand's frames (exact and with error) and the alignment delays. With
     ``cache_dir`` they are kept in a file named by the trial, the noise profile and the estimator,
     so the recogniser (which only reads frames) can be rescored without rerunning the pipeline."""
-    key = f"trial-{seed}-{duration_s:g}s-{NOISE}-{PipelineSettings().estimator}.pkl"
+    key = f"{'idle' if idle else 'trial'}-{seed}-{duration_s:g}s-{NOISE}-{PipelineSettings().estimator}.pkl"
     if cache_dir is not None and (Path(cache_dir) / key).exists():
         with open(Path(cache_dir) / key, "rb") as fh:
             return pickle.load(fh)
-    trial = make_trial(seed, duration_s)
+    trial = make_idle_trial(seed, duration_s) if idle else make_trial(seed, duration_s)
     session = simulate(SimConfig(motion="sequence", noise=NOISE, seed=seed, calibration=trial.calibration(),
                                  finger_motion=trial.finger_motion(), hand_trajectory=trial.hand_trajectory()))
     default_frames, delays = _pipeline(session, trial, PipelineSettings().estimator)
-    vector_frames, _ = _pipeline(session, trial, "vector")
     times = np.array([f.t for f in default_frames])
-    out = {"trial": trial, "frames": {"default": default_frames, "vector": vector_frames,
+    out = {"trial": trial, "frames": {"default": default_frames,
                                       "truth": _truth_frames(session, trial, times, 0.0, seed),
                                       "truth+5deg": _truth_frames(session, trial, times, TRUTH_NOISE_DEG, seed + 10_000)},
-           "alignment_delay_s": delays}
+           "alignment_delay_s": delays, "idle": idle}
+    if not idle:
+        out["frames"]["vector"] = _pipeline(session, trial, "vector")[0]
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
         with open(Path(cache_dir) / key, "wb") as fh:
@@ -170,27 +182,25 @@ def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = No
     return out
 
 
-def run_trial(seed: int, duration_s: float, cache_dir: str | Path | None = None) -> dict:
-    """One trial through every variant; returns what scoring needs (plain data)."""
+def run_trial(seed: int, duration_s: float, cache_dir: str | Path | None = None, idle: bool = False) -> dict:
+    """One trial through every variant (an idle trial through ``IDLE_VARIANTS``); returns what scoring
+    needs (plain data)."""
     from gestures.enrolment import fit_thresholds
     from gestures.recognizer import GestureRecognizer
 
-    data = trial_frames(seed, duration_s, cache_dir)
+    data = trial_frames(seed, duration_s, cache_dir, idle)
     trial, frames = data["trial"], data["frames"]
-    enrolled_settings, enrol_report = fit_thresholds(_enrolment_samples(trial, frames["default"]))
-    runs = {
-        "default": recognise(frames["default"]),
-        "enrolled": recognise(frames["default"], enrolled_settings),
-        "vector": recognise(frames["vector"]),
-        "truth": recognise(frames["truth"]),
-        "truth+5deg": recognise(frames["truth+5deg"]),
-    }
+    runs = {v: recognise(frames[v]) for v in (IDLE_VARIANTS if idle else ("default", "vector", "truth", "truth+5deg"))}
+    enrol_report: dict = {}
+    if not idle:
+        enrolled_settings, enrol_report = fit_thresholds(_enrolment_samples(trial, frames["default"]))
+        runs["enrolled"] = recognise(frames["default"], enrolled_settings)
     return {
-        "seed": seed, "subject": trial.subject.__dict__, "hand_motion": trial.hand_motion,
+        "seed": seed, "idle": idle, "subject": trial.subject.__dict__, "hand_motion": trial.hand_motion,
         "scored_from_s": trial.scored_from_s, "end_s": float(frames["default"][-1].t),
         "steps": [(s.kind, s.intent, s.start_s, s.end_s) for s in trial.steps],
         "intents": [(i.gesture, i.onset_s, i.release_s, i.kind) for i in trial.intents()],
-        "times": {"default": [f.t for f in frames["default"]], "vector": [f.t for f in frames["vector"]]},
+        "times": {v: [f.t for f in frames[v]] for v in ("default", "vector") if v in frames},
         "true_rays": [GestureRecognizer.ray(f)["direction"] for f in frames["truth"]],
         "alignment_delay_s": data["alignment_delay_s"], "runs": runs,
         "enrolment": {k: v for k, v in enrol_report.items() if v["old"] != v["new"]},
@@ -332,10 +342,7 @@ def aggregate(parts: list[dict]) -> dict:
     release_all = [x for p in parts for g in GESTURE_NAMES for x in p["release_s"][g]]
     res["onset_s"] = {"p50": _pct(onset_all, 50), "p95": _pct(onset_all, 95)}
     res["release_s"] = {"p50": _pct(release_all, 50), "p95": _pct(release_all, 95)}
-    fa = {k: sum(p["false_activations"][k] for p in parts) for k in ("rest", "distractor", "gesture")}
-    minutes = {k: sum(p["minutes"][k] for p in parts) for k in fa}
-    res["false_activations"] = {k: {"count": fa[k], "minutes": minutes[k],
-                                    "per_min": fa[k] / minutes[k] if minutes[k] else float("nan")} for k in fa}
+    res["false_activations"] = false_activation_rates(parts)
     agree = np.sum([p["agreement"] for p in parts], axis=0)
     res["agreement"] = float(agree[0] / agree[1]) if agree[1] else float("nan")
     res["errors"] = sum(r["intents"] - r["matched"] + r["detected"] - r["matched"] for r in res["gestures"].values())
@@ -348,15 +355,43 @@ def aggregate(parts: list[dict]) -> dict:
     return res
 
 
+def poisson_upper_per_min(count: int, minutes: float, level: float = 0.95) -> float:
+    """One-sided upper confidence bound of a Poisson rate, per minute, after ``count`` events in
+    ``minutes`` (exact: ``chi2.ppf(level, 2 count + 2) / 2``; 0 events: about 3.0 / minutes at 95 %)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(level, 2 * count + 2) / 2.0 / minutes) if minutes > 0 else float("nan")
+
+
+def false_activation_rates(parts: list[dict]) -> dict:
+    """False activations at rest, in distractors and in gestures: count, minutes, per minute and the
+    95 % upper bound per minute."""
+    out = {}
+    for k in ("rest", "distractor", "gesture"):
+        n = sum(p["false_activations"][k] for p in parts)
+        m = sum(p["minutes"][k] for p in parts)
+        out[k] = {"count": n, "minutes": m, "per_min": n / m if m else float("nan"),
+                  "upper95_per_min": poisson_upper_per_min(n, m)}
+    return out
+
+
 def score(records: list[dict]) -> dict:
-    """Every variant's figures, the alignment delay and the enrolment changes."""
-    out = {"window_s": WINDOW_S, "noise": NOISE, "trials": len(records),
-           "scored_minutes": sum(r["end_s"] - r["scored_from_s"] for r in records) / 60.0,
-           "variants": {v: aggregate([score_trial(r, v) for r in records]) for v in VARIANTS}}
+    """Every variant's figures (gesture trials), false activations over gesture and idle trials, the
+    alignment delay and the enrolment changes."""
+    gesture_recs = [r for r in records if not r.get("idle")]
+    idle_recs = [r for r in records if r.get("idle")]
+    out = {"window_s": WINDOW_S, "noise": NOISE, "trials": len(gesture_recs), "idle_trials": len(idle_recs),
+           "scored_minutes": sum(r["end_s"] - r["scored_from_s"] for r in gesture_recs) / 60.0,
+           "idle_minutes": sum(r["end_s"] - r["scored_from_s"] for r in idle_recs) / 60.0,
+           "variants": {v: aggregate([score_trial(r, v) for r in gesture_recs]) for v in VARIANTS}}
+    for v, res in out["variants"].items():
+        idle_parts = [score_trial(r, v) for r in idle_recs if v in r["runs"]]
+        res["false_activations"] = false_activation_rates([score_trial(r, v) for r in gesture_recs] + idle_parts)
+        res["false_activations_idle"] = false_activation_rates(idle_parts) if idle_parts else None
     delays = [d for r in records for d in r["alignment_delay_s"]]
     out["alignment_delay_s"] = {"p50": _pct(delays, 50), "p95": _pct(delays, 95)}
-    out["enrolment_changes"] = {r["seed"]: r["enrolment"] for r in records}
-    out["confidence"] = confidence_figures(records)
+    out["enrolment_changes"] = {r["seed"]: r["enrolment"] for r in gesture_recs}
+    out["confidence"] = confidence_figures(gesture_recs)
     return out
 
 
@@ -434,6 +469,15 @@ def table(result: dict, wall_s: float) -> str:
         lines.append(f"| {row['variant']} | {lo:.2f}-{hi:.2f} | {row['starts']} | {row['mean_confidence']:.3f} | "
                      f"{row['observed_precision']:.3f} |")
     fa = d["false_activations"]
+    lines += ["", f"False activations on the gesture trials and {result['idle_trials']} idle trial(s) "
+              f"({result['idle_minutes']:.1f} scored minutes in which the visitor means nothing; variants "
+              f"{', '.join(IDLE_VARIANTS)}; the others on the gesture trials only), with the 95 % upper bound of the rate:", "",
+              "| variant | at rest: count / minutes | per min (95 % bound) | in distractors: count / minutes | per min (95 % bound) |",
+              "|---|---|---|---|---|"]
+    for name, r in v.items():
+        a, b = r["false_activations"]["rest"], r["false_activations"]["distractor"]
+        lines.append(f"| {name} | {a['count']} / {a['minutes']:.1f} | {a['per_min']:.2f} ({a['upper95_per_min']:.2f}) | "
+                     f"{b['count']} / {b['minutes']:.1f} | {b['per_min']:.2f} ({b['upper95_per_min']:.2f}) |")
     lines += ["", f"Time base: rest {fa['rest']['minutes']:.1f} min, distractors {fa['distractor']['minutes']:.1f} min, "
               f"gestures {fa['gesture']['minutes']:.1f} min.", ""]
     return "\n".join(lines)
@@ -449,18 +493,23 @@ def _job(args):
 
 
 def run(out_dir: str | Path, quick: bool = False, workers: int = 2, progress: bool = True,
-        cache_dir: str | Path | None = None, trials: int | None = None) -> str:
+        cache_dir: str | Path | None = None, trials: int | None = None, idle_trials: int | None = None) -> str:
     from tqdm import tqdm
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     plan = dict(QUICK if quick else FULL)
+    idle = dict(QUICK_IDLE if quick else FULL_IDLE)
     if trials is not None:
         plan["seeds"] = plan["seeds"][:trials]
+    if idle_trials is not None:
+        idle["seeds"] = idle["seeds"][:idle_trials]
+    jobs = [(s, plan["duration_s"], cache_dir, False) for s in plan["seeds"]] + \
+           [(s, idle["duration_s"], cache_dir, True) for s in idle["seeds"]]
     start = time.perf_counter()
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        records = list(tqdm(pool.map(_job, [(s, plan["duration_s"], cache_dir) for s in plan["seeds"]]),
-                            total=len(plan["seeds"]), desc="bench gestures", unit="trial", disable=not progress))
+        records = list(tqdm(pool.map(_job, jobs), total=len(jobs), desc="bench gestures", unit="trial",
+                            disable=not progress))
     result = score(records)
     for r in result["variants"].values():
         r.pop("starts")

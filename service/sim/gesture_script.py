@@ -266,6 +266,18 @@ def enrolment_steps(subject: Subject, start_s: float, rng: np.random.Generator,
     return steps
 
 
+def _fidget_wiggles(pose: Pose, start_s: float, hold_s: float, rng: np.random.Generator) -> list:
+    """Small quick MCP movements of random fingers (+-15 deg and back) during a hold."""
+    wiggles, tw = [], start_s
+    while tw < start_s + hold_s - 0.3:
+        f = str(rng.choice(FINGERS))
+        d = float(rng.uniform(0.15, 0.3))
+        wiggles.append((f, 0, tw, d, pose[f][0] + float(rng.uniform(-15.0, 15.0))))
+        wiggles.append((f, 0, tw + d, d, pose[f][0]))
+        tw += 2 * d + float(rng.uniform(0.0, 0.2))
+    return wiggles
+
+
 def make_trial(seed: int, duration_s: float, subject: Subject | None = None,
                kinds: tuple[str, ...] | None = None, hand_motion: str | None = None,
                enrolment: bool = True) -> Trial:
@@ -300,16 +312,44 @@ def make_trial(seed: int, duration_s: float, subject: Subject | None = None,
         if kind in ("pinch", "near-pinch"):      # the tips still close to the aperture (contact holds)
             pose = _with_aperture(subject, calib, pose, subject.pinch_aperture_m if aperture is None else aperture)
         lead = {"index": 0.45, "thumb": 0.45} if kind == "grasp-through-pinch" else {}
-        wiggles = []
-        if kind == "fidget":
-            tw = t + transition
-            while tw < t + transition + hold - 0.3:
-                f = str(rng.choice(FINGERS))
-                d = float(rng.uniform(0.15, 0.3))
-                wiggles.append((f, 0, tw, d, pose[f][0] + float(rng.uniform(-15.0, 15.0))))
-                wiggles.append((f, 0, tw + d, d, pose[f][0]))
-                tw += 2 * d + float(rng.uniform(0.0, 0.2))
+        wiggles = _fidget_wiggles(pose, t + transition, hold, rng) if kind == "fidget" else []
         steps.append(Step(kind, intent, t, transition, hold, pose, lead, tuple(wiggles)))
         t += transition + hold
         previous = intent if intent != "none" else kind
+    return Trial(seed, subject, tuple(steps), hand_motion, scored_from)
+
+
+IDLE_SETTLE_S = 5.0
+"""The first rest of an idle trial, not scored: the estimators settle without a true start, s."""
+IDLE_DISTRACTOR_P = 0.25
+"""Probability of a meaningless distractor step between two rests of an idle trial."""
+
+
+def make_idle_trial(seed: int, duration_s: float, subject: Subject | None = None,
+                    hand_motion: str | None = None) -> Trial:
+    """A trial in which the visitor means nothing (for false activations at rest): after an unscored
+    first rest of ``IDLE_SETTLE_S``, about ``duration_s`` of rests (a new relaxed pose every 4-12 s,
+    reached over 0.5-1.5 s, the same per-step joint variation as other trials) with, between two rests,
+    a distractor (``half-curl``, ``fidget`` or ``near-pinch``; probability ``IDLE_DISTRACTOR_P``, held
+    1-3 s). No enrolment."""
+    rng = np.random.default_rng(seed)
+    subject = subject or Subject.draw(rng)
+    hand_motion = hand_motion or str(rng.choice(["slow-rotation", "fast-reach"]))
+    calib = subject.calibration()
+    steps = [Step("rest", "none", 0.5, 0.5, IDLE_SETTLE_S - 1.0, _jittered(rest_pose(subject), rng))]
+    t = steps[-1].end_s
+    scored_from, end = t, t + duration_s
+    while t < end - 2.0:
+        kind = "rest"
+        if steps[-1].kind == "rest" and rng.uniform() < IDLE_DISTRACTOR_P:
+            kind = str(rng.choice(NONE_KINDS[1:]))
+        transition = float(rng.uniform(0.5, 1.5) if kind == "rest" else rng.uniform(0.2, 0.45))
+        hold = float(rng.uniform(4.0, 12.0) if kind == "rest" else rng.uniform(1.0, 3.0))
+        aperture = float(rng.uniform(0.032, 0.045)) if kind == "near-pinch" else None
+        pose = _jittered(gesture_pose(subject, kind, calib, aperture), rng)
+        if aperture is not None:
+            pose = _with_aperture(subject, calib, pose, aperture)
+        wiggles = _fidget_wiggles(pose, t + transition, hold, rng) if kind == "fidget" else []
+        steps.append(Step(kind, "none", t, transition, hold, pose, {}, tuple(wiggles)))
+        t += transition + hold
     return Trial(seed, subject, tuple(steps), hand_motion, scored_from)
