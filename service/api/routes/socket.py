@@ -7,7 +7,10 @@ by the app's housekeeping) aborts the transport of a connection stuck longer tha
 ``subscriber_send_timeout_s``, so the connection ends and its buffers are freed."""
 from __future__ import annotations
 
+import contextlib
 import logging
+import socket
+import struct
 import time
 
 from fastapi import WebSocket
@@ -109,6 +112,10 @@ def _abort(ws: WebSocket) -> bool:
         looked += 1
         transport = getattr(getattr(fn, "__self__", None), "transport", None)
         if transport is not None:
+            sock = transport.get_extra_info("socket")
+            if sock is not None:             # a reset discards what the kernel still queues for the peer
+                with contextlib.suppress(OSError):  # (a plain close leaves it queued to a peer that never reads)
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
             transport.abort()
             return True
         for cell in getattr(fn, "__closure__", None) or ():
