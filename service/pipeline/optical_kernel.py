@@ -57,6 +57,18 @@ def _exp(vx, vy, vz):
     return _unit(vx * scale, vy * scale, vz * scale, math.cos(angle / 2.0))
 
 
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+def _reflect(v, vv, j, mat, c):
+    """Apply the Householder reflection ``I - 2 v vᵀ / vv`` (``v`` nonzero from row ``j``) to column
+    ``c`` of ``mat``, in place."""
+    f = 0.0
+    for i in range(j, mat.shape[0]):
+        f += v[i] * mat[i, c]
+    f *= 2.0 / vv
+    for i in range(j, mat.shape[0]):
+        mat[i, c] -= f * v[i]
+
+
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def _least_squares(a, b, k, x, v):
     """Least squares ``min |a[:, :k] x - b|`` for ``b`` (m, 3) by Householder QR (Golub and Van Loan,
