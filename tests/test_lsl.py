@@ -90,7 +90,7 @@ def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
     runner.start()
     try:
         config = SimConfig(motion="sequence", noise="white", seed=5,
-                           finger_motion=sequence_motion(steps=(("point", 0.6), ("grasp", 0.6), ("relaxed", 0.6))))
+                           finger_motion=sequence_motion(steps=(("point", 0.6), ("grasp", 0.6), ("rest", 0.6))))
         start = pylsl.local_clock()                  # the source stamps with the LSL clock
         messages = [_shifted(m, start) for _, m in source_messages(config)]
 

@@ -166,7 +166,7 @@ async def _live_session(server):
         for _ in range(6):
             replies.append(json.loads(await ws.recv()))
     config = SimConfig(motion="sequence", noise="white", seed=4,
-                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("relaxed", 0.8))))
+                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("rest", 0.8))))
     pub = await stream_glove(server.url, "schema-live", SOURCE, config, speed=4.0)
     await pub.close()
     while not any(m["type"] == "gesture" and m["gesture"] == "grasp" and m["event"] == "end" for m in received):

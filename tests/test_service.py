@@ -18,7 +18,7 @@ from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig, simulate
 
 SOURCE, VIEWER, ADMIN = "src-token-1", "view-token-1", "admin-token-1"
-STEPS = (("point", 0.8), ("grasp", 0.8), ("relaxed", 0.8))
+STEPS = (("point", 0.8), ("grasp", 0.8), ("rest", 0.8))
 
 
 @pytest.fixture(scope="module")

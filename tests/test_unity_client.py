@@ -225,7 +225,7 @@ def test_it_subscribes_to_a_live_session_beside_a_python_client(harness, server,
     assert json.loads(cs.stdout.readline()) == {"type": "ready", "subscribed": True}
 
     config = SimConfig(motion="sequence", noise="white", seed=3,
-                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("relaxed", 0.8))))
+                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("rest", 0.8))))
     received, _ = asyncio.run(_stream_and_collect(server, session, config, speed=2.0))
     py = [m for _, m in received]
     last = max(m["seq"] for m in py if m["type"] == "frame")

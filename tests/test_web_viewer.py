@@ -98,7 +98,7 @@ def test_the_viewer_subscribes_to_a_live_session_beside_a_python_client(node, se
     js = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert json.loads(js.stdout.readline()) == {"type": "connected"}
     config = SimConfig(motion="sequence", noise="white", seed=6,
-                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("relaxed", 0.6))))
+                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8), ("rest", 0.6))))
     received, _ = asyncio.run(_stream_and_collect(server, "web1", config, speed=2.0))
     py_frames = {m["seq"]: m for _, m in received if m["type"] == "frame"}
     # the module stops after the last frame the Python subscriber got (which stops on a clock)

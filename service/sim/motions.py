@@ -87,8 +87,14 @@ def grasp_motion(t_m: float = 1.0, t_d: float = 0.2, coupling: float = 1.0) -> F
     return FingerMotion("grasp", t_d + t_m, joints)
 
 
+REST_DEG = {"thumb": (15.0, 15.0), "long": (20.0, 25.0)}
+"""A visitor's hand at rest between gestures: MCP and PIP of the long fingers, MCP and IP of the
+thumb, degrees; the gesture benchmark's typical subject (``gesture_script.Subject.rest_deg``, drawn
+there from MCP 15-28 and PIP 20-32). Flatter than this (``RELAXED_DEG``) a hand reads as open."""
+
 POSES_DEG: dict[str, dict[str, tuple[float, float]]] = {
     "relaxed": {},
+    "rest": {f: REST_DEG["thumb" if f == "thumb" else "long"] for f in FINGERS},
     "point": {"index": (0.0, 5.0), "middle": (80.0, 90.0), "ring": (80.0, 90.0), "little": (80.0, 90.0),
               "thumb": (40.0, 40.0)},
     "grasp": {"index": (85.0, 90.0), "middle": (85.0, 90.0), "ring": (85.0, 90.0), "little": (85.0, 90.0),
@@ -118,19 +124,20 @@ def open_motion(t_m: float = 0.6, t_d: float = 0.2, coupling: float = 1.0, hold_
     return _pose_motion("open", POSES_DEG["open"], t_m, t_d, hold_s, coupling)
 
 
-DEFAULT_SEQUENCE = (("point", 1.2), ("grasp", 1.2), ("relaxed", 1.0), ("pinch", 1.2), ("open", 1.2))
+DEFAULT_SEQUENCE = (("point", 1.2), ("grasp", 1.2), ("rest", 1.0), ("pinch", 1.2), ("open", 1.2))
 """The scripted demo sequence: point, grasp, release, pinch, open; ``(pose, hold seconds)``."""
 
 
 def sequence_motion(t_m: float = 0.4, t_d: float = 0.5, coupling: float = 1.0,
                     steps: tuple[tuple, ...] = DEFAULT_SEQUENCE) -> FingerMotion:
-    """From the relaxed hand through ``steps``: ``(pose name, hold s)`` with a transition of ``t_m``
-    seconds, or ``(pose name, transition s, hold s)``; each transition a C2 step; starts after ``t_d``."""
+    """From the hand at rest (``REST_DEG``) through ``steps``: ``(pose name, hold s)`` with a
+    transition of ``t_m`` seconds, or ``(pose name, transition s, hold s)``; each transition a C2
+    step; starts after ``t_d``."""
     steps = tuple((p[0], t_m, p[1]) if len(p) == 2 else tuple(p) for p in steps)
     joints = {}
     for f in FINGERS:
         kind = "thumb" if f == "thumb" else "long"
-        start = RELAXED_DEG[kind]
+        start = REST_DEG[kind]
         segs: list[list[tuple[float, float, float]]] = [[], []]
         t = t_d
         for pose, transition, hold in steps:
