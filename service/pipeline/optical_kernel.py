@@ -90,19 +90,9 @@ def _least_squares(a, b, k, x, v):
         if vv == 0.0:
             continue
         for c in range(j, k):
-            f = 0.0
-            for i in range(j, m):
-                f += v[i] * a[i, c]
-            f *= 2.0 / vv
-            for i in range(j, m):
-                a[i, c] -= f * v[i]
+            _reflect(v, vv, j, a, c)
         for c in range(3):
-            f = 0.0
-            for i in range(j, m):
-                f += v[i] * b[i, c]
-            f *= 2.0 / vv
-            for i in range(j, m):
-                b[i, c] -= f * v[i]
+            _reflect(v, vv, j, b, c)
     for c in range(3):
         for j in range(k - 1, -1, -1):
             r = b[j, c]
