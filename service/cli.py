@@ -658,7 +658,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"of {_gesture_idle_plan()['duration_s']:g} s in the full run, scored for false activations; default: all)")
     b.add_argument("--frames-cache", default=None, metavar="DIR",
                    help="keep each trial's pipeline frames in DIR and reuse them, so recogniser changes are rescored "
-                        "without rerunning the pipeline (clear it when the simulator or pipeline changes; default: none)")
+                        "without rerunning the pipeline (a trial is rerun when the code that makes its frames "
+                        "changes; default: none)")
 
     b = benchmark("peers", "real rigid-IMU data (BROAD): our orientation cores against vqf, ahrs, imufusion",
                   "Inclination error on the BROAD trials against their optical ground truth, and time per sample, "

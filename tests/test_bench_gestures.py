@@ -192,3 +192,19 @@ def test_start_events_carry_the_calibrated_confidence_and_ends_repeat_it():
     for g, kind, t, conf, raw in events:
         start = next(s for s in starts if s[0] == g and s[2] <= t)
         assert conf == pytest.approx(calibrated_confidence(g, start[4]), abs=1e-4)
+
+
+def test_the_frames_cache_is_keyed_by_the_code_that_makes_the_frames(tmp_path):
+    import shutil
+    from pathlib import Path
+    root = Path(gestures.__file__).resolve().parent.parent
+    copy = tmp_path / "service"
+    for package in gestures.FRAME_SOURCES + ("bench",):
+        shutil.copytree(root / package, copy / package, ignore=shutil.ignore_patterns("__pycache__"))
+    first = gestures.frames_fingerprint(copy)
+    assert first == gestures.frames_fingerprint(root)
+    (copy / "bench" / "gestures.py").write_text("# scoring only\n")          # the recogniser's side: same frames
+    assert gestures.frames_fingerprint(copy) == first
+    kernel = copy / "estimators" / "chain.py"
+    kernel.write_text(kernel.read_text() + "\n# a changed estimator\n")
+    assert gestures.frames_fingerprint(copy) != first

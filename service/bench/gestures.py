@@ -47,6 +47,7 @@ Scoring (per variant, scripted part only):
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import pickle
 import time
@@ -78,6 +79,9 @@ FULL_IDLE = {"seeds": (1001, 1002, 1003, 1004, 1005, 1006, 1007, 1008, 1009, 101
 false activations only (``--idle-trials N`` takes the first N); the variants that need no second pipeline
 run or enrolment: ``default``, ``truth``, ``truth+5deg``."""
 IDLE_VARIANTS = ("default", "truth", "truth+5deg")
+FRAME_SOURCES = ("model", "sim", "estimators", "pipeline", "protocol")
+"""The packages of ``service`` whose code makes a trial's frames (simulator, sensor errors, pipeline,
+estimators): their source is part of a cached trial's name (``frames_fingerprint``)."""
 
 
 # -- running a trial --------------------------------------------------------------------------------
@@ -155,12 +159,28 @@ def _enrolment_samples(trial: Trial, frames: list[HandFrame]) -> dict:
     return samples
 
 
+def frames_fingerprint(root: str | Path | None = None) -> str:
+    """A digest of the source code that makes a trial's frames (``FRAME_SOURCES`` under ``root``, the
+    ``service`` package by default; every ``.py`` file by its path and content): a change of the
+    simulator, the pipeline or an estimator changes it, so a frames cache never serves frames of other
+    code."""
+    root = Path(root) if root is not None else Path(__file__).resolve().parent.parent
+    digest = hashlib.sha256()
+    for package in FRAME_SOURCES:
+        for path in sorted((root / package).rglob("*.py")):
+            digest.update(path.relative_to(root).as_posix().encode())
+            digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
 def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = None, idle: bool = False) -> dict:
     """The expensive part of a trial: the pipeline's frames with the default estimator and with
     ``vector``, the true hand's frames (exact and with error) and the alignment delays. With
-    ``cache_dir`` they are kept in a file named by the trial, the noise profile and the estimator,
-    so the recogniser (which only reads frames) can be rescored without rerunning the pipeline."""
-    key = f"{'idle' if idle else 'trial'}-{seed}-{duration_s:g}s-{NOISE}-{PipelineSettings().estimator}.pkl"
+    ``cache_dir`` they are kept in a file named by the trial, the noise profile, the estimator and the
+    code that made them (``frames_fingerprint``), so the recogniser (which only reads frames) can be
+    rescored without rerunning the pipeline, and a changed estimator or simulator is rerun."""
+    key = (f"{'idle' if idle else 'trial'}-{seed}-{duration_s:g}s-{NOISE}-{PipelineSettings().estimator}-"
+           f"{frames_fingerprint()}.pkl")
     if cache_dir is not None and (Path(cache_dir) / key).exists():
         with open(Path(cache_dir) / key, "rb") as fh:
             return pickle.load(fh)
@@ -511,6 +531,7 @@ def run(out_dir: str | Path, quick: bool = False, workers: int = 2, progress: bo
         records = list(tqdm(pool.map(_job, jobs), total=len(jobs), desc="bench gestures", unit="trial",
                             disable=not progress))
     result = score(records)
+    result["frames_fingerprint"] = frames_fingerprint()
     for r in result["variants"].values():
         r.pop("starts")
     (out / "results.json").write_text(json.dumps(result, indent=2, default=str))
