@@ -46,6 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from service.protocol.outgoing import GestureDict, GestureStateDict, RayDict
 
 from .confidence import calibrated_confidence
+from .values import frame_values
 
 GESTURES = ("grasp", "point", "pinch", "open")   # priority order
 FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
@@ -95,7 +96,12 @@ def _band(value: float, inside: float, outside: float) -> float:
     """0 at the outer threshold, 1 at the inner one and beyond (either direction)."""
     if inside == outside:
         return 1.0
-    return float(np.clip((value - outside) / (inside - outside), 0.0, 1.0))
+    return min(max((value - outside) / (inside - outside), 0.0), 1.0)     # np.clip's value, NaN kept
+
+
+def _mean(values: list[float]) -> float:
+    """``np.mean`` of a few floats, the same number (summed left to right, then divided) without its call."""
+    return sum(values) / len(values)
 
 
 @dataclass
@@ -113,7 +119,7 @@ class Features:
     def from_history(entry) -> "Features":
         _, curls, distance, rate = entry
         curl = dict(zip(FINGER_ORDER, curls))
-        return Features(curl, distance, float(np.mean([curl[f] for f in LONG])), rate)
+        return Features(curl, distance, _mean([curl[f] for f in LONG]), rate)
 
 
 QUANTITIES: dict[str, Callable[[Features], float]] = {
@@ -122,10 +128,10 @@ QUANTITIES: dict[str, Callable[[Features], float]] = {
     "index_curl": lambda x: x.curl["index"],
     "thumb_curl": lambda x: x.curl["thumb"],
     "others_curl_min": lambda x: min(x.curl[f] for f in OTHERS),
-    "others_curl_mean": lambda x: float(np.mean([x.curl[f] for f in OTHERS])),
+    "others_curl_mean": lambda x: _mean([x.curl[f] for f in OTHERS]),
     "pinch_distance_m": lambda x: x.pinch_distance_m,
     "others_curl_rate": lambda x: x.others_curl_rate,
-    "others_curl_ahead": lambda x: float(np.mean([x.curl[f] for f in OTHERS])) + PINCH_LOOKAHEAD_S * x.others_curl_rate,
+    "others_curl_ahead": lambda x: _mean([x.curl[f] for f in OTHERS]) + PINCH_LOOKAHEAD_S * x.others_curl_rate,
 }
 """The scalar quantities the rules threshold, by name (curls dimensionless, distances in metres)."""
 
@@ -198,36 +204,32 @@ class GestureRecognizer:
     _confidence: float = 0.0
     _previous: tuple[float, float] | None = None
     _rate: float = 0.0
+    _frame_ray: tuple = (None, None)
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
     """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
 
     def features(self, frame) -> Features:
         s = self.settings
-        curl = {}
-        for f, phi in frame.joint_angles.items():
-            full = s.curl_full_thumb_rad if f == "thumb" else s.curl_full_long_rad
-            curl[f] = float(np.clip(np.sum(phi) / full, 0.0, 1.0))
-        tip_t = frame.joints["thumb_tip"][0]
-        tip_i = frame.joints["index_tip"][0]
-        return Features(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])))
+        v = frame_values(frame.joint_angles, frame.joints, s.curl_full_long_rad, s.curl_full_thumb_rad)
+        self._frame_ray = (frame, v.ray)
+        return Features(v.curl, v.pinch_distance_m, v.grab_strength)
 
     @staticmethod
     def ray(frame) -> RayDict | None:
         """The pointing ray along the index finger; ``None`` when the finger has no direction (a
         degenerate geometry would otherwise give a NaN direction)."""
-        tip = frame.joints["index_tip"][0]
-        base = frame.joints["index_proximal"][0]
-        d = tip - base
-        norm = float(np.linalg.norm(d))
-        if not (norm > 1e-9 and np.all(np.isfinite(tip))):
-            return None
-        return {"origin": tip.tolist(), "direction": (d / norm).tolist()}
+        return frame_values(frame.joint_angles, frame.joints, 1.0, 1.0).ray       # curl scales do not matter
+
+    def _ray(self, frame) -> RayDict | None:
+        """``ray(frame)``, from the values ``features`` computed for this frame."""
+        seen, ray = self._frame_ray
+        return ray if seen is frame else self.ray(frame)
 
     def _event(self, frame, g: str, kind: Literal["start", "end"], confidence: float) -> GestureDict:
         """The protocol's ``gesture`` event (``protocol.outgoing.Gesture``)."""
         ev: GestureDict = {"type": "gesture", "t": frame.t, "gesture": g, "event": kind, "confidence": round(confidence, 4)}
         if g == "point":
-            ev["ray"] = self.ray(frame)
+            ev["ray"] = self._ray(frame)
         return ev
 
     def update(self, frame) -> tuple[GestureStateDict, list[GestureDict]]:
@@ -277,5 +279,5 @@ class GestureRecognizer:
             "pinch_strength": 0.0 if self.active == "grasp" else round(_band(x.pinch_distance_m, s.pinch_full_m, s.pinch_zero_m), 4),
         }
         if self.active == "point":
-            annotation["ray"] = self.ray(frame)
+            annotation["ray"] = self._ray(frame)
         return annotation, events

@@ -7,7 +7,7 @@ NAME [PARAMS_JSON]``), which fills the on-disk cache without competing with the 
 interpreter lock, then runs a few samples in a worker thread, which loads the cached code into this
 process. The container image runs the same command at build time.
 
-The hand pipeline's own kernels (the optical fit, the OpenXR joint poses) are warmed the same way, under the name
+The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values) are warmed the same way, under the name
 ``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
 cache (the usual case after the first run, and in the container image) the separate process is skipped:
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
@@ -28,9 +28,10 @@ PIPELINE = "pipeline"
 
 
 def _pipeline_kernels() -> tuple:
+    from gestures import values
     from ..model import openxr_kernel
     from ..pipeline import optical_kernel
-    return (openxr_kernel.joint_poses, optical_kernel.at)
+    return (openxr_kernel.joint_poses, optical_kernel.at, values.values_kernel)
 
 
 def _kernels(name: str) -> tuple:
@@ -57,8 +58,11 @@ def _warm_pipeline() -> None:
 
     from ..pipeline.optical import OpticalTrack
 
+    from gestures.values import frame_values
+
     calib = default_calibration("right")
-    joint_poses_compiled(calib, {n: np.zeros(g.n_phalanges) for n, g in calib.fingers.items()}, np.eye(3), np.zeros(3))
+    angles = {n: np.zeros(g.n_phalanges) for n, g in calib.fingers.items()}
+    frame_values(angles, joint_poses_compiled(calib, angles, np.eye(3), np.zeros(3)), 1.0, 1.0)
     track = OpticalTrack()
     for k in range(3):
         track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)

@@ -1,0 +1,142 @@
+"""The recogniser's continuous values of one frame (``gestures.recognizer``): curl per finger, the
+thumb-index tip distance, grab strength and the pointing ray, in one compiled call.
+
+A frame has five fingers' angles and 26 joint positions; computed with numpy, each value is a handful
+of calls on three-element arrays, whose per-call cost is the whole cost. ``frame_values`` packs the
+frame once and runs ``values_kernel`` (numba, ``cache=True``; compiled ahead of serving with the
+pipeline's kernels, ``service.estimators.warm``). ``reference_values`` is the same computation in numpy,
+the definition the kernel is tested against (``tests/test_gesture_values.py``); the kernel keeps its
+order of operations (a sum left to right, the norm as the square root of a dot product), so the two
+agree to the last bit, not just within tolerance.
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numba
+import numpy as np
+
+from service.model.openxr import JOINT_NAMES
+
+FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
+LONG = ("index", "middle", "ring", "little")
+RAY_JOINTS = ("thumb_tip", "index_tip", "index_proximal")
+"""The joints the values read: the pinch is between the first two, the ray runs from the third to the second."""
+RAY_MIN_LENGTH_M = 1e-9
+"""A pointing ray needs the index finger this long at least (else its direction is undefined), m."""
+
+
+class Values(NamedTuple):
+    """A frame's continuous values: ``curl`` per finger of the frame in [0, 1], ``pinch_distance_m``,
+    ``grab_strength`` (mean curl of the long fingers) and the pointing ray (``None`` where the index
+    finger has no direction)."""
+
+    curl: dict[str, float]
+    pinch_distance_m: float
+    grab_strength: float
+    ray: dict | None
+
+
+def reference_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float) -> Values:
+    """The values in numpy: ``Σφ / curl_full`` clipped to [0, 1] per finger; the norm of the
+    thumb-to-index tip difference; the mean curl of ``LONG``; the ray from the index MCP joint to its
+    tip (origin at the tip) when the finger is longer than ``RAY_MIN_LENGTH_M`` and its tip finite."""
+    curl = {}
+    for f, phi in joint_angles.items():
+        full = curl_full_thumb_rad if f == "thumb" else curl_full_long_rad
+        curl[f] = float(np.clip(np.sum(phi) / full, 0.0, 1.0))
+    tip_t = joints["thumb_tip"][0]
+    tip_i = joints["index_tip"][0]
+    base = joints["index_proximal"][0]
+    d = tip_i - base
+    norm = float(np.linalg.norm(d))
+    ray = {"origin": tip_i.tolist(), "direction": (d / norm).tolist()} \
+        if norm > RAY_MIN_LENGTH_M and np.all(np.isfinite(tip_i)) else None
+    return Values(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])), ray)
+
+
+@numba.njit(cache=True)
+def values_kernel(phi, ends, full, positions, rows, long_fingers, out):  # pragma: no cover - compiled
+    """``out[:n]`` the curls of the ``n = len(ends)`` fingers (finger ``k``'s angles are
+    ``phi[ends[k-1]:ends[k]]``, its full curl ``full[k]``); then the tip distance, the mean curl of
+    the fingers ``long_fingers``, 1.0 if the ray exists (else 0.0), its origin and direction; the
+    joints are ``positions[rows[0]]`` (thumb tip), ``positions[rows[1]]`` (index tip),
+    ``positions[rows[2]]`` (index MCP). The order of operations is ``reference_values``'."""
+    n = ends.shape[0]
+    start = 0
+    for k in range(n):
+        s = 0.0                  # from 0.0 and left to right, as numpy's sum of a few terms
+        for j in range(start, ends[k]):
+            s += phi[j]
+        c = s / full[k]
+        if c < 0.0:              # a NaN passes, as through np.clip
+            c = 0.0
+        elif c > 1.0:
+            c = 1.0
+        out[k] = c
+        start = ends[k]
+    tip_t = positions[rows[0]]
+    tip_i = positions[rows[1]]
+    base = positions[rows[2]]
+    pinch = tip_t - tip_i
+    out[n] = math.sqrt(np.dot(pinch, pinch))
+    g = 0.0
+    for k in long_fingers:
+        g += out[k]
+    out[n + 1] = g / long_fingers.shape[0]
+    d = tip_i - base
+    norm = math.sqrt(np.dot(d, d))
+    ok = norm > RAY_MIN_LENGTH_M
+    for i in range(3):
+        ok = ok and math.isfinite(tip_i[i])
+    out[n + 2] = 1.0 if ok else 0.0
+    for i in range(3):
+        out[n + 3 + i] = tip_i[i]
+        out[n + 6 + i] = d[i] / norm if ok else 0.0
+
+
+_ROWS_CACHE: dict = {}
+
+
+def _layout(joint_angles, curl_full_long_rad: float, curl_full_thumb_rad: float):
+    """The kernel's finger layout of a frame (finger names, angle ends, full curls, long-finger rows),
+    kept per distinct layout."""
+    key = (tuple((f, len(phi)) for f, phi in joint_angles.items()), curl_full_long_rad, curl_full_thumb_rad)
+    layout = _ROWS_CACHE.get(key)
+    if layout is None:
+        names = [f for f, _ in key[0]]
+        ends = np.cumsum([n for _, n in key[0]]).astype(np.int64)
+        full = np.array([curl_full_thumb_rad if f == "thumb" else curl_full_long_rad for f in names])
+        row_of = {f: k for k, f in enumerate(names)}
+        long_rows = np.array([row_of[f] for f in LONG], dtype=np.int64)     # KeyError as the reference
+        layout = _ROWS_CACHE[key] = (names, ends, full, long_rows)
+        if len(_ROWS_CACHE) > 64:                # bounded: settings change rarely
+            _ROWS_CACHE.pop(next(iter(_ROWS_CACHE)))
+    return layout
+
+
+def frame_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float) -> Values:
+    """``reference_values`` in one ``values_kernel`` call. ``joints`` is the pipeline's
+    ``JointPoses`` (its positions array is read as it is) or any mapping of joint name to
+    ``(position, orientation)``. A frame without the long fingers or the joints raises ``KeyError``
+    like the reference."""
+    names, ends, full, long_rows = _layout(joint_angles, curl_full_long_rad, curl_full_thumb_rad)
+    phi = np.concatenate([np.asarray(p, dtype=np.float64).ravel() for p in joint_angles.values()]) \
+        if joint_angles else np.zeros(0)
+    positions = getattr(joints, "positions", None)        # the pipeline's JointPoses: rows in JOINT_NAMES order
+    if isinstance(positions, np.ndarray) and positions.shape == (len(JOINT_NAMES), 3) and positions.dtype == np.float64:
+        rows = _RAY_ROWS
+    else:
+        positions = np.array([joints[j][0] for j in RAY_JOINTS], dtype=np.float64)
+        rows = _FIRST_THREE
+    n = len(names)
+    out = np.empty(n + 9)
+    values_kernel(phi, ends, full, positions, rows, long_rows, out)
+    v = out.tolist()
+    ray = {"origin": v[n + 3:n + 6], "direction": v[n + 6:n + 9]} if v[n + 2] == 1.0 else None
+    return Values(dict(zip(names, v[:n])), v[n], v[n + 1], ray)
+
+
+_FIRST_THREE = np.arange(3, dtype=np.int64)
+_RAY_ROWS = np.array([JOINT_NAMES.index(j) for j in RAY_JOINTS], dtype=np.int64)

@@ -1,0 +1,130 @@
+"""The compiled gesture values (``gestures.values.frame_values``) equal the numpy reference
+(``reference_values``) on random frames, degenerate ones, and the frames of a recording through the
+pipeline (realistic sensor errors, a saturated and a dropped sample, an optical loss), for the
+pipeline's ``JointPoses`` and for a plain mapping of joints; and the recogniser's output is the same
+whichever computes its values."""
+import math
+
+import numpy as np
+import pytest
+
+from gestures import recognizer as rec_module
+from gestures.recognizer import GestureRecognizer, GestureSettings
+from gestures.values import frame_values, reference_values
+from service.model.hand import default_calibration
+from service.model.openxr import JOINT_NAMES, joint_poses
+from service.pipeline.hand import HandFrame, HandSession, JointPoses
+from service.protocol import parse_message
+from service.sim.errors import OpticalModel
+from service.sim.session import SimConfig, simulate
+
+S = GestureSettings()
+FULL = (S.curl_full_long_rad, S.curl_full_thumb_rad)
+
+
+def _close(a, b):
+    """Equal to 1e-9 (NaN where the other is NaN), and in fact to the last bit."""
+    if isinstance(a, dict) or isinstance(b, dict):
+        assert (a is None) == (b is None) and a.keys() == b.keys()
+        for k in a:
+            _close(a[k], b[k])
+        return
+    if isinstance(a, list):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            _close(x, y)
+        return
+    assert (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-9
+    assert np.array_equal(np.float64(a), np.float64(b), equal_nan=True)
+
+
+def _same(fast, ref):
+    _close(fast.curl, ref.curl)
+    _close(fast.pinch_distance_m, ref.pinch_distance_m)
+    _close(fast.grab_strength, ref.grab_strength)
+    assert (fast.ray is None) == (ref.ray is None)
+    if ref.ray is not None:
+        _close(fast.ray, ref.ray)
+
+
+def _check(angles, joints):
+    _same(frame_values(angles, joints, *FULL), reference_values(angles, joints, *FULL))
+
+
+def test_random_frames_equal_the_reference_for_both_joint_containers():
+    rng = np.random.default_rng(7)
+    calib = default_calibration("right")
+    for k in range(300):
+        scale = (0.5, 3.0, 1e-6)[k % 3]
+        angles = {f: rng.normal(0.6, scale, g.n_phalanges) for f, g in calib.fingers.items()}
+        positions = rng.normal(0.0, (0.1, 1e-10, 10.0)[k % 3], (len(JOINT_NAMES), 3))
+        quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(JOINT_NAMES), 1))
+        _check(angles, JointPoses(positions, quats))
+        _check(angles, {n: (positions[i], quats[i]) for i, n in enumerate(JOINT_NAMES)})
+
+
+def test_degenerate_frames_equal_the_reference():
+    calib = default_calibration("right")
+    rot, pos = np.eye(3), np.zeros(3)
+    flat = {f: np.zeros(g.n_phalanges) for f, g in calib.fingers.items()}
+    cases = [flat, {**flat, "index": np.array([np.nan, 0.1, 0.1])}, {**flat, "thumb": np.array([np.inf, 0.0])},
+             {**flat, "ring": np.array([-0.0, -0.0, -0.0])}, {f: np.full(g.n_phalanges, 3.0) for f, g in calib.fingers.items()}]
+    for angles in cases:
+        _check(angles, joint_poses(calib, angles if angles is cases[-1] else flat, rot, pos))
+    # the index finger without length (no ray), a non-finite tip (no ray), an infinite MCP (NaN direction)
+    positions = np.zeros((len(JOINT_NAMES), 3))
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(JOINT_NAMES), 1))
+    tip, base = JOINT_NAMES.index("index_tip"), JOINT_NAMES.index("index_proximal")
+    assert frame_values(flat, JointPoses(positions, quats), *FULL).ray is None
+    _check(flat, JointPoses(positions, quats))
+    positions[tip] = [np.nan, 0.0, 0.0]
+    _check(flat, JointPoses(positions, quats))
+    positions[tip], positions[base] = [0.0, 0.0, 0.1], [np.inf, 0.0, 0.0]
+    _check(flat, JointPoses(positions, quats))
+    with pytest.raises(KeyError):
+        frame_values({"thumb": np.zeros(2)}, JointPoses(positions, quats), *FULL)
+
+
+def _recorded_frames():
+    config = SimConfig(motion="sequence", hand_motion="random", noise="realistic", seed=5, duration_s=4.0,
+                       optical=OpticalModel(occlusions_s=((1.5, 1.8),)))
+    session, frames = HandSession("right"), []
+    for k, m in enumerate(simulate(config).messages(include_truth=False)):
+        if m["type"] == "imu" and m["id"] == "index.2":
+            if k % 97 == 0:
+                continue                                        # a dropped sample
+            if k % 89 == 0:
+                m = {**m, "gyr": [34.9, -34.9, 34.9]}           # a saturated one (2000 deg/s)
+        frames.extend(session.handle(parse_message(m)).frames)
+    return frames
+
+
+def test_recorded_frames_equal_the_reference_and_the_recogniser_output_is_unchanged(monkeypatch):
+    frames = _recorded_frames()
+    assert len(frames) > 300
+    for f in frames:
+        _check(f.joint_angles, f.joints)
+    fast = GestureRecognizer()
+    fast_out = [fast.update(f) for f in frames]
+
+    def reference(joint_angles, joints, long_rad, thumb_rad):
+        return reference_values(joint_angles, joints, long_rad, thumb_rad)
+
+    monkeypatch.setattr(rec_module, "frame_values", reference)
+    slow = GestureRecognizer()
+    slow_out = [slow.update(f) for f in frames]
+    assert fast_out == slow_out
+    assert {e["gesture"] for _, events in slow_out for e in events} >= {"point", "grasp"}
+
+
+def test_a_truth_frame_with_plain_joints_gives_the_pipeline_values():
+    calib = default_calibration("right")
+    rng = np.random.default_rng(3)
+    angles = {f: rng.uniform(0.0, 1.2, g.n_phalanges) for f, g in calib.fingers.items()}
+    rot, pos = np.eye(3), np.array([0.1, 1.2, -0.3])
+    joints = joint_poses(calib, angles, rot, pos)
+    frame = HandFrame(0.0, 1, "right", angles, {}, rot, pos, joints, {})
+    ray = GestureRecognizer.ray(frame)
+    tip, base = joints["index_tip"][0], joints["index_proximal"][0]
+    assert ray["origin"] == tip.tolist()
+    assert np.allclose(ray["direction"], (tip - base) / np.linalg.norm(tip - base), atol=1e-12)
