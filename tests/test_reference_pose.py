@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from service.estimators.base import samples_from_session
-from service.estimators.chain import Chain
+from dataclasses import replace
+
+from scipy.spatial.transform import Rotation
+
+from service.estimators.chain import Chain, ChainSettings
+from service.estimators.chain_kernel import GA_START
+from service.model.hand import default_calibration
 from service.model.hand import joint_to_phalanx_angles
 from clients.client import Publisher
 from service.pipeline.hand import HandSession
@@ -33,10 +39,13 @@ def test_protocol_accepts_flat_and_joint_angles_and_names_what_is_wrong():
 
 def test_chain_takes_a_known_configuration_as_a_measurement():
     """A still finger whose vector observation is biased by accelerometer offsets: a reference with a
-    tight std moves the angle to the reference, and the offset to what explains the reading."""
+    tight std moves the angles toward the reference, and the offsets to what explains the reading.
+    Both sensors in one update whose errors share the joints below the lower sensor: with the angle
+    priors ``p`` (independent filters) and ``R = std² [[2, 2], [2, 3]]`` (phalanx 1 sums two joints,
+    phalanx 2 three, the first two shared), the error becomes ``R (diag(p) + R)⁻¹`` times itself."""
     sess = simulate(SimConfig(motion="open", noise="offset", seed=3, duration_s=3.0, fingers=("index",)))
     samples = samples_from_session(sess, "index")
-    est = Chain(sess.calibration.finger("index"))
+    est = Chain(sess.calibration.finger("index"), settings=ChainSettings(mounting_hinge_std_rad=0.0))
     est.run(samples)
     truth = joint_to_phalanx_angles(sess.joint_angles["index"][-1])
     before = est.state["filter"]["x"][:, 0] - truth[[1, 2]]
@@ -44,10 +53,54 @@ def test_chain_takes_a_known_configuration_as_a_measurement():
     std = np.radians(0.1)
     est.known_configuration(truth, std)
     after = est.state["filter"]["x"][:, 0] - truth[[1, 2]]
-    r = np.array([2, 3]) * std**2
-    # scalar Kalman update: the error shrinks by r / (p + r)
-    np.testing.assert_allclose(after, before * r / (p + r), atol=1e-12)
+    r = np.array([[2.0, 2.0], [2.0, 3.0]]) * std**2
+    np.testing.assert_allclose(after, r @ np.linalg.solve(np.diag(p) + r, before), atol=1e-12)
     assert np.abs(before).max() > 1e-3 and np.all(np.abs(after) < np.abs(before))
+
+
+def _mounted(delta_rad):
+    """The default right hand with index.1 and index.2 turned on their phalanges by ``delta_rad`` about
+    the hinge axis (the sensor-to-phalanx rotation ``R_x(δ)``)."""
+    calib = default_calibration("right")
+    index = calib.finger("index")
+    sensors = tuple(replace(sp, mounting=tuple(Rotation.from_rotvec([d, 0.0, 0.0]).as_quat()))
+                    for sp, d in zip(index.sensors, delta_rad))
+    return replace(calib, fingers={**calib.fingers, "index": replace(index, sensors=sensors)})
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_reference_pose_calibrates_the_mounting_turn_about_the_hinge_axis(seed):
+    """Sensors mounted with a known turn ``δ`` about the hinge axis that the glove's calibration does not
+    know (it says identity); noise-free readings of a pointing finger on a still hand. The accelerometer
+    alone sees only ``θ + δ``; a known configuration (exact, given to 0.01 deg) separates the two. With
+    the accelerometer weighted as the noise-free sensor it is here and no room for offsets (which a
+    single orientation of the hand cannot tell from the turn), the filter's hinge-axis state
+    (``G_zy = -G_yz = -δ``, a small-angle rotation) is ``δ`` itself, and the angles after the reference
+    are right instead of off by ``δ`` as without the state."""
+    rng = np.random.default_rng(seed)
+    delta = rng.choice([-1.0, 1.0], 2) * np.radians(rng.uniform(2.0, 5.0, 2))
+    sess = simulate(SimConfig(motion="point", hand_motion="still", noise="none", seed=seed, duration_s=6.0,
+                              fingers=("index",), calibration=_mounted(delta)))
+    nominal = default_calibration("right").finger("index")
+    samples = samples_from_session(sess, "index")
+    t1 = 2.0
+    k1 = int(np.searchsorted(samples.t, t1 - 1e-9))
+    pose = dict(zip(("mcp", "pip", "dip"), (float(a) for a in sess.joint_angles["index"][k1])))
+    ref = parse_message({"type": "reference_pose", "t0": t1 - 1.0, "t1": t1, "pose": {"index": pose}})
+    later = samples.t > t1
+    truth = np.cumsum(sess.joint_angles["index"], axis=1)[:, [1, 2]][later]
+    err = {}
+    for hinge_std in (0.0, 0.03):
+        est = Chain(nominal, settings=ChainSettings(mounting_hinge_std_rad=hinge_std, acc_scale_uncertainty=0.01,
+                                                    initial_acc_bias_std_m_s2=1e-4))
+        track = run_with_references(est, samples, "index", [ref], np.radians(0.01))
+        phal = np.cumsum(track.phi, axis=1)[:, [1, 2]][later]
+        err[hinge_std] = np.degrees(np.sqrt(np.mean((phal - truth) ** 2, axis=0)))
+    x = est.state["filter"]["x"]
+    np.testing.assert_allclose(-x[:, GA_START + 7], delta, atol=np.radians(0.1))
+    np.testing.assert_allclose(x[:, GA_START + 5], delta, atol=np.radians(0.1))
+    assert np.all(err[0.03] < 0.2), err
+    assert np.all(err[0.0] > 0.5 * np.degrees(np.abs(delta))), err
 
 
 def _recording_with_hold(tmp_path, seed=4):
