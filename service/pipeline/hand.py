@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from collections.abc import Mapping
 from typing import Any, Iterator
 
@@ -187,7 +188,7 @@ class HandFrame:
     hand_position: np.ndarray
     joints: Mapping[str, tuple[np.ndarray, np.ndarray]]
     status: FrameStatusDict
-    tracked: dict[str, bool] = field(default_factory=dict)   # per joint; a joint not listed is tracked
+    tracked: dict[str, bool] = field(default_factory=dict)   # per joint (shared, never modified); a joint not listed is tracked
 
     def to_message(self, calib: HandCalibration) -> FrameDict:
         """The protocol's ``frame`` (``protocol.outgoing.Frame``), without the gesture layer's object."""
@@ -385,20 +386,18 @@ class HandSession:
         lists, kept as they are) into the table of pending ticks."""
         known = self._known_sensor_ids()
         clock_step_s, max_pending = self.settings.clock_step_s, self.settings.max_pending_ticks
+        pending, newest, processed = self._pending, self._newest_imu_t, self._processed_t
         for sample in samples:
             t, sid = sample.t, sample.id
             if sid not in known:
                 self._drop("unknown_sensor")
                 continue
-            newest = self._newest_imu_t
             if newest is not None and abs(t - newest) > clock_step_s:
-                self._clock_step()
-                newest = None
-            processed = self._processed_t
+                self._clock_step()                  # clears the table (the same object) and both times
+                newest = processed = None
             if processed is not None and t <= processed:
                 self._drop("late")
                 continue
-            pending = self._pending
             tick = pending.get(t)
             if tick is None:
                 tick = pending[t] = {}
@@ -406,10 +405,12 @@ class HandSession:
                 self._drop("duplicate")
                 continue
             tick[sid] = (sample.gyr, sample.acc)
-            self._newest_imu_t = t if newest is None or t > newest else newest
+            if newest is None or t > newest:
+                newest = t
             if len(pending) > max_pending:
                 oldest = min(pending)
                 self._drop("overflow", len(pending.pop(oldest)))
+        self._newest_imu_t = newest
 
     def _clock_step(self) -> None:
         self.counters.clock_steps += 1
@@ -561,9 +562,9 @@ class HandSession:
         """Fingers whose estimators advance in one kernel call (``ChainHand``): the same as
         ``_update_finger`` on each."""
         last = self._last_sample
-        sensors = [s for fs in fingers for s in fs.active_sensors]
-        gyr = np.array([last[s][1] for s in sensors])
-        acc = np.array([last[s][2] for s in sensors])
+        samples = [last[s] for fs in fingers for s in fs.active_sensors]
+        gyr = np.array([x[1] for x in samples])
+        acc = np.array([x[2] for x in samples])
         phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
         finite = math.isfinite(sum(phi.tolist()))
         for f, fs in enumerate(fingers):
@@ -630,7 +631,7 @@ class HandSession:
         positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position)
         joints = JointPoses(positions, quats)
         measured = tuple((n, bool(fs.active_sensors)) for n, fs in self._fingers.items())
-        tracked = dict(zip(JOINT_NAMES, joint_tracked_list(self._tracking, measured)))
+        tracked = _tracked_dict(self._tracking, measured)
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
                          joints, self.status(t), tracked)
@@ -654,6 +655,13 @@ class HandSession:
             "reference_poses": {"applied": self.counters.references_applied, "stale": self.counters.references_stale},
             "filter_resets": self.counters.filter_resets,
         }
+
+
+@lru_cache(maxsize=64)
+def _tracked_dict(optics_tracking: bool, measured: tuple[tuple[str, bool], ...]) -> dict[str, bool]:
+    """``name -> tracked`` of the 26 joints (``joint_tracked_list``), one dict per combination (a hand
+    has few), shared by the frames that have it: never modified."""
+    return dict(zip(JOINT_NAMES, joint_tracked_list(optics_tracking, measured)))
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:

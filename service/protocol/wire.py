@@ -77,7 +77,7 @@ def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
 
     JSON text is written by ``orjson`` (several times faster than the standard library) where that
     is safe. ``orjson`` writes NaN and infinity as ``null`` instead of refusing them, so a message with
-    a non-finite number (``_maybe_non_finite``), a text with any byte beyond ASCII (the standard
+    a non-finite number (``_maybe_non_finite``, asked only when the text has a ``null``), a text with any byte beyond ASCII (the standard
     library escapes those), and a message ``orjson`` refuses are written by the standard library as
     before. The values are the same either way; only the spelling of some exponents differs
     (``1e-05`` is written ``0.00001``, ``1.5e-07`` ``1.5e-7``)."""
@@ -87,7 +87,8 @@ def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
         fast = orjson.dumps(message, option=_ORJSON_STRICT)
     except (orjson.JSONEncodeError, TypeError):
         fast = None
-    if fast is not None and fast.isascii() and not _maybe_non_finite(message):
+    # orjson writes NaN and infinity as ``null``: text without ``null`` has none (no walk needed)
+    if fast is not None and fast.isascii() and (b"null" not in fast or not _maybe_non_finite(message)):
         return fast.decode()
     try:
         return json.dumps(message, separators=(",", ":"), allow_nan=False)
