@@ -453,7 +453,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.which == "latency":
         from .bench import latency
-        print(latency.run(args.out, seconds=args.seconds or 20.0))
+        print(latency.run(args.out, seconds=args.seconds or 20.0, imu_rate_hz=args.imu_rate, hand_workers=args.hand_workers))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "load":
@@ -674,6 +674,10 @@ def build_parser() -> argparse.ArgumentParser:
                   "subscriber receives, the time since the glove sent the message that completed it; writes "
                   "results.json, summary.md.")
     b.add_argument("--seconds", type=_positive_float, default=20.0, help="streaming time, s (default 20)")
+    b.add_argument("--imu-rate", type=_positive_float, default=200.0, metavar="HZ",
+                   help="IMU sample rate of the glove, Hz (default 200); each tick is one imu_batch message")
+    b.add_argument("--hand-workers", type=_non_negative_int, default=None, metavar="N",
+                   help="the service's hand worker processes (default: the service's default; 0: hands on its event loop)")
 
     b = benchmark("cpu", "CPU time of one hand, stage by stage (parse, pipeline, encode), in one process",
                   "A realistic simulated one-hand recording through parsing, the hand pipeline with gestures and the "
