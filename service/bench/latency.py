@@ -143,8 +143,15 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
     with service_process(extra_settings=extra) as svc:
         config = SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=0,
                            rate_hz=imu_rate_hz)
+        cpu0 = (svc.cpu_seconds(), svc.children_cpu_seconds())
+        wall0 = time.perf_counter()
         sends, received = _measure(svc.url, svc.source, svc.viewer, config)
+        wall = time.perf_counter() - wall0
+        cpu1 = (svc.cpu_seconds(), svc.children_cpu_seconds())
         _, metrics_text = rest(svc.url, "GET", "/metrics", svc.admin)
+    # the service's CPU while it streamed (its web process, and its hand workers), in % of one core
+    service_cpu = {name: (None if a is None or b is None else 100 * (b - a) / wall)
+                   for name, a, b in (("web_process_pct", cpu0[0], cpu1[0]), ("hand_workers_pct", cpu0[1], cpu1[1]))}
     frame_ts = np.array([t for _, t in received])
     recv_wall = np.array([w for w, _ in received])
     done = completing_sends(sends, frame_ts, PipelineSettings().reorder_window_s) if len(received) else np.zeros(0, int)
@@ -164,6 +171,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
         "service_ingest_to_send_ms_bucket_upper_bound": {
             q: (None if (v := _histogram_quantile(metrics_text, p)) is None else 1e3 * v)
             for q, p in (("p50", 0.5), ("p99", 0.99))},
+        "service_cpu_while_streaming": service_cpu,
         "load_average_1min": [load_before, _load_average()],
     }
     (out / "results.json").write_text(json.dumps(result, indent=2))
@@ -178,7 +186,9 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
             + row("glove sends the message that completes a frame -> subscriber receives the frame", c)
             + row("glove's latest send -> subscriber receives a frame", o)
             + f"\nService histogram (ingest -> send, bucket upper bounds): p50 <= {s['p50']} ms, p99 <= {s['p99']} ms; "
-            f"{len(received)} frames, {int(matched.sum())} with their completing message found.\n")
+            f"{len(received)} frames, {int(matched.sum())} with their completing message found. Service CPU while "
+            f"streaming (incl. start-up of the subscriber): web process "
+            + " , hand workers ".join("?" if v is None else f"{v:.0f} %" for v in service_cpu.values()) + " of a core.\n")
     (out / "summary.md").write_text(text)
     return text
 
