@@ -15,7 +15,9 @@ Data flow (one call of ``handle`` per message, in arrival order):
    that time. A sensor missing from a tick is held from its last sample while younger than
    ``sensor_timeout_s``; after that it is silent: it is reported, and its finger falls back to an
    estimator over the remaining sensors, closed by the coupling plus ``PIP = fallback_coupling·MCP``
-   (restarting from the current estimate; the full estimator returns with the sensor).
+   (restarting from the current estimate; the full estimator returns with the sensor). Each finger
+   sensor's readings are first turned onto its flexion axis as learned from its gyro so far
+   (``mounting.py``, ``mounting_fit``); the fit learns from the raw samples while the optics track.
 4. Frames are emitted on the source clock at ``output_rate_hz`` with the latest estimate of every
    finger, the 26 OpenXR joint poses and a status.
 
@@ -48,6 +50,7 @@ from ..model.openxr import JOINT_NAMES, joint_pose_arrays, joint_radii, joint_ra
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
+from .mounting import HingeAxisFit
 from .optical import OpticalTrack
 
 DEAD_RECKONING_PRIOR = 1e-2
@@ -70,9 +73,10 @@ class PipelineSettings(BaseModel):
     clock_step_s: float = Field(0.5, gt=0.0, description="an IMU time jump larger than this is a clock step, s")
     max_pending_ticks: int = Field(512, ge=8, le=100_000, description="bound of the pending-tick table (oldest dropped)")
     fallback_coupling: float = Field(1.0, ge=0.0, le=2.0, description="PIP = this x MCP when a sensor of the finger is silent")
-    reference_pose_std_rad: float = Field(0.05, gt=0.0, le=1.0, description="how well a hand holds a reference_pose, per joint, rad (about 3 deg)")
+    reference_pose_std_rad: float = Field(0.03, gt=0.0, le=1.0, description="how well a hand holds a reference_pose, per joint, rad (the std of a deviation within ±3 deg: 1.7 deg)")
     reference_pose_max_age_s: float = Field(0.5, ge=0.0, le=10.0, description="a reference_pose whose t1 is further than this behind the processed time is stale and ignored, s")
     max_pending_references: int = Field(8, ge=1, le=1000, description="bound of the reference_pose messages waiting for their t1 (oldest dropped)")
+    mounting_fit: bool = Field(True, description="learn each finger sensor's flexion axis from its gyro while the finger flexes and turn its readings onto it (mounting.py)")
 
 
 @dataclass
@@ -240,6 +244,7 @@ class HandSession:
         self._tick_t: float | None = None
         self._hand_known = False            # the hand's acceleration is known (optics, or the back-of-hand IMU)
         self._hand_imu = self._new_hand_imu(MetacarpusImu())
+        self._mount_fits: dict[str, tuple[HingeAxisFit, str, int]] = {}     # sensor id -> (fit, finger, phalanx)
         self._dropped: dict[str, int] | None = None      # this message's drops (``accept``), once there is one
         self._sensor_ids_of: HandCalibration | None = None
         self._sensor_ids: frozenset[str] = frozenset()
@@ -273,6 +278,21 @@ class HandSession:
                 estimator.inherit(old.estimator)
             new[name] = FingerState(geom, estimator, sensors, phi, old.mode if old is not None else "none")
         self._fingers = new
+        self._build_mount_fits()
+
+    def _build_mount_fits(self) -> None:
+        """One flexion-axis fit per finger sensor; a sensor's fit is kept across rebuilds while its
+        calibrated mounting and place stay the same."""
+        if not self.settings.mounting_fit:
+            return
+        fits = {}
+        for name, geom in self.calibration.fingers.items():
+            for sp in geom.sensors:
+                mount = sp.mounting_matrix()
+                old = self._mount_fits.get(sp.id)
+                keep = old is not None and old[1:] == (name, sp.phalanx) and np.array_equal(old[0].mount, mount)
+                fits[sp.id] = old if keep else (HingeAxisFit(mount), name, sp.phalanx)
+        self._mount_fits = fits
 
     def set_estimator(self, spec: EstimatorSpec | str, params: dict | None = None) -> None:
         """Switch the estimator of every finger live; each starts from the current estimate. A name
@@ -449,8 +469,13 @@ class HandSession:
             usable = hand is None or _finite_motion(hand)
         except (ValueError, np.linalg.LinAlgError):
             hand, tracking, usable = None, False, False
+        fits = self._mount_fits
         for sid, (g, a) in tick.items():
-            self._last_sample[sid] = (t, g, a)
+            fit = fits.get(sid)
+            if fit is not None and fit[0].samples:
+                self._last_sample[sid] = (t, fit[0].correct(g), fit[0].correct(a))
+            else:
+                self._last_sample[sid] = (t, g, a)
         self._processed_t = t
         if not usable:
             # the optical fit failed numerically (poses too far apart for their times): restart the
@@ -479,6 +504,8 @@ class HandSession:
         elif not tracking and self._hand_motion is not None and self._tick_t is not None:
             hand = self._dead_reckoned_hand(t - self._tick_t)
         self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
+        if tracking and fits:
+            self._fit_mountings(tick, hand)
         together = []
         for fs in self._fingers.values():
             if self._prepare_finger(fs, t, tick):
@@ -490,6 +517,23 @@ class HandSession:
             self._update_together(together, t, hand)
         self._apply_references(t)
         return self._emit_frames(t)
+
+    def _fit_mountings(self, tick: dict, hand: BaseMotion) -> None:
+        """Each finger sensor's raw gyro sample of this tick into its flexion-axis fit, with the hand's
+        rate from the optics and the finger's current angles (``mounting.py``)."""
+        w_metacarpus = None
+        for sid, (g, _) in tick.items():
+            entry = self._mount_fits.get(sid)
+            if entry is None:
+                continue
+            fit, finger, phalanx = entry
+            fs = self._fingers.get(finger)
+            if fs is None or not fs.estimator.started or not fit.flexing(g):
+                continue
+            if w_metacarpus is None:
+                w_metacarpus = np.asarray(hand.rotation).T @ np.asarray(hand.angular_velocity)
+            w_base = fs.geom.base_matrix().T @ w_metacarpus
+            fit.add(g, float(np.sum(fs.phi[:phalanx + 1])), w_base)
 
     def _dead_reckoned_hand(self, dt: float) -> BaseMotion:
         """While the optics are lost: the held pose turned by the hand's angular velocity as the finger
