@@ -4,6 +4,7 @@ queries between, at and beyond the poses, and few poses in the fit window."""
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from service.model.kinematics import BaseMotion
 from service.pipeline.optical import OpticalTrack
 
 
@@ -16,6 +17,10 @@ def _compare(track, t):
         return 0
     for name in ("rotation", "position", "velocity", "acceleration", "angular_velocity", "angular_acceleration"):
         np.testing.assert_allclose(getattr(got, name), getattr(want, name), rtol=1e-9, atol=1e-9, err_msg=f"{name} at {t}")
+    # the kernels' layout, taken from the kernel's output, is the one BaseMotion computes from the fields
+    again = BaseMotion(got.rotation, got.position, got.velocity, got.acceleration, got.angular_velocity,
+                       got.angular_acceleration)
+    assert np.array_equal(got.flat, again.flat) and got.flat.flags.c_contiguous and got.flat.dtype == np.float64
     return 2 if tracking else 1
 
 

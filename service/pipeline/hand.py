@@ -715,5 +715,6 @@ def _all_finite(*arrays: np.ndarray) -> bool:
 
 
 def _finite_motion(hand: BaseMotion) -> bool:
-    # ``flat`` (rotation, acceleration, angular velocity and acceleration) is what the kernels read anyway
-    return _all_finite(hand.flat, hand.position, hand.velocity)
+    # ``flat`` (rotation, acceleration, angular velocity and acceleration) is what the kernels read anyway;
+    # one sum of the three (a non-finite term makes it non-finite), without ``_all_finite``'s ravel per array
+    return math.isfinite(sum(hand.flat.tolist()) + sum(hand.position.tolist()) + sum(hand.velocity.tolist()))

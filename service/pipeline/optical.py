@@ -68,6 +68,11 @@ def hand_kinematics_acausal(pose_t: np.ndarray, position: np.ndarray, orientatio
     return BaseMotion(quat.to_matrix(qs), p, v, a, omega, alpha)
 
 
+
+_FLAT = np.r_[0:9, 15:24]
+"""Where ``BaseMotion.flat`` (rotation, acceleration, angular velocity and acceleration) lies in the
+kernel's output (rotation, position, velocity, acceleration, angular velocity and acceleration)."""
+
 class OpticalTrack:
     """Causal metacarpus kinematics from a live pose stream (the hand pipeline's view of the optics).
 
@@ -166,8 +171,9 @@ class OpticalTrack:
                                    float(self.timeout_s), out)
         if status == optical_kernel.NONE:
             return None, False
-        return (BaseMotion(out[:9].reshape(3, 3), out[9:12], out[12:15], out[15:18], out[18:21], out[21:24]),
-                status == optical_kernel.TRACKING)
+        motion = BaseMotion(out[:9].reshape(3, 3), out[9:12], out[12:15], out[15:18], out[18:21], out[21:24])
+        motion.__dict__["flat"] = out[_FLAT]        # ``BaseMotion.flat`` in one step (the kernels read it)
+        return motion, status == optical_kernel.TRACKING
 
     def at_reference(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``at`` in numpy and scipy (the reference of the compiled kernel)."""
