@@ -1,10 +1,16 @@
+import os
+import shutil
+import tempfile
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
 from starlette.websockets import WebSocket
 
-from protocol_validation import ServiceMessageCheck
+from protocol_validation import SentRecords, ServiceMessageCheck
+
+SENT_CAPTURE = Path(__file__).resolve().parent / "sent_capture"
 
 
 def pytest_addoption(parser):
@@ -13,6 +19,10 @@ def pytest_addoption(parser):
 
 
 def pytest_configure(config):
+    # service processes the tests start record what they send (sent_capture/sitecustomize.py)
+    config._sent_dir = tempfile.mkdtemp(prefix="fingertrack-sent-")
+    os.environ["FINGERTRACK_TEST_SENT_DIR"] = config._sent_dir
+    os.environ["PYTHONPATH"] = os.pathsep.join([str(SENT_CAPTURE), *filter(None, [os.environ.get("PYTHONPATH")])])
     count = config.getoption("busy")
     if count:
         from busy import busy_processes
@@ -25,6 +35,9 @@ def pytest_unconfigure(config):
     busy = getattr(config, "_busy", None)
     if busy is not None:
         busy.__exit__(None, None, None)
+    sent_dir = getattr(config, "_sent_dir", None)
+    if sent_dir:
+        shutil.rmtree(sent_dir, ignore_errors=True)
 
 
 @pytest.fixture
@@ -57,18 +70,27 @@ def _capture_service_messages():
     WebSocket.send_text, WebSocket.send_bytes = send_text, send_bytes
 
 
+@pytest.fixture(scope="session")
+def _service_process_messages(pytestconfig):
+    """What service processes started by the tests sent (their own Python processes, recorded by
+    sent_capture/sitecustomize.py into the folder pytest_configure names)."""
+    return SentRecords(pytestconfig._sent_dir)
+
+
 @pytest.fixture(autouse=True)
-def service_messages_follow_the_schema(_capture_service_messages):
+def service_messages_follow_the_schema(_capture_service_messages, _service_process_messages):
     """Every message the service sent during a test validates against the published JSON Schema
-    (docs/schema/service-message.schema.json, checked strictly: no undeclared fields)."""
+    (docs/schema/service-message.schema.json, checked strictly: no undeclared fields): services in
+    threads of the test process and service processes the tests started alike."""
     yield
     with _SENT_LOCK:
-        sent = list(_SENT)
+        sent = [("this process", data) for data in _SENT]
         _SENT.clear()
+    sent += [(f"process {pid}", data) for pid, data in _service_process_messages.take()]
     check = _capture_service_messages
-    for data in sent:
+    for where, data in sent:
         problems = check.problems(data)
         if problems:
             shown = data if isinstance(data, str) else repr(data)
-            pytest.fail(f"the service sent a message that does not follow its schema: {problems[:5]}; "
+            pytest.fail(f"the service ({where}) sent a message that does not follow its schema: {problems[:5]}; "
                         f"message: {shown[:300]}", pytrace=False)

@@ -66,3 +66,34 @@ class ServiceMessageCheck:
         if kind == "error" and message.get("code") not in ERROR_CODES:
             found.append(f"code: {message.get('code')!r} is not one of the documented error codes")
         return found
+
+
+class SentRecords:
+    """What service processes started by the tests sent (``tests/sent_capture/sitecustomize.py``
+    writes ``<pid>.sent`` files into ``folder``): ``take()`` returns the (pid, message) records
+    completed since the last call; a record still being written is left for the next call."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        self.offsets: dict[Path, int] = {}
+
+    def take(self) -> list[tuple[int, str | bytes]]:
+        out = []
+        for path in sorted(self.folder.glob("*.sent")):
+            at = self.offsets.get(path, 0)
+            with open(path, "rb") as f:
+                f.seek(at)
+                data = f.read()
+            used = 0
+            while len(data) - used >= 5:
+                size = int.from_bytes(data[used + 1:used + 5], "big")
+                if len(data) - used - 5 < size:
+                    break
+                payload = data[used + 5:used + 5 + size]
+                kind = data[used:used + 1]
+                if kind not in (b"T", b"B"):
+                    raise ValueError(f"{path.name}: unknown record kind {kind!r} at byte {at + used}")
+                out.append((int(path.stem), payload.decode("utf-8") if kind == b"T" else payload))
+                used += 5 + size
+            self.offsets[path] = at + used
+        return out

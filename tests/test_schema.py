@@ -2,6 +2,9 @@
 the service, and followed by real messages from a real server (validated with the jsonschema package)."""
 import asyncio
 import json
+import os
+import subprocess
+import sys
 
 import pytest
 from jsonschema import Draft202012Validator
@@ -227,3 +230,69 @@ def test_the_openapi_document_declares_the_bearer_scheme_and_typed_bodies(server
         answer = _resolve(doc, answer["$ref"]) if "$ref" in answer else answer
         assert set(answer["required"]) == {"estimator", "record"}
         assert set(answer["properties"]) == {"estimator", "estimator_params", "gestures", "record"}
+
+
+def test_messages_of_a_service_process_are_recorded_for_the_schema_check():
+    """A service in its own process (``fingertrack serve``, as the bus, CLI and load tests start it)
+    records what it sends for the suite's check: its hello replies, frames and gesture events, over
+    JSON and MessagePack, all following the schema."""
+    from protocol_validation import SentRecords
+    from service.bench.process import service_process
+
+    records = SentRecords(os.environ["FINGERTRACK_TEST_SENT_DIR"])
+    config = SimConfig(motion="sequence", noise="white", seed=6,
+                       finger_motion=sequence_motion(steps=(("point", 0.6), ("rest", 0.4))))
+
+    async def session(svc):
+        subs = [Subscription(svc.url, "proc", svc.viewer), Subscription(svc.url, "proc", svc.viewer, binary=True)]
+        received = [[], []]
+
+        async def collect(sub, into):
+            async for m in sub:
+                into.append(m)
+        tasks = [asyncio.create_task(collect(s, r)) for s, r in zip(subs, received)]
+        while any(s.server_hello is None for s in subs):
+            await asyncio.sleep(0.05)
+        pub = await stream_glove(svc.url, "proc", svc.source, config, speed=4.0)
+        await pub.close()
+        _, sessions = await asyncio.to_thread(rest, svc.url, "GET", "/v1/sessions", svc.viewer)
+        total = next(s["frames_out"] for s in sessions if s["session"] == "proc")
+        while any(sum(m["type"] == "frame" for m in r) < total for r in received):
+            await asyncio.sleep(0.05)
+        for s in subs:
+            await s.close()
+        for t in tasks:
+            t.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        return received
+
+    with service_process(start_timeout_s=300.0, extra_settings={"subscriber_queue_frames": 10000}) as svc:
+        text, binary = asyncio.run(asyncio.wait_for(session(svc), 300))
+        pid = svc.pid
+    sent = [data for p, data in records.take() if p == pid]
+    assert sum(isinstance(d, bytes) for d in sent) >= sum(m["type"] == "frame" for m in binary) > 50
+    kinds = {json.loads(d)["type"] for d in sent if isinstance(d, str)}
+    assert {"hello", "frame", "gesture"} <= kinds
+    check = ServiceMessageCheck()
+    assert [check.problems(d) for d in sent if check.problems(d)] == []
+
+
+def test_the_record_of_a_service_process_catches_a_message_outside_the_schema(tmp_path):
+    """The recording behind that check can fail: a process that sends a frame without its fields
+    through Starlette's WebSocket is recorded, and the record is refused by the check."""
+    from protocol_validation import SentRecords
+
+    code = ("import asyncio\n"
+            "from starlette.websockets import WebSocket\n"
+            "class Quiet(WebSocket):\n"
+            "    def __init__(self): pass\n"
+            "    async def send(self, message): pass\n"
+            "asyncio.run(Quiet().send_text('{\"type\":\"frame\",\"t\":1.0}'))\n"
+            "asyncio.run(Quiet().send_bytes(b'\\x81\\xa4type\\xa4wave'))\n")
+    env = dict(os.environ, FINGERTRACK_TEST_SENT_DIR=str(tmp_path))
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    sent = SentRecords(tmp_path).take()
+    assert [d for _, d in sent] == ['{"type":"frame","t":1.0}', b"\x81\xa4type\xa4wave"]
+    check = ServiceMessageCheck()
+    assert all(check.problems(d) for _, d in sent)
