@@ -500,9 +500,15 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     raise ValueError(f"unknown benchmark {args.which!r}")
 
 
-def _gesture_idle_plan() -> dict:
+def _gesture_idle_plan(quick: bool) -> dict:
     from .bench import gestures
-    return gestures.FULL_IDLE
+    return gestures.QUICK_IDLE if quick else gestures.FULL_IDLE
+
+
+def _gesture_enrolment_s() -> float:
+    """Length of the enrolment procedure before each gesture trial, s."""
+    from .sim import gesture_script as gs
+    return len(gs.ENROLMENT_ORDER) * (gs.ENROLMENT_HOLD_S + gs.ENROLMENT_TRANSITION_S)
 
 
 def _gesture_plan(quick: bool) -> dict:
@@ -620,7 +626,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(func=_cmd_demo)
 
     bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, real data against peer "
-                                         "libraries, service latency, service load, robustness",
+                                         "libraries, service latency, CPU per hand, service load, robustness, "
+                                         "accuracy in use",
                            description="Each benchmark has its own options: fingertrack bench NAME --help.")
     which = bench.add_subparsers(dest="which", required=True, metavar="NAME")
 
@@ -646,16 +653,19 @@ def build_parser() -> argparse.ArgumentParser:
                   "against the scripted intents (F1, confusion, false activations per minute, latency from the "
                   "intended moment, ray error, chatter) with default and enrolled thresholds, the vector estimator, "
                   "the true hand and the true hand plus 5 deg; writes results.json, summary.md.")
+    quick, full = _gesture_plan(True), _gesture_plan(False)
+    quick_idle, full_idle = _gesture_idle_plan(True), _gesture_idle_plan(False)
     b.add_argument("--quick", action="store_true",
-                   help=f"{len(_gesture_plan(True)['seeds'])} trials of {_gesture_plan(True)['duration_s']:g} s instead of "
-                        f"{len(_gesture_plan(False)['seeds'])} of {_gesture_plan(False)['duration_s']:g} s "
-                        "(each after a 14 s enrolment)")
+                   help=f"{len(quick['seeds'])} trials of {quick['duration_s']:g} s and {len(quick_idle['seeds'])} idle "
+                        f"of {quick_idle['duration_s']:g} s instead of {len(full['seeds'])} of {full['duration_s']:g} s and "
+                        f"{len(full_idle['seeds'])} idle of {full_idle['duration_s']:g} s (each gesture trial after a "
+                        f"{_gesture_enrolment_s():.0f} s enrolment)")
     b.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")
     b.add_argument("--trials", type=_positive_int, default=None,
                    help="only the first N trials of the run (default: all)")
     b.add_argument("--idle-trials", type=_non_negative_int, default=None,
-                   help=f"only the first N idle trials (the visitor means nothing; {len(_gesture_idle_plan()['seeds'])} "
-                        f"of {_gesture_idle_plan()['duration_s']:g} s in the full run, scored for false activations; default: all)")
+                   help=f"only the first N idle trials (the visitor means nothing, scored for false activations; "
+                        f"default: all, {len(full_idle['seeds'])} in the full run, {len(quick_idle['seeds'])} with --quick)")
     b.add_argument("--frames-cache", default=None, metavar="DIR",
                    help="keep each trial's pipeline frames in DIR and reuse them, so recogniser changes are rescored "
                         "without rerunning the pipeline (a trial is rerun when the code that makes its frames "
@@ -729,7 +739,10 @@ def build_parser() -> argparse.ArgumentParser:
                   "gesture scripts with fast transitions, a rotating or reaching hand, sensor dropouts, an optical "
                   "occlusion, a flat-hand hold with and without its reference_pose; every estimator side by side; "
                   "writes results.csv, events.csv, results.json, summary.md, accuracy.png.")
-    b.add_argument("--quick", action="store_true", help="one 6 s trial, chain / ekf / vector (instead of 5 trials of 12 s, every estimator)")
+    b.add_argument("--quick", action="store_true",
+                   help="one 6 s trial with chain, ekf and vector, one coupling trial and one back-of-hand IMU trial with "
+                        "chain, instead of 5 trials of 12 s with every estimator, 4 coupling trials with chain and ekf "
+                        "and 5 back-of-hand IMU trials")
     b.add_argument("--trials", type=_positive_int, default=None, help="seeded trials (default 5; --quick 1)")
     b.add_argument("--seconds", type=_positive_float, default=None, help="length of each trial, s (default 12; --quick 6)")
     b.add_argument("--workers", type=_positive_int, default=2, help="worker processes (default 2)")

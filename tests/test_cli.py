@@ -152,8 +152,12 @@ def test_quick_descriptions_say_what_quick_runs(capsys):
     assert f"{len(d)} durations from {d[0]:g} s to {d[-1]:.3g} s and one seed" in text
     assert f"instead of {len(paper.durations(False))} up to {paper.durations(False)[-1]:g} s" in text
     text = " ".join(_help(["bench", "gestures"], capsys).split())
-    q, f = gestures.QUICK, gestures.FULL
-    assert f"{len(q['seeds'])} trials of {q['duration_s']:g} s instead of {len(f['seeds'])} of {f['duration_s']:g} s" in text
+    q, f, qi, fi = gestures.QUICK, gestures.FULL, gestures.QUICK_IDLE, gestures.FULL_IDLE
+    assert (f"{len(q['seeds'])} trials of {q['duration_s']:g} s and {len(qi['seeds'])} idle of {qi['duration_s']:g} s "
+            f"instead of {len(f['seeds'])} of {f['duration_s']:g} s and {len(fi['seeds'])} idle of {fi['duration_s']:g} s") in text
+    from service.sim.gesture_script import make_trial
+    enrolment = make_trial(q["seeds"][0], q["duration_s"]).scored_from_s - make_trial(q["seeds"][0], q["duration_s"], enrolment=False).scored_from_s
+    assert f"after a {enrolment:.0f} s enrolment" in text
     text = " ".join(_help(["bench", "peers"], capsys).split())
     assert f"the first {peers.QUICK_N} samples of the first three trials" in text
     text = " ".join(_help(["bench", "robustness"], capsys).split())
@@ -176,3 +180,59 @@ def test_a_bad_service_url_is_refused_by_name_without_a_traceback(command, capsy
     text = capsys.readouterr().err
     assert "--url" in text and "notaurl" in text
     assert "tok-not-shown" not in text and "Traceback" not in text
+
+
+def test_the_accuracy_quick_description_says_which_trials_run(tmp_path, capsys, monkeypatch):
+    """The trials bench accuracy builds, quick and full (taken where they go to the worker pool,
+    before any is run), against what its --quick help says."""
+    from service.bench import accuracy
+
+    class Planned(Exception):
+        pass
+
+    class Pool:
+        def __init__(self, max_workers):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def map(self, fn, jobs):
+            raise Planned(list(jobs))
+
+    monkeypatch.setattr(accuracy, "ProcessPoolExecutor", Pool)
+
+    def plan(quick: bool) -> dict:
+        with pytest.raises(Planned) as planned:
+            accuracy.run(tmp_path, quick=quick, workers=2, progress=False)
+        jobs = planned.value.args[0]
+        main = [j for j in jobs if j[0].coupling is None and not j[0].metacarpus_imu]
+        coupled = [j for j in jobs if j[0].coupling is not None]
+        imu = [j for j in jobs if j[0].metacarpus_imu]
+        return {"trials": len({j[0].seed for j in main}), "seconds": {j[0].duration_s for j in main},
+                "estimators": {j[2] for j in main}, "couplings": len({j[0].coupling for j in coupled}),
+                "coupled_estimators": {j[2] for j in coupled}, "imu_trials": len({j[0].seed for j in imu}),
+                "imu_estimators": {j[2] for j in imu}}
+    quick, full = plan(True), plan(False)
+    assert quick == {"trials": 1, "seconds": {6.0}, "estimators": {"chain", "ekf", "vector"}, "couplings": 1,
+                     "coupled_estimators": {"chain"}, "imu_trials": 1, "imu_estimators": {"chain"}}
+    assert full == {"trials": 5, "seconds": {12.0}, "estimators": {e[0] for e in accuracy.ESTIMATORS}, "couplings": 4,
+                    "coupled_estimators": {"chain", "ekf"}, "imu_trials": 5, "imu_estimators": {"chain"}}
+    text = " ".join(_help(["bench", "accuracy"], capsys).split())
+    assert ("one 6 s trial with chain, ekf and vector, one coupling trial and one back-of-hand IMU trial with chain, "
+            "instead of 5 trials of 12 s with every estimator, 4 coupling trials with chain and ekf and 5 back-of-hand "
+            "IMU trials") in text
+
+
+def test_the_bench_help_names_every_benchmark(capsys):
+    from service.cli import build_parser
+    names = list(_subcommands(_subcommands(build_parser())["bench"]))
+    text = " ".join(_help([], capsys).split())
+    topics = {"paper": "the paper's experiment", "gestures": "gestures", "peers": "peer libraries",
+              "latency": "service latency", "cpu": "CPU per hand", "load": "service load", "robustness": "robustness",
+              "accuracy": "accuracy in use"}
+    assert set(names) == set(topics)
+    assert all(topic in text for topic in topics.values()), text
