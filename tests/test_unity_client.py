@@ -195,6 +195,18 @@ def test_a_messagepack_frame_allocates_at_most_5_kb(harness, tmp_path, pipeline_
     # the measurement can fail: the JSON DOM path allocates many times more for the same frames
     assert got["json_bytes_per_frame"] > 5 * got["msgpack_bytes_per_frame"]
 
+    # the client's whole path per frame: read and queued, drained into the interpolator, the hand
+    # sampled at a render time; the frames repeated as a longer stream (later times and seqs)
+    span = frames[-1]["t"] - frames[0]["t"] + 1.0
+    stream = [dict(f, t=f["t"] + k * span, seq=f["seq"] + k * len(frames)) for k in range(4) for f in frames]
+    _write_framed(tmp_path / "s.bin", stream)
+    whole = _run(harness, "alloc-client", str(tmp_path / "s.bin"), str(len(frames)), timeout=300)[0]
+    print(f"C# client, bytes allocated per frame from the received bytes to the sampled hand: "
+          f"{whole['client_bytes_per_frame']:.0f} ({whole['frames']} frames)")
+    assert whole["frames"] == 3 * len(frames) and whole["bad_messages"] == 0 and whole["newest_seq"] == stream[-1]["seq"]
+    assert whole["interpolated"] > 0.9 * whole["frames"]          # sampled between frames, not held
+    assert got["msgpack_bytes_per_frame"] <= whole["client_bytes_per_frame"] <= 5 * 1024
+
 
 def test_a_slow_reader_loses_the_oldest_frames_never_an_event(harness, tmp_path):
     frame = {"type": "frame", "t": 0.0, "seq": 0, "hand": "right", "fingers": {}, "joints": {}, "status": {}}

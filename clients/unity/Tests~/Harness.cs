@@ -3,6 +3,7 @@
 //   Harness.exe parse-msgpack FILE              the same for FILE's MessagePack messages (each after a
 //                                               4-byte big-endian length)
 //   Harness.exe alloc FILE REPEATS              bytes allocated per frame parsed, MessagePack and JSON
+//   Harness.exe alloc-client FILE WARMUP        bytes allocated per frame through the client's whole path
 //   Harness.exe interp FILE                     frames with arrival times, then queries: interpolated poses
 //   Harness.exe subscribe URL SESSION TOKEN SECONDS [json]   receive until stdin says "until SEQ" and
 //                                               that frame arrived (at most SECONDS), one line per message
@@ -102,6 +103,7 @@ static partial class Harness
             return 0;
         }
         if (args.Length == 3 && args[0] == "alloc") return Alloc(ReadFramed(args[1]), int.Parse(args[2], CultureInfo.InvariantCulture));
+        if (args.Length == 3 && args[0] == "alloc-client") return AllocClient(ReadFramed(args[1]), int.Parse(args[2], CultureInfo.InvariantCulture));
         if (args.Length == 2 && args[0] == "interp") return Interp(args[1]);
         if (args.Length == 2 && args[0] == "dispose") return DisposeAtOnce(args[1]);
         if (args.Length == 3 && args[0] == "xrhands") return XRHands(args[1], args[2]);
@@ -197,6 +199,35 @@ static partial class Harness
         foreach (var m in frames) size += m.Count;
         Print(new JObject { { "frames", frames.Count }, { "repeats", repeats }, { "msgpack_bytes_per_frame", msgpack },
                             { "json_bytes_per_frame", text }, { "msgpack_message_bytes", (double)size / frames.Count } });
+        return 0;
+    }
+
+    /// <summary>Per frame, what a scene's hand costs from the received bytes on: the client reads the
+    /// message and queues it (FingertrackClient.HandleBinary, as its receive loop does), the main
+    /// thread drains the queue into the interpolator and samples the hand at a render time
+    /// (HandStream.Sample, once per frame as at 90 Hz); all on this thread, so every allocation is
+    /// counted. The received bytes land in the client's reused buffer. The first WARMUP frames (the
+    /// JIT, the queue's first segment) are not counted.</summary>
+    static int AllocClient(List<ArraySegment<byte>> frames, int warmup)
+    {
+        var client = new FingertrackClient("http://127.0.0.1:1", "alloc", "");
+        var stream = new HandStream(client);
+        var sample = new HandSample();
+        long before = 0, interpolated = 0;
+        var arrival = 0.0;
+        for (var k = 0; k < frames.Count; k++)
+        {
+            if (k == warmup) before = GC.GetAllocatedBytesForCurrentThread();
+            var m = frames[k];
+            arrival += 1.0 / 90.0;
+            client.HandleBinary(m.Array, m.Offset, m.Count, arrival);
+            if (!stream.Sample(arrival, sample)) throw new InvalidOperationException("no hand sampled");
+            if (!sample.Held && k >= warmup) interpolated++;
+        }
+        var perFrame = (double)(GC.GetAllocatedBytesForCurrentThread() - before) / (frames.Count - warmup);
+        Print(new JObject { { "frames", frames.Count - warmup }, { "interpolated", interpolated },
+                            { "client_bytes_per_frame", perFrame }, { "bad_messages", client.BadMessages },
+                            { "newest_seq", stream.Newest.Seq } });
         return 0;
     }
 
