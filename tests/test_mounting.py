@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from service.model.frames import rot_x
 from service.model.hand import default_calibration
 from service.pipeline.hand import HandSession, PipelineSettings
-from service.pipeline.mounting import HingeAxisFit
+from service.pipeline.mounting import HingeAxisFit, MountingFitSettings
 from service.protocol import parse_message
 from service.sim.session import SimConfig, simulate
 
@@ -81,3 +81,53 @@ def test_the_pipeline_learns_the_tilt_and_tracks_better_with_it():
         np.testing.assert_allclose(fits[True][sid][0].tilt_rad, eps[k], atol=np.radians(0.25))
     assert not fits[False]
     assert err[True] < 0.5 * err[False], err
+
+
+def _reference_add(state, fit, gyr, theta, w_base):
+    """``HingeAxisFit.add`` as first written (numpy's solver, scipy's rotation): the reference of the
+    closed forms it uses now."""
+    from scipy.spatial.transform import Rotation
+    if not fit.flexing(gyr):
+        return
+    f = fit.mount @ np.asarray(gyr, dtype=float)
+    c, s = np.cos(theta), np.sin(theta)
+    ry = f[1] - (c * w_base[1] + s * w_base[2])
+    rz = f[2] - (-s * w_base[1] + c * w_base[2])
+    reg = np.array([f[0], 1.0])
+    state["a"] += np.outer(reg, reg)
+    state["by"] += reg * ry
+    state["bz"] += reg * rz
+    tilt = np.array([np.linalg.solve(state["a"], state["bz"])[0], -np.linalg.solve(state["a"], state["by"])[0]])
+    norm = float(np.hypot(*tilt))
+    if norm > fit.settings.max_tilt_rad:
+        tilt *= fit.settings.max_tilt_rad / norm
+    state["tilt"] = tilt
+    state["correction"] = fit.mount.T @ Rotation.from_rotvec([0.0, tilt[0], tilt[1]]).as_matrix() @ fit.mount
+
+
+def test_the_closed_forms_equal_numpy_and_scipy():
+    from scipy.spatial.transform import Rotation
+
+    from service.pipeline.mounting import _rotation_about_yz
+    rng = np.random.default_rng(11)
+    for scale in (1e-9, 1e-4, 0.05, 0.2, 3.0):
+        for _ in range(50):
+            ey, ez = rng.normal(0.0, scale, 2)
+            np.testing.assert_allclose(_rotation_about_yz(ey, ez, float(np.hypot(ey, ez))),
+                                       Rotation.from_rotvec([0.0, ey, ez]).as_matrix(), rtol=0, atol=1e-14)
+    assert np.array_equal(_rotation_about_yz(0.0, 0.0, 0.0), np.eye(3))
+    for mount in (np.eye(3), Rotation.from_rotvec(rng.normal(0.0, 0.3, 3)).as_matrix()):
+        fit = HingeAxisFit(mount, MountingFitSettings(max_tilt_rad=np.radians(3.0)))   # the clip is reached too
+        st = fit.settings
+        lam_e, lam_b = (st.residual_std_rad_s / st.prior_std_rad) ** 2, (st.residual_std_rad_s / st.offset_std_rad_s) ** 2
+        state = {"a": np.diag([lam_e, lam_b]), "by": np.zeros(2), "bz": np.zeros(2)}
+        used = 0
+        for _ in range(400):
+            gyr = rng.normal(0.0, 4.0, 3) + np.array([0.0, 0.3, -0.2]) * rng.normal(0.0, 4.0)
+            theta, w = rng.uniform(-0.3, 1.5), rng.normal(0.0, 1.0, 3)
+            _reference_add(state, fit, gyr, theta, w)
+            used += fit.add(gyr.tolist(), theta, w)
+            if used:
+                np.testing.assert_allclose(fit.tilt_rad, state["tilt"], rtol=0, atol=1e-12)
+                np.testing.assert_allclose(fit.correction, state["correction"], rtol=0, atol=1e-12)
+        assert used > 100

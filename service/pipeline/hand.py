@@ -150,9 +150,12 @@ class FingerState:
     phi: np.ndarray
     mode: str = "none"
     sensor_ids: frozenset[str] = field(init=False)
+    base_matrix: np.ndarray = field(init=False)
+    """The finger's base frame in the metacarpus frame (``geom.base_matrix()``, kept: the geometry is fixed)."""
 
     def __post_init__(self):
         self.sensor_ids = frozenset(s.id for s in self.geom.sensors)
+        self.base_matrix = self.geom.base_matrix()
 
 
 class JointPoses(Mapping):
@@ -522,6 +525,7 @@ class HandSession:
         """Each finger sensor's raw gyro sample of this tick into its flexion-axis fit, with the hand's
         rate from the optics and the finger's current angles (``mounting.py``)."""
         w_metacarpus = None
+        w_bases: dict[str, list[float]] = {}
         for sid, (g, _) in tick.items():
             entry = self._mount_fits.get(sid)
             if entry is None:
@@ -532,8 +536,10 @@ class HandSession:
                 continue
             if w_metacarpus is None:
                 w_metacarpus = np.asarray(hand.rotation).T @ np.asarray(hand.angular_velocity)
-            w_base = fs.geom.base_matrix().T @ w_metacarpus
-            fit.add(g, float(np.sum(fs.phi[:phalanx + 1])), w_base)
+            w_base = w_bases.get(finger)
+            if w_base is None:                       # once per finger and tick
+                w_base = w_bases[finger] = (fs.base_matrix.T @ w_metacarpus).tolist()
+            fit.add(g, sum(fs.phi[:phalanx + 1].tolist()), w_base)     # np.sum's value (a few terms, in order)
 
     def _dead_reckoned_hand(self, dt: float) -> BaseMotion:
         """While the optics are lost: the held pose turned by the hand's angular velocity as the finger

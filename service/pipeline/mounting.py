@@ -30,7 +30,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..model.units import DEG, MPU9250_GYRO_OFFSET_STD_RAD_S
 
@@ -64,16 +63,27 @@ class HingeAxisFit:
         self.settings = settings
         self.mount = np.asarray(mount, dtype=float)
         self._hinge = [float(v) for v in self.mount[0]]
+        self._mount_rows = self.mount.tolist()
         s = settings
         lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
         lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
-        # normal equations of the two rows (the same regressors [ω_x, 1]); ridge from the priors
-        self._a = np.array([[lam_e, 0.0], [0.0, lam_b]])
-        self._by = np.zeros(2)
-        self._bz = np.zeros(2)
+        # normal equations of the two rows (the same regressors [ω_x, 1]); ridge from the priors:
+        # the symmetric 2 x 2 matrix (a00, a01, a11) and the right-hand sides of the y and z rows
+        self._a00, self._a01, self._a11 = lam_e, 0.0, lam_b
+        self._by0 = self._by1 = self._bz0 = self._bz1 = 0.0
         self.samples = 0
         self.tilt_rad = np.zeros(2)                  # (ε_y, ε_z)
-        self.correction = np.eye(3)                  # applied to raw readings
+        self._correction, self._rows = np.eye(3), None          # None: readings pass unchanged
+        self._straight = bool(np.array_equal(self.mount, np.eye(3)))
+
+    @property
+    def correction(self) -> np.ndarray:
+        """The rotation applied to raw readings (3, 3)."""
+        return self._correction
+
+    @correction.setter
+    def correction(self, m: np.ndarray) -> None:
+        self._correction, self._rows = m, m.tolist()
 
     def flexing(self, gyr) -> bool:
         """Whether a raw gyro sample's flexion rate is high enough to be used (``min_rate_rad_s``)."""
@@ -85,32 +95,60 @@ class HingeAxisFit:
         finger base frame (rad/s). Returns whether the sample was used (and the correction changed)."""
         if not self.flexing(gyr):
             return False
-        f = self.mount @ np.asarray(gyr, dtype=float)
-        wx = f[0]
+        m = self._mount_rows
+        gx, gy, gz = gyr
+        wx = m[0][0] * gx + m[0][1] * gy + m[0][2] * gz          # f = M gyr, the reading in the phalanx frame
+        f1 = m[1][0] * gx + m[1][1] * gy + m[1][2] * gz
+        f2 = m[2][0] * gx + m[2][1] * gy + m[2][2] * gz
         c, s = math.cos(theta), math.sin(theta)
         w1, w2 = hand_rate_base[1], hand_rate_base[2]
-        ry = f[1] - (c * w1 + s * w2)
-        rz = f[2] - (-s * w1 + c * w2)
-        reg = np.array([wx, 1.0])
-        self._a += np.outer(reg, reg)
-        self._by += reg * ry
-        self._bz += reg * rz
-        ey = np.linalg.solve(self._a, self._bz)[0]
-        ez = -np.linalg.solve(self._a, self._by)[0]
-        tilt = np.array([ey, ez])
-        norm = float(np.hypot(ey, ez))
+        ry = f1 - (c * w1 + s * w2)
+        rz = f2 - (-s * w1 + c * w2)
+        # the normal equations of the regressors [ω_x, 1] (symmetric 2 x 2), solved in closed form
+        self._a00 += wx * wx
+        self._a01 += wx
+        self._a11 += 1.0
+        self._by0 += wx * ry
+        self._by1 += ry
+        self._bz0 += wx * rz
+        self._bz1 += rz
+        a00, a01, a11 = self._a00, self._a01, self._a11
+        det = a00 * a11 - a01 * a01
+        ey = (a11 * self._bz0 - a01 * self._bz1) / det
+        ez = -(a11 * self._by0 - a01 * self._by1) / det
+        norm = math.hypot(ey, ez)
         if norm > self.settings.max_tilt_rad:
-            tilt *= self.settings.max_tilt_rad / norm
-        self.tilt_rad = tilt
+            scale = self.settings.max_tilt_rad / norm
+            ey, ez = ey * scale, ez * scale
+            norm = math.hypot(ey, ez)
+        self.tilt_rad = np.array([ey, ez])
         self.samples += 1
-        rot = Rotation.from_rotvec([0.0, tilt[0], tilt[1]]).as_matrix()
-        self.correction = self.mount.T @ rot @ self.mount
+        rot = _rotation_about_yz(ey, ez, norm)
+        self.correction = rot if self._straight else self.mount.T @ rot @ self.mount
         return True
 
     def correct(self, vec) -> list[float]:
-        """A raw reading (3,) turned by the current correction."""
-        m = self.correction
+        """A raw reading (3,) turned by the current correction (the reading itself while that is the
+        identity)."""
+        m = self._rows
+        if m is None:
+            return vec
         x, y, z = vec
-        return [m[0, 0] * x + m[0, 1] * y + m[0, 2] * z,
-                m[1, 0] * x + m[1, 1] * y + m[1, 2] * z,
-                m[2, 0] * x + m[2, 1] * y + m[2, 2] * z]
+        return [m[0][0] * x + m[0][1] * y + m[0][2] * z,
+                m[1][0] * x + m[1][1] * y + m[1][2] * z,
+                m[2][0] * x + m[2][1] * y + m[2][2] * z]
+
+
+def _rotation_about_yz(ey: float, ez: float, angle: float) -> np.ndarray:
+    """The rotation matrix of the rotation vector ``(0, ey, ez)`` of length ``angle`` (rad): Rodrigues'
+    formula ``I + sin(a)/a K + (1 - cos(a))/a² K²`` with ``1 - cos(a) = 2 sin²(a/2)`` (no cancellation
+    for small angles); tested equal to scipy's ``Rotation.from_rotvec`` (``tests/test_mounting.py``)."""
+    if angle == 0.0:
+        return np.eye(3)
+    k1 = math.sin(angle) / angle
+    half = math.sin(0.5 * angle)
+    k2 = 2.0 * half * half / (angle * angle)
+    # K = [[0, -ez, ey], [ez, 0, 0], [-ey, 0, 0]];  K² = [[-(ey²+ez²), 0, 0], [0, -ez², ey ez], [0, ey ez, -ey²]]
+    return np.array([[1.0 - k2 * (ey * ey + ez * ez), -k1 * ez, k1 * ey],
+                     [k1 * ez, 1.0 - k2 * ez * ez, k2 * ey * ez],
+                     [-k1 * ey, k2 * ey * ez, 1.0 - k2 * ey * ey]])
