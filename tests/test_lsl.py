@@ -63,6 +63,11 @@ def _shifted(message, dt: float):
     return message
 
 
+def _latest_time(message: dict) -> float:
+    """The latest sample time in a source message (a batch's samples carry theirs), or 0."""
+    return max([message.get("t", 0.0)] + [x.get("t", 0.0) for x in message.get("samples", [])])
+
+
 def _resolve(source_id: str) -> pylsl.StreamInlet:
     found = pylsl.resolve_byprop("source_id", source_id, 1, 30.0)
     assert found, f"no LSL stream with source_id {source_id}"
@@ -71,9 +76,12 @@ def _resolve(source_id: str) -> pylsl.StreamInlet:
     return inlet
 
 
-def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
-    session = "lsl-a"
-    bridge = LslBridge(server.url, VIEWER, [(session, "right")], source_clock="lsl")
+def _bridged_session(server, session: str, source_clock: str, paced: bool = False) -> dict:
+    """A source stamping with the LSL clock streams point, grasp, relax into ``session`` (``paced``:
+    each message sent no earlier than its time, as a live source sends); the bridge republishes it;
+    what a subscriber and two LSL inlets (hand, markers) received, with the LSL time at which the
+    inlet had each sample (an upper bound of when the bridge got its frame)."""
+    bridge = LslBridge(server.url, VIEWER, [(session, "right")], source_clock=source_clock)
     hand_inlet = _resolve(f"fingertrack/{server.url.split('//')[1]}/{session}/right")
     marker_inlet = _resolve(f"fingertrack/{server.url.split('//')[1]}/{session}/gestures")
 
@@ -110,6 +118,9 @@ def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
                 await asyncio.sleep(0.05)
             pub = Publisher(server.url, session, SOURCE)
             for m in messages:
+                ahead = _latest_time(m) - pylsl.local_clock() if paced else 0.0
+                if ahead > 0:
+                    await asyncio.sleep(ahead)
                 await pub.send(m)
             await pub.close()                        # syncs: every frame of the session exists now
             _, sessions = await asyncio.to_thread(rest, server.url, "GET", "/v1/sessions", VIEWER)
@@ -121,23 +132,31 @@ def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
             return frames, events
         frames, events = asyncio.run(asyncio.wait_for(stream(), 300))
 
-        samples, stamps = [], []
+        samples, stamps, held_at = [], [], []
         while len(samples) < len(frames):
             sample, stamp = hand_inlet.pull_sample(timeout=60.0)
             assert sample is not None, f"the inlet got {len(samples)} of {len(frames)} frames"
             samples.append(sample)
             stamps.append(stamp)
+            held_at.append(pylsl.local_clock())
         markers = []
         while len(markers) < len(events):
             sample, stamp = marker_inlet.pull_sample(timeout=60.0)
             assert sample is not None, f"the marker inlet got {len(markers)} of {len(events)} events"
             markers.append((json.loads(sample[0]), stamp))
+        info, marker_type = hand_inlet.info(30.0), marker_inlet.info(30.0).type()
     finally:
         asyncio.run_coroutine_threadsafe(bridge.close(), loop).result(30)
         runner.join(30)
         loop.close()
     assert failures == []
+    return {"frames": frames, "events": events, "samples": samples, "stamps": np.asarray(stamps),
+            "held_at": np.asarray(held_at), "markers": markers, "info": info, "marker_type": marker_type}
 
+
+def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
+    got = _bridged_session(server, "lsl-a", "lsl")
+    frames, events, samples, stamps, markers = (got[k] for k in ("frames", "events", "samples", "stamps", "markers"))
     assert len(frames) > 150 and [f["seq"] for f in frames] == list(range(1, len(frames) + 1))
     # every frame, in order: the angles the service sent (as float32) ...
     expected = np.array([[f["fingers"][finger][joint] for finger, joint in CHANNELS] for f in frames])
@@ -152,7 +171,7 @@ def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
     assert max(abs(stamp - e["t"]) for (_, stamp), e in zip(markers, events)) <= 1e-3
     assert {e["gesture"] for e in events} >= {"point", "grasp"}
     # what a recorder reads from the stream description
-    info = hand_inlet.info(30.0)
+    info = got["info"]
     assert (info.type(), info.channel_count(), info.nominal_srate()) == ("MoCap", 14, 90.0)
     channel = info.desc().child("channels").child("channel")
     labels, units = [], []
@@ -162,7 +181,28 @@ def test_every_frame_reaches_an_lsl_inlet_in_order_at_its_source_time(server):
         channel = channel.next_sibling()
     assert labels == [f"{f}_{j}" for f, j in CHANNELS] and set(units) == {"radians"}
     assert info.desc().child_value("hand") == "right"
-    assert marker_inlet.info(30.0).type() == "Markers"
+    assert got["marker_type"] == "Markers"
+
+
+def test_estimated_lsl_times_follow_the_least_delayed_frame(server):
+    """The default mapping, for a source whose clock the bridge does not know: here the source stamps
+    with the LSL clock, so each frame's true LSL time is its t. An estimated time is never before it
+    (delays are not negative), never after the frame was in the inlet, and lags it by the smallest
+    delay seen so far, which only shrinks over the run; the frames' own spacing is kept."""
+    got = _bridged_session(server, "lsl-e", "estimate", paced=True)
+    frames, stamps, held_at = got["frames"], got["stamps"], got["held_at"]
+    assert len(frames) > 150 and len(got["samples"]) == len(frames)
+    t = np.array([f["t"] for f in frames])
+    lag = stamps - t
+    assert np.all(lag >= -1e-6) and np.all(stamps <= held_at + 1e-6)
+    assert np.all(np.diff(lag) <= 1e-6) and lag[-1] < lag[0] + 1e-6
+    spacing_kept = np.isclose(np.diff(stamps), np.diff(t), rtol=0, atol=1e-6)
+    assert spacing_kept.mean() > 0.5                 # steps only where a less-delayed frame came
+    assert "minimum-delay" in got["info"].desc().child("clock").child_value("mapping")
+    # an event gets its frame's time: the frame's t moved by the frame's lag
+    lag_at = dict(zip(t.tolist(), lag.tolist()))
+    events = got["events"]
+    assert events and [stamp for _, stamp in got["markers"]] == pytest.approx([e["t"] + lag_at[e["t"]] for e in events], abs=1e-6)
 
 
 def test_the_lsl_command_refuses_bad_arguments_and_tokens_clearly(server, capsys):
