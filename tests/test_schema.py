@@ -5,6 +5,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from jsonschema import Draft202012Validator
@@ -111,6 +112,32 @@ def test_the_asyncapi_document_describes_both_websockets():
         Draft202012Validator.check_schema(schema)
     frame_payload = _resolve(doc, doc["components"]["messages"]["frame"]["payload"]["$ref"])
     assert frame_payload["required"] == published("frame.schema.json")["required"]
+
+
+def test_the_asyncapi_document_follows_the_asyncapi_3_specification():
+    """Validated against the specification's own JSON Schema (tests/data/asyncapi: the AsyncAPI
+    Initiative's schema of version 3.0.0), which also refuses AsyncAPI 2 shapes and bad values."""
+    from jsonschema import validators
+
+    spec = json.loads((Path(__file__).parent / "data" / "asyncapi" / "asyncapi-3.0.0.schema.json").read_text(encoding="utf-8"))
+    validator = validators.validator_for(spec)(spec)
+    doc = json.loads((SCHEMA_DIR / "asyncapi.json").read_text(encoding="utf-8"))
+    assert doc["asyncapi"] == "3.0.0"
+    assert [e.message for e in validator.iter_errors(doc)] == []
+    channel, operation = next(iter(doc["channels"])), next(iter(doc["operations"]))
+
+    def v2_verb(d):
+        d["operations"][operation]["action"] = "publish"
+
+    def v2_channel(d):
+        d["channels"][channel]["publish"] = {}
+
+    def no_version(d):
+        del d["info"]["version"]
+    for change in (v2_verb, v2_channel, no_version):
+        bad = json.loads(json.dumps(doc))
+        change(bad)
+        assert not validator.is_valid(bad), change.__name__
 
 
 def test_the_service_serves_the_documents_without_a_token(server):
