@@ -217,3 +217,38 @@ def test_the_lsl_command_refuses_bad_arguments_and_tokens_clearly(server, capsys
     assert "refused the subscription: HTTP 403" in err and "Traceback" not in err and "wrong-token" not in err
     assert main(["lsl", "--url", server.url, "--token", SOURCE, "--session", "lsl-refused"]) == 2
     assert "refused the subscription: HTTP 403; --token needs the viewer role" in capsys.readouterr().err
+
+
+def test_a_restarted_bridge_is_picked_up_again_by_the_same_inlet():
+    """The streams' source_id is the same whenever the bridge starts, so an inlet that recovers lost
+    streams (as LabRecorder's do) goes on receiving from the new bridge without being told."""
+    import gc
+
+    url = "http://127.0.0.1:9"                       # nothing is subscribed: frames are handed in
+    frame = {"type": "frame", "t": 5.0, "seq": 1, "hand": "left",
+             "fingers": {f: {j: 0.1 * k for j in ("mcp", "pip", "dip", "ip")} for k, f in
+                         enumerate(("thumb", "index", "middle", "ring", "little"))}}
+    first = LslBridge(url, VIEWER, [("lsl-restart", "left")], source_clock="lsl")
+    source_id = first.source_id("lsl-restart", "left")
+    found = pylsl.resolve_byprop("source_id", source_id, 1, 30.0)
+    assert found
+    inlet = pylsl.StreamInlet(found[0], max_buflen=60, recover=True)
+    inlet.open_stream(30.0)
+    first.handle("lsl-restart", frame)
+    sample, stamp = inlet.pull_sample(timeout=30.0)
+    assert stamp == pytest.approx(5.0) and sample[0] == pytest.approx(0.0)
+    del first                                        # the bridge stops: its outlets go away
+    gc.collect()
+    second = LslBridge(url, VIEWER, [("lsl-restart", "left")], source_clock="lsl")
+    assert second.source_id("lsl-restart", "left") == source_id
+    got = None
+    for k in range(60):                              # the inlet finds the new outlet by itself;
+        second.handle("lsl-restart", dict(frame, t=6.0 + k, seq=2 + k))   # frames sent before that are lost
+        got = inlet.pull_sample(timeout=1.0)
+        if got[0] is not None:
+            break
+    sample, stamp = got
+    assert sample is not None, "the inlet did not pick the restarted bridge's stream up"
+    assert stamp >= 6.0 and sample[2] == pytest.approx(0.1, abs=1e-6)
+    del second
+    gc.collect()
