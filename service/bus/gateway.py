@@ -21,8 +21,8 @@ from nats.errors import TimeoutError as NatsTimeout
 
 from ..api.config import ServiceSettings
 from ..api.metrics import Metrics
-from ..api.sessions import LiveSession, SessionFull
-from .subjects import (ASSIGN, REPLY_WAIT_S, close, config_subject, connect, output_subject, pack, source_subject,
+from ..api.sessions import LiveSession, SessionConfig, SessionFull
+from .subjects import (ASSIGN, CONFIG_WAIT_S, REPLY_WAIT_S, close, config_subject, connect, output_subject, pack, source_subject,
                        unpack)
 
 ASSIGN_TIMEOUT_S = 1.0
@@ -58,13 +58,13 @@ class GatewayBus:
         except (NoRespondersError, NatsTimeout):
             return {}
 
-    async def request(self, subject: str, payload: dict, name: str) -> dict | None:
+    async def request(self, subject: str, payload: dict, name: str, timeout_s: float = REPLY_WAIT_S) -> dict | None:
         """A request to the session's owner; ``None``: no worker owns the session now (the message is
-        lost), ``UNCONFIRMED``: the owner is there but did not answer in time."""
+        lost), ``UNCONFIRMED``: the owner is there but did not answer within ``timeout_s``."""
         data = pack(payload)
         for _ in range(2):
             try:
-                return unpack((await self.nc.request(subject, data, timeout=REPLY_WAIT_S)).data)
+                return unpack((await self.nc.request(subject, data, timeout=timeout_s)).data)
             except NoRespondersError:               # nobody listens: the owner is gone, or there is none yet
                 answer = await self.assign(name)
                 if not answer or answer.get("owner") != answer.get("by"):
@@ -244,12 +244,16 @@ class BusSession(LiveSession):
                          "enrolment is available for sessions served in process")
 
     def update_config(self, change: dict) -> dict:
-        """Validated here (a bad change changes nothing), then applied by the owner, which keeps it in
-        the session's state so it survives a change of owner. Called from a worker thread of the API."""
-        config = super().update_config(change)
+        """Validated and kept here (a bad change changes nothing; the gateway's hand runs nothing, so it
+        loads no estimator), then applied by the owner, which keeps it in the session's state so it
+        survives a change of owner. Called from a worker thread of the API."""
+        spec, params, gestures, record = self.checked_config(change)
+        self.config = SessionConfig(estimator=spec.name, estimator_params=params, gestures=gestures, record=record)
+        self._apply_recording()
+        config = self.config.model_dump()
         future = asyncio.run_coroutine_threadsafe(
-            self.bus.request(config_subject(self.name), {"change": change}, self.name), self.bus.loop)
-        reply = future.result(timeout=2 * (REPLY_WAIT_S + ASSIGN_TIMEOUT_S) + 1.0)
+            self.bus.request(config_subject(self.name), {"change": change}, self.name, CONFIG_WAIT_S), self.bus.loop)
+        reply = future.result(timeout=2 * (CONFIG_WAIT_S + ASSIGN_TIMEOUT_S) + 1.0)
         if reply is None or reply.get("unconfirmed"):
             raise ValueError("no hand worker answered; the change is kept here and was not applied")
         if "error" in reply:

@@ -14,7 +14,9 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
   worker's subscriptions end with its connection, so "no responders" means the process is gone: its
   sessions are taken over at once instead of after the lease.
 * ``ft.cfg.<s>`` (request, owner): ``{"change": {...}}`` a configuration change; reply
-  ``{"config": {...}}`` or ``{"error": str}``.
+  ``{"config": {...}}`` or ``{"error": str}``, once applied: an estimator whose kernels the worker has
+  not loaded is compiled in a separate process and loaded first (up to ``CONFIG_WAIT_S``), while
+  the worker's sessions, this one on its old estimator, go on.
 * ``ft.out.<s>`` (publish, owner -> every gateway with subscribers): a ``frame`` or ``gesture``
   message exactly as the embedded service sends it; ``seq`` increases across a change of owner.
 * Key-value bucket ``ft_sessions`` (JetStream, memory storage), key ``<s>``: the lease and the
@@ -50,6 +52,9 @@ owner that is alive but stuck or cut off: a dead owner is found at once by the l
 enough that a worker starved of CPU on a busy machine keeps its sessions."""
 REPLY_WAIT_S = 0.3
 """how long a gateway waits for a worker's reply to one source message before it checks the owner, s"""
+CONFIG_WAIT_S = 300.0
+"""how long a gateway waits for the owner to apply a configuration change (it may compile an
+estimator's kernels first, in a separate process, while its sessions go on), s"""
 CONNECT_TIMEOUT_S = 10.0
 """how long a worker or gateway tries to reach the NATS server at start, s (later: for ever)"""
 PROBE_TIMEOUT_S = 0.2

@@ -26,6 +26,7 @@ from ..api.metrics import Metrics
 from ..api.hands.owner import OutputSink, first_time as _first_time
 from ..api.replies import drop_replies, failure_reply
 from ..api.sessions import LiveSession
+from ..estimators.warm import warm_off_loop
 from ..protocol import ProtocolError, parse_message
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
@@ -76,6 +77,9 @@ class Worker:
         self._tasks: list[asyncio.Task] = []
 
     async def start(self) -> None:
+        """Load (or, with a cold cache, compile in a separate process) the hand pipeline's and the
+        default estimator's kernels, then connect and take sessions."""
+        await warm_off_loop(self.settings.estimator)
         self.nc = await connect(self.url, self.id)
         js = self.nc.jetstream()
         self.kv = await js.create_key_value(KeyValueConfig(bucket=BUCKET, history=1, ttl=STATE_MAX_AGE_S,
@@ -193,7 +197,7 @@ class Worker:
             if self.settings.record_dir is None:
                 config.pop("record", None)
             try:
-                owned.live.update_config(config)
+                await self._switch(owned, config)
             except ValueError:
                 pass                                # e.g. an estimator this worker does not know: defaults
         if state.get("seq"):
@@ -271,10 +275,19 @@ class Worker:
         if msg.reply:
             await msg.respond(pack(reply))
 
+    @staticmethod
+    async def _switch(owned: OwnedSession, change: dict) -> dict:
+        """Apply a configuration change; an estimator whose kernels this process has not loaded is
+        compiled (in a separate process) and loaded (in a thread) first, while every session, this one
+        on its old estimator, goes on. ``ValueError`` for a bad change, which changes nothing."""
+        spec, params, _, _ = owned.live.checked_config(change)
+        await warm_off_loop(spec.name, params)
+        return owned.live.update_config(change)
+
     async def _on_config(self, owned: OwnedSession, msg) -> None:
         change = unpack(msg.data)["change"]
         try:
-            reply = {"config": owned.live.update_config(change)}
+            reply = {"config": await self._switch(owned, change)}
         except ValueError as err:
             reply = {"error": str(err)}
         await msg.respond(pack(reply))
