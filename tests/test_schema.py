@@ -257,6 +257,15 @@ def test_the_openapi_document_declares_the_bearer_scheme_and_typed_bodies(server
         answer = _resolve(doc, answer["$ref"]) if "$ref" in answer else answer
         assert set(answer["required"]) == {"estimator", "record"}
         assert set(answer["properties"]) == {"estimator", "estimator_params", "gestures", "record"}
+    # the whole document follows the OpenAPI specification of its version (a validator made for it)
+    from openapi_spec_validator import validate
+    from openapi_spec_validator.validation.exceptions import OpenAPIValidationError
+    assert doc["openapi"].startswith("3.")
+    validate(doc)
+    broken = json.loads(json.dumps(doc))
+    broken["components"]["securitySchemes"][sorted(bearer)[0]]["type"] = "token"
+    with pytest.raises(OpenAPIValidationError):
+        validate(broken)
 
 
 def test_messages_of_a_service_process_are_recorded_for_the_schema_check():
