@@ -31,7 +31,8 @@ def _random_hand(rng, batch):
 def _random_state(rng, est):
     b, s = est.batch_shape, est.n_sensors
     x = np.concatenate([rng.uniform(-1.0, 2.0, b + (s, 1)), rng.normal(0.0, 0.05, b + (s, 1)),
-                        rng.normal(0.0, 0.5, b + (s, 3)), rng.normal(0.0, 0.03, b + (s, 9))], axis=-1)
+                        rng.normal(0.0, 0.5, b + (s, 3)), rng.normal(0.0, 0.03, b + (s, 9)),
+                        rng.normal(0.0, 0.02, b + (s, 1))], axis=-1)
     a = rng.normal(0.0, 0.05, b + (s, N_STATE, N_STATE))
     P = a @ np.swapaxes(a, -1, -2) + 1e-4 * np.eye(N_STATE)       # symmetric positive definite
     return {"x": x, "P": P, "rate": rng.normal(0.0, 3.0, b + (s,)), "hand_acc": rng.normal(0.0, 5.0, b + (3,))}

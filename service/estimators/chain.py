@@ -37,12 +37,16 @@ What it uses that the others ignore:
    trials; in the paper's conditions they cost a little (1.61 -> 1.64 deg, ``bench paper --quick``
    'both'). So they are **off by default** (``initial_acc_scale_std = initial_acc_axis_std =
    calibration_walk_rts = 0``: the map stays the identity and the filter is the five-state one) and
-   kept as settings (the kernel computes them too) to try on other gloves.
-   Also tried and dropped: the gyro's hinge-axis scale and its leak of the hand's cross rates
-   (cross-axis, mounting tilt) as three more states (3.86 alone, 3.58 with ``G``, seeds 500-502):
-   while a finger runs on one sensor (the other silent, the fallback coupling closing it) they
-   learned the fallback's errors, and the finger took 1.7x its undisturbed error in the second after
-   the sensor returned (1.15x without them; the dropout test in ``tests/test_bench_accuracy.py``).
+   kept as settings (the kernel computes them too) to try on other gloves. Why they do not help
+   here: what they could fix is small. Removing the accelerometer's scale and cross-axis errors from
+   the simulation altogether takes ``chain`` only from 4.10 to 4.06 deg (seeds 500-511, reference
+   pose, before items 5 and 6 and the pipeline's flexion-axis fit), 3.15 -> 3.03 after them; the
+   accelerometer carries a low weight (below), so its few-percent map errors barely reach the angle,
+   while eight more states per sensor, learned within seconds from that weak accelerometer, add
+   their own estimation noise. The mounting's turn about the hinge axis, the one accelerometer
+   error that does matter (4.10 -> 3.40 deg with it removed), is the direction ``G`` leaves out; it
+   is item 5. With items 5 and 6 and the flexion-axis fit the eight states are still a tie (seeds
+   500-511 3.15 -> 3.14 deg, 512-519 3.31 -> 3.47).
 
 5. **The mounting turn about the hinge axis, from a known configuration.** A sensor turned on its
    phalanx by ``δ`` about the hinge axis (a hand-placed sensor: up to 5 deg about a random axis,
@@ -62,9 +66,24 @@ What it uses that the others ignore:
    calibrate. The other two mounting angles (the hinge axis tilted in the sensor frame) cost less
    (4.10 -> 3.84 with them removed from the simulation) and are left to the ``G`` states.
 
+6. **The gyro's scale error about the hinge axis** ``s_g`` (MPU-9250 ±3 %, prior std 0.017): the
+   rate is ``ω - b_g - s_g g_x`` with ``g_x`` the hinge-axis reading, so a fast flexion through 90 deg
+   with a 3 % scale error no longer leaves a 2.7 deg error for the weak accelerometer to pull back;
+   the accelerometer's angle after each transition reveals ``s_g``. Measured with the scale error
+   removed from the simulation instead: 3.15 -> 2.77 deg; with the state: 3.15 -> 2.83 deg (seeds
+   500-511, p95 6.58 -> 5.67), 3.31 -> 2.98 (512-519), 3.80 -> 3.46 without a reference (500-511);
+   the dropout recovery unchanged (median next-second ratio after a dropout 0.84 -> 0.85). A finger
+   on a fallback closure (a sensor silent) holds the state (its gain row zeroed): an earlier attempt
+   that let it learn there (with the gyro's cross-rate leaks as two more states) learned the
+   fallback's errors, and the finger took 1.7x its undisturbed error in the second after the sensor
+   returned. ``gyro_scale_uncertainty`` (the angle's process noise from scale and cross-axis errors)
+   stays 0.03: 0.02 with the state gave the same (2.84 deg); a random walk of the state (1e-3/√s)
+   changed nothing.
+
 Process model (per sensor, trapezoid/RK4 step as in ``integration``; the ``G`` states of item 4
 are constant but for a small random walk, and enter only the measurement):
-``θ ← θ + dt (ω̄ - b_g)``, ``F = [[1, -dt, 0], [0, 1, 0], [0, 0, I3]]``,
+``θ ← θ + dt (ω̄ - b_g - s_g g_x)``, ``F = [[1, -dt, 0, -dt g_x], [0, 1, 0, 0], [0, 0, I3, 0], [0, 0, 0, 1]]``
+(``[θ, b_g, b_a, s_g]``; ``G`` left out),
 ``Q = diag(σ_ω² dt, σ_bg² dt, σ_ba² dt I3)``.
 Measurement: ``f = (I + G) v + b_a``, ``v = R_x(θ)ᵀ u`` with ``u`` the reference force of the chain
 model (``observations.reference_force``); ``∂f/∂θ = (I + G) [0, -sin θ u_y + cos θ u_z, -cos θ u_y - sin θ u_z]``,
@@ -116,7 +135,7 @@ from pydantic import Field
 
 from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
 from . import chain_kernel as K
-from .chain_kernel import GA_START, N_STATE
+from .chain_kernel import GA_START, GS, N_STATE
 from . import kalman
 from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimate, FingerEstimator, FingerSamples, FingerTrack, \
     lost_optics_variance
@@ -153,6 +172,8 @@ class ChainSettings(EstimatorSettings):
     initial_acc_axis_std: float = Field(0.0, ge=0.0, description="prior std of each off-diagonal term of the accelerometer's linear map error (cross-axis ±2 % and a mounting of up to 5 deg: 0.031); 0 (the default) keeps them at zero")
     calibration_walk_rts: float = Field(0.0, ge=0.0, description="random walk of the linear-map states, 1/√s (1e-4 with the priors above)")
     mounting_hinge_std_rad: float = Field(0.03, ge=0.0, description="prior std of each sensor's mounting turn about the hinge axis (a misalignment of up to 5 deg about a random axis: 0.029), taken up as a state at the first known configuration; 0 leaves it with the angle, rad")
+    initial_gyro_scale_std: float = Field(0.017, ge=0.0, description="prior std of the gyro's scale error about the hinge axis (MPU-9250 ±3 %, uniform: 0.017); 0 keeps it at zero (item 6 of the module docstring)")
+    gyro_scale_walk_rts: float = Field(0.0, ge=0.0, description="random walk of the gyro scale state, 1/√s")
     rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
@@ -165,11 +186,13 @@ class Chain(FingerEstimator):
     jit_kernels = True
     kernels = (K.run, K.run_hand)
 
-    def __init__(self, *args, **kwargs):
-        super().__init__(*args, **kwargs)
+    def __init__(self, *args, extra_couplings: tuple = (), **kwargs):
+        super().__init__(*args, extra_couplings=extra_couplings, **kwargs)
         self._compiled = self.settings.implementation == "compiled"
         self._nb = int(np.prod(self.batch_shape, dtype=int))
         self._settings_vector = K.settings_vector(self.settings)
+        # a finger on a fallback closure (a sensor silent) holds its gyro scale states (item 6)
+        self._settings_vector[K.ST_GS_LEARN] = 0.0 if extra_couplings else 1.0
         self._geometry_vector = K.geometry_vector(self.obs, self.closure, self.gravity_world)
         self._hand_untracked = False
 
@@ -264,6 +287,7 @@ class Chain(FingerEstimator):
         P[..., 0, 0] = (known_std if theta0 is not None else s.unknown_angle_std_rad) ** 2
         P[..., 1, 1] = s.initial_gyro_bias_std_rad_s**2
         P[..., BA, BA] = s.initial_acc_bias_std_m_s2**2 * np.eye(3)
+        P[..., GS, GS] = s.initial_gyro_scale_std**2
         P[..., GA, GA] = _HINGE_FREE @ np.diag([s.initial_acc_scale_std**2 if i == j else s.initial_acc_axis_std**2
                                                 for i in range(3) for j in range(3)]) @ _HINGE_FREE
         if getattr(self, "_known_std_rad", None):
@@ -302,7 +326,7 @@ class Chain(FingerEstimator):
             mx, mP, t_mem = memory[sp.id]
             gap = max(0.0, getattr(self, "_start_t", t_mem) - t_mem)
             walk = np.array([s.gyro_bias_walk_rad_s_rts**2] + [s.acc_bias_walk_m_s2_rts**2] * 3
-                            + [s.calibration_walk_rts**2] * 9) * gap
+                            + [s.calibration_walk_rts**2] * 9 + [s.gyro_scale_walk_rts**2]) * gap
             x[..., k, 1:] = mx[..., 1:]
             P[..., k, 1:, 1:] = mP[..., 1:, 1:] + np.diag(walk)
             if sp.id in self._fresh:
@@ -375,16 +399,20 @@ class Chain(FingerEstimator):
         rate_meas = self.obs.relative_rate(gyr, hand)
         force = self.obs.phalanx_force(acc)
 
-        # predict
-        bg = x[..., BG]
-        rate = rate_meas - bg
-        prev_rate = state["rate"] - bg
+        # predict (the offset and the scale error s_g of the hinge-axis reading g_x; the previous
+        # sample's reading taken as equal)
+        gx = self.obs.hinge_rate(gyr)
+        corr = x[..., BG] + x[..., GS] * gx
+        rate = rate_meas - corr
+        prev_rate = state["rate"] - corr
         theta_pred = x[..., TH] + dt * 0.5 * (prev_rate + rate)
         x = np.concatenate([theta_pred[..., None], x[..., 1:]], axis=-1)
         F = np.broadcast_to(np.eye(N_STATE), P.shape).copy()
         F[..., TH, BG] = -dt
+        # a held scale state (item 6) is taken as known: it corrects the rate but adds no uncertainty
+        F[..., TH, GS] = -dt * gx if self._settings_vector[K.ST_GS_LEARN] > 0.5 else 0.0
         q_diag = np.array([s.gyro_noise_density_rad_s_rthz**2, s.gyro_bias_walk_rad_s_rts**2]
-                          + [s.acc_bias_walk_m_s2_rts**2] * 3 + [0.0] * 9) * dt
+                          + [s.acc_bias_walk_m_s2_rts**2] * 3 + [0.0] * 9 + [s.gyro_scale_walk_rts**2]) * dt
         Q = np.broadcast_to(np.diag(q_diag), P.shape).copy()
         Q[..., GA, GA] = _HINGE_FREE * (s.calibration_walk_rts**2 * dt)
         # scale and cross-axis errors move the angle by a fraction of the rate; a saturated gyro
@@ -423,7 +451,16 @@ class Chain(FingerEstimator):
         acc_sat = np.any(np.abs(acc) >= s.acc_range_m_s2 * (1.0 - 1e-3), axis=-1) | gyr_sat
         sigma = np.where(acc_sat, 1e6, sigma)
         R = (sigma**2)[..., None, None] * np.eye(3)
-        dx, P = kalman.update(P, H, R, y)
+        if self._settings_vector[K.ST_GS_LEARN] > 0.5:
+            dx, P = kalman.update(P, H, R, y)
+        else:
+            # the scale state held: its gain row zeroed, the Joseph form (valid for any gain)
+            pht = P @ np.swapaxes(H, -1, -2)
+            gain = pht @ np.linalg.inv(H @ pht + R)
+            gain[..., GS, :] = 0.0
+            dx = np.einsum("...ij,...j->...i", gain, y)
+            i_kh = np.eye(N_STATE) - gain @ H
+            P = i_kh @ P @ np.swapaxes(i_kh, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
         x = x + dx
         theta = x[..., TH]
         # "fast" while the accelerometer carries little weight (eq. 6 bound above g/2), else "fused"

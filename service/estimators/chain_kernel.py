@@ -5,8 +5,8 @@ other to 1e-9 on random inputs and on a simulated recording through the hand pip
 Everything lives in flat float64 arrays the estimator keeps, so one call advances every sensor of a
 finger (and every batch row) by any number of samples without a numpy call:
 
-* state: ``x`` (B, S, 14) = ``[θ, b_g, b_ax, b_ay, b_az, G (9, row-major)]`` per sensor, ``P``
-  (B, S, 14, 14), the last
+* state: ``x`` (B, S, 15) = ``[θ, b_g, b_ax, b_ay, b_az, G (9, row-major), s_g]`` per sensor, ``P``
+  (B, S, 15, 15), the last
   measured relative rate ``rate`` (B, S) and the last hand acceleration ``hand_acc`` (B, 3), updated
   in place;
 * inputs per sample: ``dt`` (N,), ``gyr``/``acc`` (N, B, S, 3) and the hand as ``BaseMotion.flat``
@@ -31,7 +31,9 @@ FMA = {"contract"}
 
 GA_START = 5
 """Index of the accelerometer's linear-map states ``G`` (9, row-major) in the state vector."""
-N_STATE = GA_START + 9
+GS = GA_START + 9
+"""Index of the gyro's scale error about the hinge axis ``s_g`` in the state vector."""
+N_STATE = GS + 1
 HINGE_G_YZ, HINGE_G_ZY = GA_START + 5, GA_START + 7
 """``G_yz`` and ``G_zy``: their antisymmetric combination (a turn about the hinge axis) is left to the
 angle, so the random walk of ``G`` is projected off it (``chain._HINGE_FREE``)."""
@@ -40,8 +42,8 @@ HAND_SIZE = 18
 
 # --- settings vector -------------------------------------------------------------------------
 (ST_GYRO_NOISE, ST_GYRO_WALK, ST_ACC_WALK, ST_ACC_NOISE, ST_KINEMATIC, ST_GYRO_SCALE, ST_ACC_SCALE,
- ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE, ST_CAL_WALK) = range(12)
-SETTINGS_SIZE = 12
+ ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE, ST_CAL_WALK, ST_GS_WALK, ST_GS_LEARN) = range(14)
+SETTINGS_SIZE = 14
 SATURATED_SIGMA_M_S2 = 1e6
 """Accelerometer std of a clipped sample (no update in effect), as in the reference."""
 SATURATION_MARGIN = 1.0 - 1e-3
@@ -53,7 +55,8 @@ def settings_vector(s) -> np.ndarray:
     return np.array([s.gyro_noise_density_rad_s_rthz, s.gyro_bias_walk_rad_s_rts, s.acc_bias_walk_m_s2_rts,
                      s.acc_noise_m_s2, s.kinematic_uncertainty, s.gyro_scale_uncertainty, s.acc_scale_uncertainty,
                      s.gyro_range_rad_s, s.acc_range_m_s2, s.hand_jerk_time_s, s.untracked_acc_noise_m_s2,
-                     s.calibration_walk_rts], dtype=float)
+                     s.calibration_walk_rts, s.gyro_scale_walk_rts, 1.0], dtype=float)
+    """The last entry (``ST_GS_LEARN``) is 1 where the gyro scale state learns; the estimator sets it."""
 
 
 def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
@@ -122,6 +125,8 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     q_bg = st[ST_GYRO_WALK] ** 2
     q_ba = st[ST_ACC_WALK] ** 2
     q_cal = st[ST_CAL_WALK] ** 2
+    q_gs = st[ST_GS_WALK] ** 2
+    gs_learn = st[ST_GS_LEARN] > 0.5
     gyro_range, acc_range = st[ST_GYRO_RANGE], st[ST_ACC_RANGE]
     gyro_clip, acc_clip = gyro_range * SATURATION_MARGIN, acc_range * SATURATION_MARGIN
     untracked_var = (st[ST_UNTRACKED_NOISE] if untracked else 0.0) ** 2
@@ -132,6 +137,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     prev = np.empty(ns)         # previous relative rate, corrected with the same bias
     rc = np.empty(ns)           # rate change
     meas = np.empty(ns)         # measured relative rate (the next sample's previous)
+    gxs = np.empty(ns)          # raw hinge-axis gyro reading
     th_all = np.empty(nph)
     w_all = np.empty(nph)
     dw_all = np.empty(nph)
@@ -175,10 +181,13 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
             for k in range(ns):
                 g0, g1, g2 = gyr[i, b, k, 0], gyr[i, b, k, 1], gyr[i, b, k, 2]
                 hi = o_hinge + 3 * k
-                rm = geo[hi] * g0 + geo[hi + 1] * g1 + geo[hi + 2] * g2 - hand_rate
-                bg = x[b, k, 1]
-                rate[k] = rm - bg
-                prev[k] = rates[b, k] - bg
+                gx = geo[hi] * g0 + geo[hi + 1] * g1 + geo[hi + 2] * g2
+                rm = gx - hand_rate
+                # offset and scale error (s_g of the reading, the previous one's taken as equal)
+                corr = x[b, k, 1] + x[b, k, GS] * gx
+                gxs[k] = gx
+                rate[k] = rm - corr
+                prev[k] = rates[b, k] - corr
                 meas[k] = rm
                 th[k] = x[b, k, 0] + dt * 0.5 * (prev[k] + rate[k])
                 rc[k] = (rate[k] - prev[k]) / dt if dt > 0 else 0.0
@@ -246,18 +255,21 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                 gyr_sat = abs(g0) >= gyro_clip or abs(g1) >= gyro_clip or abs(g2) >= gyro_clip
                 acc_sat = abs(a0) >= acc_clip or abs(a1) >= acc_clip or abs(a2) >= acc_clip
 
-                # predict: F = I - dt e0 e1ᵀ, P = F P Fᵀ + Q (Q from the gyro noise, its scale error
-                # and saturation, and the offsets' random walks)
+                # predict: F = I - dt e0 e1ᵀ - dt g_x e0 e_sᵀ, P = F P Fᵀ + Q (Q from the gyro noise,
+                # its scale error and saturation, and the offsets' random walks)
                 scale = st[ST_GYRO_SCALE] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2) + (gyro_range if gyr_sat else 0.0)
+                # a held scale state is taken as known: it corrects the rate but adds no uncertainty
+                fs = dt * gxs[k] if gs_learn else 0.0
                 for jj in range(N_STATE):
-                    p[b, k, 0, jj] = p[b, k, 0, jj] - dt * p[b, k, 1, jj]
+                    p[b, k, 0, jj] = p[b, k, 0, jj] - dt * p[b, k, 1, jj] - fs * p[b, k, GS, jj]
                 for ii in range(N_STATE):
-                    p[b, k, ii, 0] = p[b, k, ii, 0] - dt * p[b, k, ii, 1]
+                    p[b, k, ii, 0] = p[b, k, ii, 0] - dt * p[b, k, ii, 1] - fs * p[b, k, ii, GS]
                 p[b, k, 0, 0] += q_theta * dt + (dt * scale) ** 2
                 p[b, k, 1, 1] += q_bg * dt
                 p[b, k, 2, 2] += q_ba * dt
                 p[b, k, 3, 3] += q_ba * dt
                 p[b, k, 4, 4] += q_ba * dt
+                p[b, k, GS, GS] += q_gs * dt
                 for ii in range(GA_START, N_STATE):
                     if ii != HINGE_G_YZ and ii != HINGE_G_ZY:
                         p[b, k, ii, ii] += q_cal * dt
@@ -340,6 +352,10 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     kg[ii, 0] = (q0 * i00 + q1 * i10 + q2 * i20) / det
                     kg[ii, 1] = (q0 * i01 + q1 * i11 + q2 * i21) / det
                     kg[ii, 2] = (q0 * i02 + q1 * i12 + q2 * i22) / det
+                if not gs_learn:
+                    # the scale state is held (a finger on a fallback closure would learn its errors);
+                    # the Joseph form below stays valid for any gain
+                    kg[GS, 0] = kg[GS, 1] = kg[GS, 2] = 0.0
                 # A = (I - K H) P, then A (I - K H)ᵀ + r K Kᵀ = A - (A Hᵀ) Kᵀ + r K Kᵀ
                 for ii in range(N_STATE):
                     k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
