@@ -208,3 +208,25 @@ def test_the_frames_cache_is_keyed_by_the_code_that_makes_the_frames(tmp_path):
     kernel = copy / "estimators" / "chain.py"
     kernel.write_text(kernel.read_text() + "\n# a changed estimator\n")
     assert gestures.frames_fingerprint(copy) != first
+
+
+def test_enrolment_keeps_the_defaults_for_a_user_they_already_fit():
+    """Holds well inside every default threshold and far from each other: nothing to change; the
+    pinch guard's rate limit (2 /s, beyond the curls' range) keeps its value."""
+    from gestures.recognizer import Features
+
+    def feats(curls, distance):
+        curl = dict(zip(("thumb", "index", "middle", "ring", "little"), curls))
+        return [Features(curl, distance, float(np.mean(curls[1:])), 0.0)] * 30
+
+    samples = {"rest": feats((0.3, 0.35, 0.35, 0.35, 0.35), 0.06), "point": feats((0.3, 0.02, 0.9, 0.9, 0.9), 0.07),
+               "grasp": feats((0.5, 0.95, 0.95, 0.95, 0.95), 0.05), "pinch": feats((0.4, 0.4, 0.3, 0.3, 0.3), 0.008),
+               "open": feats((0.05, 0.02, 0.02, 0.02, 0.02), 0.09)}
+    settings, report = fit_thresholds(samples)
+    assert settings == GestureSettings()
+    assert report["pinch_others_rate_max"]["new"] == GestureSettings().pinch_others_rate_max == 2.0
+    # a rest pose inside the open hand's hysteresis band (long curls 0.2: between 0.17 and 0.22) tightens it, and only it
+    samples["rest"] = feats((0.3, 0.2, 0.2, 0.2, 0.2), 0.06)
+    settings, report = fit_thresholds(samples)
+    assert settings.open_curl_exit < 0.2 and settings.open_curl_enter <= GestureSettings().open_curl_enter
+    assert settings.model_copy(update={"open_curl_exit": 0.22, "open_curl_enter": 0.17}) == GestureSettings()
