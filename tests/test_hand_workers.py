@@ -103,6 +103,55 @@ def test_a_dead_or_stuck_hand_worker_s_session_moves_on_while_the_other_worker_s
     assert {f["hand"] for f in b} == {"left"}
 
 
+def test_a_stopped_worker_s_sessions_move_long_before_the_stall_limit_while_another_worker_streams_on():
+    """Sessions a and c on one worker, b on the other, all in real time. The first worker is stopped
+    (SIGSTOP) with the stall limit at its default (10 s): since the other worker goes on answering, the
+    stopped one counts as stuck after ``hand_worker_lag_s`` (1 s), so a and c continue on the other
+    worker before b has had 5 s of frames (at the stall limit it would be 10 s: 900 frames)."""
+    msgs = {"a": _messages("right", 14.0, 1), "b": _messages("left", 14.0, 2), "c": _messages("right", 14.0, 3)}
+    hands = {"a": "right", "b": "left", "c": "right"}
+    with ServerThread(_settings(2)) as server:
+        async def run():
+            frames = {n: [] for n in msgs}
+            subs = {n: Subscription(server.ws_url, n, VIEWER) for n in frames}
+            tasks = [asyncio.create_task(_collect(subs[n], frames[n])) for n in frames]
+            await _until(lambda: all(s.server_hello is not None for s in subs.values()), "the subscriptions")
+            streams = []
+            for n in ("a", "b", "c"):                    # opened in this order: a and c share a worker
+                streams.append(asyncio.create_task(_stream(server.url, n, hands[n], msgs[n], paced=True)))
+                await _until(lambda: len(frames[n]) >= 1, f"session {n}'s first frame")
+            await _until(lambda: all(len(f) >= 45 for f in frames.values()), "45 frames of each session")
+            workers = {n: s["worker"] for n, s in (await asyncio.to_thread(_sessions, server)).items()}
+            assert workers["a"]["pid"] == workers["c"]["pid"] != workers["b"]["pid"]
+            os.kill(workers["a"]["pid"], signal.SIGSTOP)
+            b_at_stop = len(frames["b"])
+            applied = {n: frames[n][-1]["status"]["reference_poses"]["applied"] for n in ("a", "c")}
+
+            def resumed(n):                              # a frame of the new worker: the resume's reference pose
+                return any(f["status"]["reference_poses"]["applied"] > applied[n] for f in frames[n][-50:])
+            await _until(lambda: resumed("a") and resumed("c"), "sessions a and c on the other worker")
+            b_meanwhile = len(frames["b"]) - b_at_stop
+            await asyncio.gather(*streams)
+            summary = await asyncio.to_thread(_sessions, server)
+            await _until(lambda: all(len(frames[n]) >= summary[n]["frames_out"] for n in frames),
+                         "every frame the service sent")
+            for sub in subs.values():
+                await sub.close()
+            for task in tasks:
+                task.cancel()
+            return frames, b_meanwhile, summary
+        frames, b_meanwhile, summary = asyncio.run(run())
+    assert b_meanwhile < 5 * RATE_HZ, f"session b got {b_meanwhile} frames before a and c went on"
+    for n in ("a", "c"):
+        assert summary[n]["worker"]["restarts"] == 1
+        assert all(x["seq"] < y["seq"] for x, y in zip(frames[n], frames[n][1:]))
+    for n, f in frames.items():
+        assert {x["hand"] for x in f} == {hands[n]}
+    b = frames["b"]                                      # the other worker's session: every frame, in order
+    assert summary["b"]["worker"]["restarts"] == 0
+    assert [f["seq"] for f in b] == list(range(1, len(b) + 1)) and len(b) == summary["b"]["frames_out"]
+
+
 def test_switching_a_session_to_an_estimator_not_loaded_in_its_worker_does_not_stall_another_session():
     """Both sessions on one worker. While session b's switch to ``inertial`` is pending (its kernels are
     compiled or loaded by a separate process first), session a, streaming in real time, gets every

@@ -14,9 +14,11 @@ at once to the live worker with the fewest sessions (with no other worker ready,
 process): each is opened again from its compact state (``hands.owner``: hello, calibration,
 configuration, the last frame's ``seq``, time and joint angles, applied as a reference pose) and every
 source message the dead worker had not answered is sent again, in order, so no source message is lost.
-A worker that answers nothing for ``hand_worker_stall_s`` while it owes answers (stuck in a loop,
-stopped) is killed and handled the same way, so a stuck worker holds its sessions up for that long
-at most. What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
+A worker that answers nothing while it owes answers (stuck in a loop, stopped) is killed and handled
+the same way: after ``hand_worker_lag_s`` when the other workers answered at least ``LAG_EVIDENCE``
+source messages meanwhile (so the machine as a whole is not stalled, and the others can take the
+sessions), else after ``hand_worker_stall_s``. A worker in a long operation it knows of (loading an
+estimator's kernels) says it is alive meanwhile. What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
 the optical track and the gesture recogniser's state (an active gesture starts again), and the time
 the move takes (its sessions' frames come late then; other workers' sessions go on). Counted per
 session as ``worker.restarts`` and ``worker.resent_after_restart`` (``GET /v1/sessions``) and in
@@ -48,6 +50,9 @@ WINDOW = 512
 """source messages of one session on their way to its worker at once (more: the source waits)"""
 RESTART_BACKOFF_S = 1.0
 """pause before restarting a worker that died before it was ready, s"""
+LAG_EVIDENCE = 20
+"""source messages the other workers answer while one worker owing answers is silent, before that one
+counts as stuck after ``hand_worker_lag_s`` (not ``hand_worker_stall_s``)"""
 CONFIG_WAIT_S = 300.0
 """longest wait for a worker to apply a configuration change (it may compile an estimator first), s"""
 
@@ -71,6 +76,8 @@ class WorkerLink:
         self._tasks: list[asyncio.Task] = []
         self.heard = time.monotonic()
         """when the worker last sent anything (monotonic s)"""
+        self.answered_elsewhere_at_heard = 0
+        """the pool's count of answered source messages when this worker last sent anything"""
 
     async def start(self) -> None:
         parent, child = socket.socketpair()
@@ -111,6 +118,7 @@ class WorkerLink:
                 size, = HEADER.unpack(await reader.readexactly(HEADER.size))
                 batch = msgpack.unpackb(await reader.readexactly(size))
                 self.heard = time.monotonic()
+                self.answered_elsewhere_at_heard = self.pool.answered
                 for message in batch:
                     self._dispatch(message)
                     if message[0] == "out":
@@ -124,12 +132,15 @@ class WorkerLink:
         if kind == "ready":
             self.ready.set()
             return
+        if kind == "alive":
+            return
         live = self.sessions.get(message[1])
         if live is None:
             return
         if kind == "out":
             live.on_output(message[2], message[3])
         elif kind == "rep":
+            self.pool.answered += 1
             live.on_reply(message[2], message[3])
         elif kind == "cfgrep":
             live.on_config_reply(message[2], message[3], message[4])
@@ -170,10 +181,14 @@ class WorkerLink:
         for message in held:
             self.send(message)
 
-    def stalled(self, now: float, limit_s: float) -> bool:
-        """A ready worker that owes source messages an answer and has sent nothing for ``limit_s``."""
-        return (self.ready.is_set() and not self._restarting and self.proc is not None and self.proc.returncode is None
-                and now - self.heard > limit_s and any(live._pending for live in self.sessions.values()))
+    def stalled(self, now: float, lag_s: float, limit_s: float) -> bool:
+        """A ready worker that owes source messages an answer and has sent nothing for ``limit_s``, or
+        for ``lag_s`` while the other workers answered ``LAG_EVIDENCE`` source messages (module docstring)."""
+        if not (self.ready.is_set() and not self._restarting and self.proc is not None and self.proc.returncode is None
+                and any(live._pending for live in self.sessions.values())):
+            return False
+        silent = now - self.heard
+        return silent > limit_s or (silent > lag_s and self.pool.answered - self.answered_elsewhere_at_heard >= LAG_EVIDENCE)
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -200,6 +215,8 @@ class HandPool:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.closing = False
         self._sids = itertools.count(1)
+        self.answered = 0
+        """source messages the workers answered (a count for the stall watchdog)"""
         self._watchdog: asyncio.Task | None = None
 
     async def start(self) -> None:
@@ -208,14 +225,14 @@ class HandPool:
         self._watchdog = asyncio.create_task(self._watch_stalls())
 
     async def _watch_stalls(self) -> None:
-        """A worker stuck for ``hand_worker_stall_s`` (an endless loop, a stopped process) is killed:
-        its sessions move to the other workers as after a crash."""
-        limit = self.settings.hand_worker_stall_s
+        """A stuck worker (an endless loop, a stopped process; module docstring) is killed: its sessions
+        move to the other workers as after a crash."""
+        limit, lag = self.settings.hand_worker_stall_s, min(self.settings.hand_worker_lag_s, self.settings.hand_worker_stall_s)
         while True:
-            await asyncio.sleep(min(1.0, limit / 4))
+            await asyncio.sleep(min(1.0, lag / 4))
             now = time.monotonic()
             for link in self.links:
-                if link.stalled(now, limit):
+                if link.stalled(now, lag, limit):
                     log.warning("hand worker %d (pid %d) answered nothing for %.1f s while it owed answers; "
                                 "killing it, its sessions move", link.slot, link.pid, now - link.heard)
                     link.proc.kill()

@@ -28,12 +28,15 @@ Worker -> web process:
   source gets, ``[code, detail]`` as the in-process service gives them (``api.replies``);
 * ``["cfgrep", sid, n, result, error]``: the applied configuration (or the enrolment's result), or the
   reason it was refused;
-* ``["ready", pid]`` once, when the default estimator is loaded and messages are read.
+* ``["ready", pid]`` once, when the default estimator is loaded and messages are read;
+* ``["alive"]`` every ``ALIVE_S`` while it is in a long operation it knows of (loading an estimator's
+  kernels), so that the web process does not take it for stuck.
 
 The process ends when the web process closes its end of the socket.
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -42,6 +45,7 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import time
 
 import msgpack
@@ -60,6 +64,8 @@ FLUSH_S = 0.002
 """outputs go back at least this often while a batch is being handled, s"""
 WARM_POLL_S = 0.05
 """how often a worker compiling kernels in a separate process looks whether it has finished, s"""
+ALIVE_S = 0.2
+"""how often a worker in a long operation it knows of says it is alive, s"""
 
 
 def _plain(value):
@@ -127,11 +133,33 @@ class Worker:
         self.out: list = []
         self.warming: dict[str, subprocess.Popen] = {}      # estimator name -> its compiling process
         self.waiting: list[list] = []                         # cfg/enrol messages in order, until warm
+        self.send_lock = threading.Lock()
 
     def send(self) -> None:
         if self.out:
-            self.sock.sendall(frame(self.out))
-            self.out = []
+            data, self.out = frame(self.out), []
+            with self.send_lock:
+                self.sock.sendall(data)
+
+    @contextlib.contextmanager
+    def alive(self):
+        """``["alive"]`` every ``ALIVE_S`` from a thread while the block runs (a long operation)."""
+        done = threading.Event()
+
+        def beat() -> None:
+            while not done.wait(ALIVE_S):
+                try:
+                    with self.send_lock:
+                        self.sock.sendall(frame([["alive"]]))
+                except OSError:
+                    return                          # the web process is gone: the main thread finds out
+        thread = threading.Thread(target=beat, daemon=True)
+        thread.start()
+        try:
+            yield
+        finally:
+            done.set()
+            thread.join()
 
     def run(self) -> None:
         buf = bytearray()
@@ -173,7 +201,8 @@ class Worker:
             owned.sink.pending.clear()
             self.out.append(["rep", sid, n, errors])
         elif kind == "open":
-            self.hands[sid] = OwnedHand(message[2], self.settings, self.metrics, message[3])
+            with self.alive():                      # a state's estimator may have to be loaded first
+                self.hands[sid] = OwnedHand(message[2], self.settings, self.metrics, message[3])
         elif kind == "close":
             owned = self.hands.pop(sid, None)
             if owned is not None:
@@ -198,7 +227,8 @@ class Worker:
         for name in done:
             del self.warming[name]
             try:
-                warm(name)                          # from the cache (compiles here if the cache failed)
+                with self.alive():
+                    warm(name)                      # from the cache (compiles here if the cache failed)
             except ValueError:
                 pass
         if done:
@@ -223,7 +253,8 @@ class Worker:
             self.out.append(["cfgrep", sid, n, None, "the session is gone"])
             return
         try:
-            result = owned.live.update_config(body) if kind == "cfg" else owned.live.enrol(body)
+            with self.alive():                      # loads the estimator here if it is not yet loaded
+                result = owned.live.update_config(body) if kind == "cfg" else owned.live.enrol(body)
         except ValueError as err:
             self.out.append(["cfgrep", sid, n, None, str(err)])
             return
