@@ -463,7 +463,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(load.run(args.out, hands=args.hands, subscribers=args.subscribers, seconds=args.seconds,
                        binary=args.binary, bus_workers=args.workers if args.bus else None,
                        kill_at_s=args.kill_worker_at, hand_workers=None if args.bus else args.workers,
-                       gateways=args.gateways))
+                       gateways=args.gateways, generators=args.generators))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "robustness":
@@ -720,6 +720,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "session's glove and subscribers are spread over them (default 1)")
     b.add_argument("--kill-worker-at", type=_positive_float, default=None, metavar="S",
                    help="kill (SIGKILL) the hand worker owning most sessions S seconds into the stream (default: none)")
+    b.add_argument("--generators", type=_positive_int, default=None, metavar="N",
+                   help="load-generator processes for the gloves and subscribers (default: one per 8 hands)")
 
     b = benchmark("robustness", "hostile input, extremes, slow readers, connection storms, kill -9, soak",
                   "A robustness campaign against fresh service processes: fuzzing, schema-valid extremes in a "

@@ -4,6 +4,7 @@ import pytest
 
 from service.bench.load import _integrity, run_level
 from service.cli import main
+from service.pipeline.hand import PipelineSettings
 
 
 def test_two_hands_at_once_every_frame_is_delivered_or_counted_and_stays_in_its_session():
@@ -19,6 +20,22 @@ def test_two_hands_at_once_every_frame_is_delivered_or_counted_and_stays_in_its_
     # how far behind schedule the frames arrive is a speed figure: `fingertrack bench load` reports it
     assert lv["schedule_delay_ms"] is not None and lv["schedule_delay_ms"]["p50"] > 0.0
     assert lv["service_cpu_share"] is None or 0.0 < lv["service_cpu_share"] < 2.0
+
+
+def test_the_load_spread_over_two_generator_processes_is_accounted_for_as_from_one():
+    """Two hands, one per load-generator process: every frame is delivered or counted as dropped, in
+    order and in its own session, and each frame's wait is split into the pipeline's alignment wait
+    (at least the reorder window: the tick's data must be that much older than the newest sample) and
+    the delay beyond it."""
+    lv = run_level(hands=2, subscribers=2, seconds=3.0, generators=2)
+    assert lv["generator_processes"] == 2 and lv["sessions_seen"] == 2
+    assert lv["frames_produced"] > 2 * 3.0 * 50
+    assert lv["frames_unaccounted"] == 0
+    assert lv["frames_delivered"] == lv["frames_expected"] - lv["frames_dropped"]
+    assert lv["integrity_violations"] == 0 and lv["source_errors"] == 0
+    assert lv["alignment_wait_ms"]["p50"] >= PipelineSettings().reorder_window_s * 1e3 - 1e-6
+    assert lv["behind_schedule_beyond_alignment_ms"] is not None
+    assert 0.0 < lv["generator_cpu_share_max"] and lv["generator_cpu_share"] >= lv["generator_cpu_share_max"]
 
 
 def test_the_integrity_check_sees_reordering_and_cross_talk():

@@ -107,8 +107,9 @@ def _stop(procs: list[subprocess.Popen]) -> None:
 
 
 @contextlib.contextmanager
-def cluster(workers: int, start_timeout_s: float = 300.0, gateways: int = 1):
-    """nats-server + ``workers`` workers + ``gateways`` gateways; everything is stopped on exit."""
+def cluster(workers: int, start_timeout_s: float = 300.0, gateways: int = 1, extra_settings: dict | None = None):
+    """nats-server + ``workers`` workers + ``gateways`` gateways (with ``extra_settings``); everything is
+    stopped on exit."""
     procs: list[subprocess.Popen] = []
     with tempfile.TemporaryDirectory() as tmp, open(Path(tmp) / "bus.log", "w+") as logs, \
             nats_server(tmp, logs, start_timeout_s) as url:
@@ -122,7 +123,7 @@ def cluster(workers: int, start_timeout_s: float = 300.0, gateways: int = 1):
             asyncio.run(_wait_for_workers(url, ids, start_timeout_s))
             credentials = tuple(secrets.token_urlsafe(12) for _ in range(3))
             with contextlib.ExitStack() as stack:
-                gws = [stack.enter_context(service_process(start_timeout_s, extra_settings={"bus": url},
+                gws = [stack.enter_context(service_process(start_timeout_s, extra_settings={**(extra_settings or {}), "bus": url},
                                                            credentials=credentials)) for _ in range(gateways)]
                 yield Cluster(url, gws[0], started, gateways=gws)
         finally:

@@ -4,7 +4,7 @@
 For each load level (a number of hands) a fresh service process (``fingertrack serve``, as deployed)
 receives that many simulated hands at once, each in its own session (10 IMUs at 200 Hz in per-tick
 ``imu_batch`` messages, optical poses at 90 Hz, alternately right and left, distinct seeds), streamed
-in real time from this process, and every session has ``subscribers`` VR-client subscribers. Per
+in real time from load-generator processes (below), and every session has ``subscribers`` VR-client subscribers. Per
 level it reports:
 
 - frames the service produced (``/v1/sessions``), frames delivered to the subscribers against
@@ -16,8 +16,13 @@ level it reports:
 - backlog: how long after the last message the service still needed to process what it had been
   sent and deliver its last frames (the run waits for every frame to be received or counted as dropped);
 - CPU: the service process's CPU time during the streaming window as a share of one core (Linux
-  ``/proc``), and this load generator's own share, so that a saturated generator is visible: on a
+  ``/proc``), and the load generator's own share, so that a saturated generator is visible: on a
   2-core machine the gloves, the subscribers and the service compete for the same cores.
+
+The gloves and subscribers run in load-generator processes (``GENERATOR_HANDS`` hands each, or
+``--generators N``), started together once each has simulated its gloves and opened its subscriptions;
+each reports its frames, and the frames' delay behind the source's schedule beyond the pipeline's
+alignment wait (``_timing``), back as JSON.
 """
 from __future__ import annotations
 
@@ -37,26 +42,65 @@ from .process import service_process
 
 
 
-async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
-                 binary: bool, service_cpu, kill=None) -> dict:
-    """``urls``: the service's, or its gateways' (session i's glove streams to gateway i, its subscriber
-    k listens at gateway i + k, modulo their number, so that frames must reach every gateway).
-    ``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
-    ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed)."""
-    url = urls[0]
+GENERATOR_HANDS = 8
+"""hands per load-generator process (gloves and subscribers); more hands: more processes"""
+
+
+def generator_processes(hands: int) -> int:
+    """How many load-generator processes stream ``hands`` hands (``GENERATOR_HANDS`` each)."""
+    return max(1, -(-hands // GENERATOR_HANDS))
+
+
+def _schedule(msgs: list[tuple[float, dict]]) -> list[tuple[float, str, float]]:
+    """``(arrival, type, time)`` of each message as ``bench.latency.completing_sends`` reads a send log."""
+    out = []
+    for arrival, m in msgs:
+        kind = m["type"]
+        t = max(x["t"] for x in m["samples"]) if kind == "imu_batch" else m.get("t", -np.inf)
+        out.append((arrival, kind, t))
+    return out
+
+
+def _timing(rows: list, first_send: float, msgs: list[tuple[float, dict]]) -> tuple[list, list]:
+    """For a subscriber's frames: how far behind the source's schedule each arrived beyond the
+    pipeline's alignment wait (arrival minus the moment the message that completed its tick was due to
+    be sent), and that alignment wait (the completing message's due time minus the tick's own). A
+    frame no message completed (the optics' timeout released it) counts from its tick's due time."""
+    from ..pipeline.hand import PipelineSettings
+    from .latency import completing_sends
+
+    if not rows:
+        return [], []
+    schedule = _schedule(msgs)
+    t0 = msgs[0][0]
+    frame_ts = np.array([r[4] for r in rows])
+    index = completing_sends(schedule, frame_ts, PipelineSettings().reorder_window_s)
+    arrivals = np.array([a for a, _, _ in schedule])
+    completed = np.where(index >= 0, arrivals[np.maximum(index, 0)], frame_ts)
+    align = np.maximum(completed - frame_ts, 0.0)
+    beyond = np.array([r[0] for r in rows]) - (first_send + (completed - t0))
+    return beyond.tolist(), align.tolist()
+
+
+async def _generate(spec: dict, ready, start_at) -> dict:
+    """One load-generator process's part of a level: the gloves and subscribers of sessions
+    ``spec["indices"]``. ``ready()`` once everything is simulated and subscribed; ``start_at()`` gives
+    the common start (``time.time()``) of every generator process."""
     from clients.client import Subscription
     from clients.glove import source_messages, stream_glove
 
+    urls, viewer, subscribers, seconds, binary = spec["urls"], spec["viewer"], spec["subscribers"], spec["seconds"], spec["binary"]
+    indices = spec["indices"]
     configs = [SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=i,
-                         hand="right" if i % 2 == 0 else "left") for i in range(hands)]
+                         hand="right" if i % 2 == 0 else "left") for i in indices]
     # simulate every glove before the clock starts, so that they all stream together
-    msgs = await asyncio.gather(*(asyncio.to_thread(source_messages, c) for c in configs))
-    names = [f"load-{i}" for i in range(hands)]
+    msgs = [source_messages(c) for c in configs]
+    names = [f"load-{i}" for i in indices]
     last_send = {n: 0.0 for n in names}
     first_send = {n: 0.0 for n in names}
     received = {(n, k): [] for n in names for k in range(subscribers)}      # (arrival, latency, seq, hand, t)
     subs = {(n, k): Subscription(urls[(i + k) % len(urls)], n, viewer, binary=binary)
-            for i, n in enumerate(names) for k in range(subscribers)}
+            for i, n in zip(indices, names) for k in range(subscribers)}
 
     async def collect(key):
         name = key[0]
@@ -67,7 +111,11 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
                                       msg["seq"], msg["hand"], msg["t"]))
 
     tasks = [asyncio.create_task(collect(key)) for key in subs]
-    await asyncio.sleep(0.5)                                  # the subscriptions are open before any data
+    deadline = time.monotonic() + 120.0
+    while not all(s.server_hello is not None for s in subs.values()) and time.monotonic() < deadline:
+        await asyncio.sleep(0.05)                            # the subscriptions are open before any data
+    await ready()
+    await asyncio.sleep(max(0.0, await start_at() - time.time()))
 
     def on_send_for(name):
         def on_send(wall, _msg):
@@ -76,29 +124,14 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
                 first_send[name] = wall
         return on_send
 
-    # CPU shares over the streaming window only (the service may work on past it when it falls behind)
-    cpu0, service0, wall0 = time.process_time(), service_cpu(), time.perf_counter()
-    killed: dict = {}
-
-    async def kill_later():
-        await asyncio.sleep(kill[0])
-        killed.update(await kill[1]())
-        killed["t"] = time.perf_counter()
-
-    killer = asyncio.create_task(kill_later()) if kill is not None else None
-    probe = await _start_probe(url, admin, seconds)
-    pubs = await asyncio.gather(*(stream_glove(urls[i % len(urls)], n, source, c, on_send=on_send_for(n), messages=m,
-                                               binary=binary)
-                                  for i, (n, c, m) in enumerate(zip(names, configs, msgs))))
-    service1, wall = service_cpu(), time.perf_counter() - wall0
-    probed = await _probe_result(probe)
-    if killer is not None:
-        await killer
-    generator_cpu = time.process_time() - cpu0
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    pubs = await asyncio.gather(*(stream_glove(urls[i % len(urls)], n, spec["source"], c, on_send=on_send_for(n),
+                                               messages=m, binary=binary)
+                                  for i, n, c, m in zip(indices, names, configs, msgs)))
+    wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     for p in pubs:
         await p.close()                                       # returns once the service has handled everything sent (sync)
-    accounts = await _until_delivered(urls, names, received, subscribers, admin)
-    drain = time.perf_counter() - wall0 - wall
+    accounts = await _until_delivered(urls, names, received, subscribers, spec["admin"], indices)
     errors = sum(len(p.errors) for p in pubs)                 # after closing: replies to the last messages included
     # a subscriber that reconnects loses what its old connection had queued: neither delivered nor dropped
     reconnects = sum(s.reconnects for s in subs.values())
@@ -112,22 +145,114 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
             raise RuntimeError(f"a subscriber failed: {r!r}") from r
     # a frame's delay behind the source's schedule: its arrival minus the wall time at which the data
     # of its tick were due to be sent (the first message was sent at first_send, source time m[0][0])
-    delays = [r[0] - (first_send[n] + (r[4] - m[0][0])) for n, m in zip(names, msgs)
-              for k in range(subscribers) for r in received[(n, k)]]
-    return {"names": names, "hands_of": {n: c.hand for n, c in zip(names, configs)}, "received": received,
-            "delays": delays, "killed": killed, "probe": probed, "subscriber_reconnects": reconnects,
-            "accounts": accounts,
-            "glove_reconnects": glove_reconnects,
-            "wall_s": wall, "drain_s": drain, "generator_cpu_s": generator_cpu, "errors": errors,
+    delays, beyond, align = [], [], []
+    for n, m in zip(names, msgs):
+        for k in range(subscribers):
+            rows = received[(n, k)]
+            delays += [r[0] - (first_send[n] + (r[4] - m[0][0])) for r in rows]
+            b, a = _timing(rows, first_send[n], m)
+            beyond += b
+            align += a
+    return {"received": [[n, k, rows] for (n, k), rows in received.items()],
+            "hands_of": {n: c.hand for n, c in zip(names, configs)}, "accounts": accounts,
+            "delays": delays, "beyond_alignment": beyond, "alignment": align,
+            "subscriber_reconnects": reconnects, "glove_reconnects": glove_reconnects, "errors": errors,
+            "wall_s": wall, "generator_cpu_s": generator_cpu}
+
+
+def _generator_main() -> int:
+    """A load-generator process: its spec (JSON) on the first line of stdin; prints ``ready``, reads the
+    common start time (a line), streams, and prints its results (JSON) on one line."""
+    spec = json.loads(sys.stdin.readline())
+
+    async def ready():
+        print("ready", flush=True)
+
+    async def start_at():
+        return float(await asyncio.to_thread(sys.stdin.readline))
+
+    result = asyncio.run(_generate(spec, ready, start_at))
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
+                 binary: bool, service_cpu, kill=None, processes: int | None = None) -> dict:
+    """``urls``: the service's, or its gateways' (session i's glove streams to gateway i, its subscriber
+    k listens at gateway i + k, modulo their number, so that frames must reach every gateway).
+    ``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
+    ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed).
+    The gloves and subscribers run in ``processes`` load-generator processes (``generator_processes``)."""
+    url = urls[0]
+    count = processes or generator_processes(hands)
+    parts = [list(range(hands))[j::count] for j in range(count)]
+    parts = [p for p in parts if p]
+    procs = []
+    for part in parts:
+        proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "service.bench.load",
+                                                    stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+                                                    limit=1 << 30)
+        spec = {"urls": urls, "source": source, "viewer": viewer, "admin": admin, "indices": part,
+                "subscribers": subscribers, "seconds": seconds, "binary": binary}
+        proc.stdin.write((json.dumps(spec) + "\n").encode())
+        await proc.stdin.drain()
+        procs.append(proc)
+    for proc in procs:
+        line = await proc.stdout.readline()
+        if line.strip() != b"ready":
+            raise RuntimeError("a load-generator process did not start")
+    start = time.time() + 0.5
+    for proc in procs:
+        proc.stdin.write(f"{start!r}\n".encode())
+        await proc.stdin.drain()
+    await asyncio.sleep(max(0.0, start - time.time()))
+    # CPU shares over the streaming window only (the service may work on past it when it falls behind)
+    service0, wall0 = service_cpu(), time.perf_counter()
+    killed: dict = {}
+
+    async def kill_later():
+        await asyncio.sleep(kill[0])
+        killed.update(await kill[1]())
+        killed["t"] = time.perf_counter()
+
+    killer = asyncio.create_task(kill_later()) if kill is not None else None
+    probe = await _start_probe(url, admin, seconds)
+    await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - wall0)))
+    service1, wall = service_cpu(), time.perf_counter() - wall0
+    probed = await _probe_result(probe)
+    if killer is not None:
+        await killer
+    results = []
+    for proc in procs:
+        out, _ = await proc.communicate()
+        if await proc.wait() != 0 or not out.strip():
+            raise RuntimeError("a load-generator process failed")
+        results.append(json.loads(out.strip().splitlines()[-1]))
+    drain = time.perf_counter() - wall0 - wall
+    received = {(n, k): [tuple(r) for r in rows] for res in results for n, k, rows in res["received"]}
+    shares = [r["generator_cpu_s"] / r["wall_s"] for r in results]
+    return {"names": [f"load-{i}" for i in range(hands)],
+            "hands_of": {n: h for r in results for n, h in r["hands_of"].items()}, "received": received,
+            "delays": [d for r in results for d in r["delays"]],
+            "beyond_alignment": [d for r in results for d in r["beyond_alignment"]],
+            "alignment": [d for r in results for d in r["alignment"]],
+            "killed": killed, "probe": probed,
+            "subscriber_reconnects": sum(r["subscriber_reconnects"] for r in results),
+            "accounts": {n: a for r in results for n, a in r["accounts"].items()},
+            "glove_reconnects": sum(r["glove_reconnects"] for r in results),
+            "wall_s": wall, "drain_s": drain, "generator_cpu_s": sum(r["generator_cpu_s"] for r in results),
+            "generator_processes": len(results), "generator_cpu_share_max": max(shares),
+            "errors": sum(r["errors"] for r in results),
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
 
-def _accounts(urls: list[str], names: list[str], summaries: list[dict], received: dict, subscribers: int) -> dict:
+def _accounts(urls: list[str], names: list[str], summaries: list[dict], received: dict, subscribers: int,
+              indices: list[int]) -> dict:
     """Per session, over every gateway (or the one service): frames the service sent out to this
     level's subscribers (each gateway's ``frames_out`` times its subscribers of the session), dropped
     for slow subscribers, and delivered; subscriber k of session i listens at gateway (i + k) mod G."""
     out = {}
-    for i, n in enumerate(names):
+    for i, n in zip(indices, names):
         expected = dropped = produced = 0
         for g, by_name in enumerate(summaries):
             here = [k for k in range(subscribers) if (i + k) % len(urls) == g]
@@ -142,7 +267,7 @@ def _accounts(urls: list[str], names: list[str], summaries: list[dict], received
 
 
 async def _until_delivered(urls: list[str], names: list[str], received: dict, subscribers: int, admin: str,
-                           timeout_s: float = 120.0) -> dict:
+                           indices: list[int], timeout_s: float = 120.0) -> dict:
     """Wait until every frame the service produced was received or counted as dropped, for every
     subscriber (the service has handled all it was sent once the gloves are closed); returns the
     accounts (``_accounts``). Bounded: after ``timeout_s`` the accounts show what is missing."""
@@ -154,7 +279,7 @@ async def _until_delivered(urls: list[str], names: list[str], received: dict, su
         for url in urls:
             _, sessions = await asyncio.to_thread(rest, url, "GET", "/v1/sessions", admin)
             summaries.append({s["session"]: s for s in sessions})
-        accounts = _accounts(urls, names, summaries, received, subscribers)
+        accounts = _accounts(urls, names, summaries, received, subscribers, indices)
         if all(a["delivered"] + a["dropped"] >= a["expected"] for a in accounts.values()) \
                 or time.monotonic() > deadline:
             return accounts
@@ -213,17 +338,21 @@ def _recovery(received: dict, killed: dict, subscribers: int) -> dict | None:
 
 def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: bool = False,
               bus_workers: int | None = None, kill_at_s: float | None = None, hand_workers: int | None = None,
-              gateways: int = 1) -> dict:
+              gateways: int = 1, generators: int | None = None) -> dict:
     """One load level in a fresh service process (with ``hand_workers`` hand worker processes; None: the
     service's default), or with ``bus_workers`` a fresh NATS cluster (``gateways`` gateways and that
     many workers). ``kill_at_s``: the worker owning most sessions is killed (SIGKILL) that long into the
-    stream. Returns the level's measured figures."""
+    stream. ``generators``: load-generator processes (None: ``generator_processes``). Returns the level's
+    measured figures."""
     from clients.client import rest
 
+    # one source token streams every glove and one viewer token serves every subscriber
+    limits = {"max_sessions": max(64, hands), "max_sessions_per_token": max(8, hands),
+              "max_connections_per_token": max(32, hands * (subscribers + 1))}
     with contextlib.ExitStack() as stack:
         readings: list = []                        # the workers' CPU seconds at the streaming window's ends
         if bus_workers is None:
-            extra = {} if hand_workers is None else {"hand_workers": hand_workers}
+            extra = {**limits, **({} if hand_workers is None else {"hand_workers": hand_workers})}
             svc = stack.enter_context(service_process(extra_settings=extra))
             urls = [svc.url]
 
@@ -242,7 +371,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                 return {"worker": f"pid {victim}", "sessions": [n for n, p in pids.items() if p == victim]}
         else:
             from .cluster import cluster
-            cl = stack.enter_context(cluster(bus_workers, gateways=gateways))
+            cl = stack.enter_context(cluster(bus_workers, gateways=gateways, extra_settings=limits))
             svc = cl.gateway
             urls = [g.url for g in cl.gateways]
 
@@ -259,7 +388,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                 return {"worker": victim, "sessions": [s for s, o in owners.items() if o == victim]}
         kill = (kill_at_s, kill_busiest) if kill_at_s is not None else None
         lvl = asyncio.run(_level(urls, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
-                                 service_cpu, kill))
+                                 service_cpu, kill, generators))
         w0, w1 = (readings[0], readings[1]) if len(readings) >= 2 else (None, None)
         summaries = [rest(url, "GET", "/v1/sessions", svc.admin)[1] for url in urls]
     every = [x for sessions in summaries for x in sessions if x["session"] in lvl["names"]]   # all gateways
@@ -274,6 +403,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
     rows = [r for v in lvl["received"].values() for r in v]
     lat = np.array([r[1] for r in rows if np.isfinite(r[1])]) * 1e3
     delay = np.array(lvl["delays"]) * 1e3
+    beyond = np.array(lvl["beyond_alignment"]) * 1e3
+    align = np.array(lvl["alignment"]) * 1e3
     delivered = len(rows)
     service_share = None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"]
     worker_share = None if w0 is None or w1 is None else (w1 - w0) / lvl["wall_s"]
@@ -287,6 +418,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                         "max": float(lat.max())} if lat.size else None),
         "schedule_delay_ms": ({"p50": float(np.percentile(delay, 50)), "p99": float(np.percentile(delay, 99)),
                                "max": float(delay.max())} if delay.size else None),
+        "behind_schedule_beyond_alignment_ms": _quantiles(beyond), "alignment_wait_ms": _quantiles(align),
+        "frames_unaccounted": int(sum(max(0, a["expected"] - a["delivered"] - a["dropped"]) for a in accounts.values())),
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
         "source_errors": int(lvl["errors"]),
         "subscriber_reconnects": lvl["subscriber_reconnects"], "glove_reconnects": lvl["glove_reconnects"],
@@ -298,6 +431,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "probe": lvl["probe"],
         "failover": _recovery(lvl["received"], lvl["killed"], subscribers),
         "generator_cpu_share": lvl["generator_cpu_s"] / lvl["wall_s"],
+        "generator_processes": lvl["generator_processes"],
+        "generator_cpu_share_max": lvl["generator_cpu_share_max"],
         "stream_wall_s": lvl["wall_s"],
         "drain_after_stream_s": lvl["drain_s"],
     }
@@ -305,7 +440,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
 
 def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: int = 2, seconds: float = 15.0,
         binary: bool = False, progress: bool = True, bus_workers: int | None = None,
-        kill_at_s: float | None = None, hand_workers: int | None = None, gateways: int = 1) -> str:
+        kill_at_s: float | None = None, hand_workers: int | None = None, gateways: int = 1,
+        generators: int | None = None) -> str:
     from tqdm import tqdm
 
     if not hands or any(h < 1 for h in hands):
@@ -324,10 +460,16 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
         raise ValueError("--kill-worker-at needs hand worker processes (--workers 0 runs the hands in the service)")
     if kill_at_s is not None and not 0 < kill_at_s < seconds:
         raise ValueError(f"--kill-worker-at must lie inside the stream (0 < S < {seconds:g} s), got {kill_at_s:g}")
-    levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways)
+    levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways, generators)
               for h in tqdm(hands, desc="bench load", unit="level", disable=not progress)]
     (out / "results.json").write_text(json.dumps(levels, indent=2))
     return summary(levels, out)
+
+
+def _quantiles(ms: np.ndarray) -> dict | None:
+    if not ms.size:
+        return None
+    return {"p50": float(np.percentile(ms, 50)), "p99": float(np.percentile(ms, 99)), "max": float(ms.max())}
 
 
 def _ms(stats: dict | None) -> str:
@@ -347,20 +489,26 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
         g = first.get("gateways") or 1
         where = f"NATS: {g} gateway{'s' if g > 1 else ''} and {bus_workers} workers, own processes"
     lines = [f"# Load: hands at once, {subscribers} subscribers per hand, {seconds:.0f} s per level, {enc}, {where}", "",
-             "| hands | frames produced | delivered / expected | dropped | send -> receive p50 / p99, ms | "
-             "behind schedule p50 / p99 / max, ms | service still busy after the stream, s | "
-             "service CPU, % of a core | generator CPU, % | integrity violations | source errors | "
+             "| hands | frames produced | delivered / expected | dropped | unaccounted | send -> receive p50 / p99, ms | "
+             "behind schedule beyond the alignment wait p50 / p99 / max, ms | alignment wait p50 / p99, ms | "
+             "service still busy after the stream, s | service CPU, % of a core | "
+             "generator CPU, % of a core (processes; busiest, %) | integrity violations | source errors | "
              "/health p50 / p99, ms | /metrics p50 / p99, ms | reconnects: subscribers / gloves |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         lat = lv["latency_ms"]
         lat_s = "-" if lat is None else f"{lat['p50']:.1f} / {lat['p99']:.1f}"
-        d = lv["schedule_delay_ms"]
-        delay_s = "-" if d is None else f"{d['p50']:.0f} / {d['p99']:.0f} / {d['max']:.0f}"
+        d = lv["behind_schedule_beyond_alignment_ms"]
+        delay_s = "-" if d is None else f"{d['p50']:.1f} / {d['p99']:.1f} / {d['max']:.0f}"
+        a = lv["alignment_wait_ms"]
+        align_s = "-" if a is None else f"{a['p50']:.0f} / {a['p99']:.0f}"
         cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
+        gen = (f"{100 * lv['generator_cpu_share']:.0f} ({lv['generator_processes']}; "
+               f"{100 * lv['generator_cpu_share_max']:.0f})")
         probe = lv.get("probe") or {}
         lines.append(f"| {lv['hands']} | {lv['frames_produced']} | {lv['frames_delivered']} / {lv['frames_expected']} | "
-                     f"{lv['frames_dropped']} | {lat_s} | {delay_s} | {lv['drain_after_stream_s']:.1f} | {cpu} | {100 * lv['generator_cpu_share']:.0f} | "
+                     f"{lv['frames_dropped']} | {lv['frames_unaccounted']} | {lat_s} | {delay_s} | {align_s} | "
+                     f"{lv['drain_after_stream_s']:.1f} | {cpu} | {gen} | "
                      f"{lv['integrity_violations']} | {lv['source_errors']} | {_ms(probe.get('health'))} | {_ms(probe.get('metrics'))} | "
                      f"{lv.get('subscriber_reconnects', '-')} / {lv.get('glove_reconnects', '-')} |")
     front = "web process" if bus_workers is None else "gateways"
@@ -379,15 +527,24 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
             lines.append(f"| {lv['hands']} | {wc} | {fc} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
                          f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
-              "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule: a "
-              "frame's arrival after the moment its tick's data were due to be sent; it includes the pipeline's "
-              "deliberate alignment wait (optical latency 20 ms + reorder window 20 ms) and grows without bound when "
-              "the service falls behind. /health and /metrics: response times measured during the stream by a probe "
+              "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule beyond "
+              "the alignment wait: a frame's arrival after the moment the message that completed its tick (the reorder "
+              "window passed and a pose at or after the tick arrived, `bench latency`'s rule) was due to be sent by the "
+              "source's schedule; it grows without bound when the service or the generator falls behind. Alignment "
+              "wait: the pipeline's deliberate wait, that message's due time minus the tick's (the optics' 20 ms latency "
+              "and the 20 ms reorder window). Unaccounted: frames the service sent out that were neither delivered nor "
+              "counted as dropped. /health and /metrics: response times measured during the stream by a probe "
               "in its own process (one request each every 50 ms, admin token). Reconnects: a subscriber whose connection "
               "dropped (e.g. a keepalive timeout on a starved machine) loses the frames its old connection had queued, "
               "which are then neither delivered nor counted as dropped. Each level runs in a fresh service; "
-              "the generator (gloves and subscribers, one process) shares the machine with it."]
+              f"the generator (gloves and subscribers, {GENERATOR_HANDS} hands per process) shares the machine with it: "
+              "its CPU is the sum over its processes while they stream, the busiest process's share beside it (near "
+              "100 % it would be the bottleneck)."]
     text = "\n".join(lines) + "\n"
     if out is not None:
         (out / "summary.md").write_text(text)
     return text
+
+
+if __name__ == "__main__":
+    sys.exit(_generator_main())
