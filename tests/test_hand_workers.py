@@ -62,6 +62,18 @@ async def _stream(url: str, session: str, hand: str, msgs, paced: bool, sync_eve
     await pub.close()                               # syncs: every message is handled when it returns
 
 
+async def _finish(server, streams, frames: dict, subs: dict, tasks) -> dict:
+    """The streams to their end, every frame the service sent received; the sessions' summaries."""
+    await asyncio.gather(*streams)
+    summary = await asyncio.to_thread(_sessions, server)
+    await _until(lambda: all(len(frames[n]) >= summary[n]["frames_out"] for n in frames), "every frame the service sent")
+    for sub in subs.values():
+        await sub.close()
+    for task in tasks:
+        task.cancel()
+    return summary
+
+
 @pytest.mark.parametrize("how", [signal.SIGKILL, signal.SIGSTOP], ids=["killed", "stopped"])
 def test_a_dead_or_stuck_hand_worker_s_session_moves_on_while_the_other_worker_s_does_not_notice(how):
     """SIGKILL: the worker is gone; SIGSTOP: it is stuck, owes answers and is killed after
@@ -80,14 +92,7 @@ def test_a_dead_or_stuck_hand_worker_s_session_moves_on_while_the_other_worker_s
             assert workers["a"]["pid"] != workers["b"]["pid"]        # one session per worker
             killed_at = len(frames["a"])
             os.kill(workers["a"]["pid"], how)
-            await asyncio.gather(*streams)
-            summary = await asyncio.to_thread(_sessions, server)
-            await _until(lambda: all(len(frames[n]) >= summary[n]["frames_out"] for n in frames),
-                         "every frame the service sent")
-            for sub in subs.values():
-                await sub.close()
-            for task in tasks:
-                task.cancel()
+            summary = await _finish(server, streams, frames, subs, tasks)
             return frames, killed_at, workers, summary
         frames, killed_at, workers, summary = asyncio.run(run())
     a, b = frames["a"], frames["b"]
@@ -131,14 +136,7 @@ def test_a_stopped_worker_s_sessions_move_long_before_the_stall_limit_while_anot
                 return any(f["status"]["reference_poses"]["applied"] > applied[n] for f in frames[n][-50:])
             await _until(lambda: resumed("a") and resumed("c"), "sessions a and c on the other worker")
             b_meanwhile = len(frames["b"]) - b_at_stop
-            await asyncio.gather(*streams)
-            summary = await asyncio.to_thread(_sessions, server)
-            await _until(lambda: all(len(frames[n]) >= summary[n]["frames_out"] for n in frames),
-                         "every frame the service sent")
-            for sub in subs.values():
-                await sub.close()
-            for task in tasks:
-                task.cancel()
+            summary = await _finish(server, streams, frames, subs, tasks)
             return frames, b_meanwhile, summary
         frames, b_meanwhile, summary = asyncio.run(run())
     assert b_meanwhile < 5 * RATE_HZ, f"session b got {b_meanwhile} frames before a and c went on"
