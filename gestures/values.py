@@ -51,8 +51,9 @@ def reference_values(joint_angles, joints, curl_full_long_rad: float, curl_full_
     base = joints["index_proximal"][0]
     d = tip_i - base
     norm = float(np.linalg.norm(d))
-    ray = {"origin": tip_i.tolist(), "direction": (d / norm).tolist()} \
-        if norm > RAY_MIN_LENGTH_M and np.all(np.isfinite(tip_i)) else None
+    with np.errstate(invalid="ignore", divide="ignore"):     # an infinite MCP joint: a NaN direction, as the kernel's
+        ray = {"origin": tip_i.tolist(), "direction": (d / norm).tolist()} \
+            if norm > RAY_MIN_LENGTH_M and np.all(np.isfinite(tip_i)) else None
     return Values(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])), ray)
 
 
