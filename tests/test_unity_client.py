@@ -411,5 +411,8 @@ def test_every_asset_of_the_package_has_a_meta_file_with_a_stable_unique_guid():
             assert importers[asset.suffix] in lines, m
     manifest = json.loads((UNITY / "package.json").read_text())
     assert manifest["name"] == "com.fingertrack.client" and manifest["unity"] == "2021.3"
+    import tomllib
+    project = tomllib.loads((UNITY.parents[1] / "pyproject.toml").read_text())["project"]
+    assert manifest["license"] == project["license"]["text"]                # the project's licence
     for asmdef in UNITY.rglob("*.asmdef"):
         json.loads(asmdef.read_text())                                      # valid JSON
