@@ -651,6 +651,48 @@ def test_a_source_faster_than_the_service_is_refused_overloaded_and_nothing_is_l
         assert _metric(srv, "fingertrack_messages_in_total", "paced") == len(msgs)
 
 
+def _connection_objects(srv) -> int:
+    """The server's WebSocket protocol objects (one per connection, live or uncollected garbage)."""
+    import gc
+    import weakref
+    from asyncio import Protocol
+    return sum(1 for o in gc.get_objects() if type(o) not in (weakref.ProxyType, weakref.CallableProxyType)
+               and isinstance(o, Protocol) and getattr(o, "config", None) is srv.server.config)
+
+
+def _churn(srv, connects: int) -> None:
+    async def go():
+        for i in range(connects):
+            async with connect(f"{srv.ws_url}/v1/stream/churn?token={VIEWER}") as ws:
+                await ws.recv()                                  # the hello
+            with pytest.raises(InvalidStatus):
+                async with connect(f"{srv.ws_url}/v1/stream/churn?token=wrong-{i}"):
+                    pass
+    asyncio.run(go())
+
+
+def test_connections_that_ended_leave_nothing_behind_once_their_cycles_are_collected():
+    """Under the serving process's collector policy (rare young collections), ended connections are
+    reference cycles that wait; the collection after connections end frees them (finding F14, the
+    storm's RSS growth). The same churn with the collection put off leaves them in memory."""
+    from service.api.server import serving_gc
+    settings = ServiceSettings.load(port=0, tokens={VIEWER: "viewer"}, admin_token=ADMIN)
+    with serving_gc():
+        with ServerThread(settings.model_copy(update={"connection_gc_delay_s": 60.0})) as srv:
+            __import__("gc").collect()
+            _churn(srv, 10)
+            assert srv.app.state.churn.collections == 0
+            assert _connection_objects(srv) >= 1                # held until some collection
+        with ServerThread(settings.model_copy(update={"connection_gc_delay_s": 0.2})) as srv:
+            churn = srv.app.state.churn
+            _churn(srv, 10)
+            while churn._pending is not None or churn.collections < 2:   # passes until one saw no end
+                time.sleep(0.05)
+            assert _connection_objects(srv) == 0
+            text = rest(srv.url, "GET", "/metrics", ADMIN)[1]
+            assert f"fingertrack_connection_gc_seconds_count {float(churn.collections)}" in text
+
+
 # -- item 4: kernels and their cache -------------------------------------------------------------------------
 
 def test_the_kernel_cache_is_a_writable_per_user_folder(tmp_path):

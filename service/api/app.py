@@ -1,6 +1,7 @@
 """The FastAPI application, assembled: settings, sessions and metrics on ``app.state``, the routes
 (``routes/``: ``rest``, ``ingest``, ``stream``), the lifespan (recordings flushed periodically,
-idle sessions removed, connections stuck in a send dropped, a graceful drain at shutdown; the hand
+idle sessions removed, connections stuck in a send dropped, a graceful drain at shutdown; the
+memory of ended connections collected soon after they end, ``churn``; the hand
 worker processes, ``hands.pool`` and ``settings.hand_workers``, or with ``settings.bus`` the
 connection to the bus's hand workers) and the web viewer.
 
@@ -31,6 +32,7 @@ from fastapi_offline import FastAPIOffline
 from fastapi.staticfiles import StaticFiles
 
 from ..estimators.warm import warm_off_loop
+from .churn import ChurnCollector, CollectAfterConnections
 from .config import ServiceSettings
 from .hands.pool import HandPool
 from .metrics import Metrics
@@ -46,6 +48,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
     settings = settings.with_admin_token()
     metrics = Metrics()
     sessions = Sessions(settings, metrics)
+    churn = ChurnCollector(settings.connection_gc_delay_s, metrics.connection_gc.observe)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -71,6 +74,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         task = asyncio.create_task(housekeeping())
         yield
         task.cancel()
+        churn.cancel()
         await sessions.drain()
         if sessions.bus is not None:
             await sessions.bus.close()
@@ -81,6 +85,8 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                   description="Finger tracking for VR hand interaction: protocol v1 over WebSocket, REST config.")
     app.state.settings, app.state.sessions, app.state.metrics = settings, sessions, metrics
     app.state.drain = sessions.drain
+    app.state.churn = churn
+    app.add_middleware(CollectAfterConnections, collector=churn)
     for module in (rest, schema, ingest, stream):
         app.include_router(module.router)
     if WEB_VIEWER.is_dir():

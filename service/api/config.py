@@ -87,6 +87,8 @@ class ServiceSettings(BaseSettings):
     max_connections_per_token: int = Field(32, ge=1, description="open WebSockets per (non-admin) token")
     idle_timeout_s: float = Field(300.0, gt=0, description="a session with no source and no subscriber for this long "
                                   "is removed and its recording closed, s")
+    connection_gc_delay_s: float = Field(1.0, gt=0, le=60, description="a cycle collection (and a heap trim) this "
+                                         "long after WebSocket connections ended frees their memory, s (api/churn.py)")
     hand_workers: int = Field(2, ge=0, le=64, description="worker processes that run the sessions' hands (each "
                               "session in one of them); 0: every hand on the web process's event loop")
     hand_worker_stall_s: float = Field(10.0, gt=0, le=600, description="a hand worker that answers nothing for this "

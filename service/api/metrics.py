@@ -2,7 +2,7 @@
 process, as the tests do). Series labelled by session are shown to admins only (``render``)."""
 from __future__ import annotations
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Summary, generate_latest
 from prometheus_client.registry import Collector
 
 
@@ -19,6 +19,9 @@ class Metrics:
                                    registry=self.registry)
         self.worker_restarts = Counter("fingertrack_hand_worker_restarts", "hand worker processes restarted after "
                                        "they ended (a crash, a kill)", registry=self.registry)
+        self.connection_gc = Summary("fingertrack_connection_gc_seconds", "cycle collections (and heap trims) run "
+                                     "on the event loop after WebSocket connections ended (api/churn.py)",
+                                     registry=self.registry)
         self.sessions = Gauge("fingertrack_sessions", "live sessions", registry=self.registry)
         self.subscribers = Gauge("fingertrack_subscribers", "connected subscribers", registry=self.registry)
         self.latency = Histogram("fingertrack_ingest_to_send_seconds", "time from receiving a source message to sending "

@@ -899,7 +899,9 @@ async def _storm(svc: ServiceProcess, connects: int, concurrency: int) -> Counte
 
     async def one(i: int):
         kind = ("stream", "ingest", "abort", "refused")[i % 4]
-        session = f"storm-{i % 4}"
+        # sources into four sessions in turn: a newer connection of a token takes its session over
+        # (the older one is closed), which two concurrent connects into one session would count as failed
+        session = f"storm-{i % 4}" if kind != "ingest" else f"storm-in-{(i // 4) % 4}"
         async with sem:
             try:
                 if kind == "stream":
@@ -944,27 +946,46 @@ async def _viewer_creates(svc: ServiceProcess, names: list[str]) -> int:
     return after - before
 
 
-def run_storm(out: Path, connects: int, concurrency: int = 8, settle_seconds: float = 30.0) -> dict:
+def _metric_sum(text: str, name: str) -> float:
+    """The value of an unlabelled series in Prometheus exposition text (0 if absent)."""
+    line = next((x for x in text.splitlines() if x.startswith(name + " ")), None)
+    return 0.0 if line is None else float(line.split()[-1])
+
+
+def run_storm(out: Path, connects: int, concurrency: int = 8, rounds: int = 4, settle_seconds: float = 30.0,
+              after_idle_seconds: float = 3.0) -> dict:
+    """``connects`` connects in ``rounds`` equal rounds; after each, once every connection is gone
+    (bounded by ``settle_seconds``) and ``after_idle_seconds`` more, the service's RSS and fds: a leak
+    grows round after round, memory held only until a collection does not."""
     from clients.client import rest
     log = out / "logs" / "storm.log"
     with service_process(log_path=log) as svc:
         time.sleep(1.0)
         rss0, fd0 = svc.rss_kib(), svc.fds()
-        t0 = time.perf_counter()
-        outcomes = asyncio.run(_storm(svc, connects, concurrency))
-        wall = time.perf_counter() - t0
-        deadline = time.monotonic() + settle_seconds
-        while time.monotonic() < deadline:                      # until every connection is gone, bounded
-            status, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
-            if status == 200 and all(s.get("subscribers", 0) == 0 and s.get("sources", 0) == 0 for s in sessions):
-                break
-            time.sleep(0.5)
-        time.sleep(1.0)
-        rss1, fd1 = svc.rss_kib(), svc.fds()
+        outcomes: Counter = Counter()
+        per_round, wall = [], 0.0
+        for k in range(rounds):
+            n = connects // rounds + (k < connects % rounds)
+            t0 = time.perf_counter()
+            outcomes += asyncio.run(_storm(svc, n, concurrency))
+            wall += time.perf_counter() - t0
+            deadline = time.monotonic() + settle_seconds
+            while time.monotonic() < deadline:                  # until every connection is gone, bounded
+                status, sessions = rest(svc.url, "GET", "/v1/sessions", svc.admin)
+                if status == 200 and all(s.get("subscribers", 0) == 0 and s.get("sources", 0) == 0 for s in sessions):
+                    break
+                time.sleep(0.5)
+            time.sleep(after_idle_seconds)
+            per_round.append((n, svc.rss_kib(), svc.fds()))
+        metrics = rest(svc.url, "GET", "/metrics", svc.admin)[1]
         created = asyncio.run(_viewer_creates(svc, [f"typo-{i}" for i in range(3)]))
-    return {"connects": connects, "wall_s": wall, "outcomes": dict(outcomes), "rss_before_kib": rss0,
-            "rss_after_kib": rss1, "fds_before": fd0, "fds_after": fd1, "viewer_created_sessions": created,
-            "viewer_attempts": 3, "tracebacks": _tracebacks(log)}
+    rss1, fd1 = per_round[-1][1], per_round[-1][2]
+    return {"connects": connects, "rounds": per_round, "wall_s": wall, "outcomes": dict(outcomes),
+            "rss_before_kib": rss0, "rss_after_kib": rss1, "rss_first_round_kib": per_round[0][1],
+            "fds_before": fd0, "fds_after": fd1, "fds_max": max(r[2] for r in per_round),
+            "gc_collections": int(_metric_sum(metrics, "fingertrack_connection_gc_seconds_count")),
+            "gc_seconds": _metric_sum(metrics, "fingertrack_connection_gc_seconds_sum"),
+            "viewer_created_sessions": created, "viewer_attempts": 3, "tracebacks": _tracebacks(log)}
 
 
 # -- part 5: kill -9 while recording ---------------------------------------------------------------
@@ -1161,6 +1182,10 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
         ("storm", "service RSS before -> after, MiB", "<= +5 %",
          f"{storm['rss_before_kib'] / 1024:.0f} -> {storm['rss_after_kib'] / 1024:.0f}",
          storm["rss_after_kib"] <= 1.05 * storm["rss_before_kib"]),
+        ("storm", f"service RSS after the first -> the last of {len(storm['rounds'])} rounds, MiB (a leak grows "
+         "round after round)", "<= +1 %",
+         f"{storm['rss_first_round_kib'] / 1024:.1f} -> {storm['rss_after_kib'] / 1024:.1f}",
+         storm["rss_after_kib"] <= 1.01 * storm["rss_first_round_kib"]),
         ("storm", "tracebacks in the service log", "0", storm["tracebacks"], storm["tracebacks"] == 0),
         ("storm", f"sessions a viewer token created ({storm['viewer_attempts']} subscriptions to new names)", "0",
          storm["viewer_created_sessions"], storm["viewer_created_sessions"] == 0),
@@ -1237,7 +1262,10 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
               f"real-time stream; {never['dropped_frames']} frames dropped for them; service fds at the end "
               f"{never['service_fds']}.",
               f"Storm outcomes: {', '.join(f'{k} {v}' for k, v in sorted(storm['outcomes'].items()))} "
-              f"in {storm['wall_s']:.1f} s.",
+              f"in {storm['wall_s']:.1f} s; RSS (MiB) / fds after each round of "
+              f"{storm['rounds'][0][0]}: " + ", ".join(f"{r[1] / 1024:.1f} / {r[2]}" for r in storm["rounds"])
+              + f" (before: {storm['rss_before_kib'] / 1024:.1f} / {storm['fds_before']}); "
+              f"{storm['gc_collections']} collections after connections ended, {storm['gc_seconds']:.2f} s in all.",
               "Kill -9 trials: " + "; ".join(f"after {k['killed_after_s']:.1f} s: {k['lines']} lines, {k['bad_lines']} bad, "
                                             f"lost {_fmt(k['lost_s'])} s, replay exit {k['replay_exit']}" for k in kills),
               f"Soak: RSS {soak['rss_start_kib'] / 1024:.1f} -> {soak['rss_end_kib'] / 1024:.1f} MiB, fds "
