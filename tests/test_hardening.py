@@ -693,6 +693,69 @@ def test_connections_that_ended_leave_nothing_behind_once_their_cycles_are_colle
             assert f"fingertrack_connection_gc_seconds_count {float(churn.collections)}" in text
 
 
+def test_replies_leave_in_the_order_of_the_messages_overloaded_refusals_included():
+    """Each message is followed by a sentinel of its own (an unknown type ``__sK__``, always answered or
+    refused): with a backlog of 8 the service falls behind and refuses data messages ``overloaded``,
+    and every reply still comes after the replies to all earlier messages: a reply naming message k
+    (its ``t``) or sentinel k arrives after sentinel k-1's and before sentinel k's."""
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source"}, admin_token=ADMIN, ingest_backlog_messages=8)
+    data = [m for m in _messages(seed=3, motion="sequence") if m["type"] in ("pose", "imu", "imu_batch")][:600]
+
+    def t_of(m):
+        return m["samples"][0]["t"] if m["type"] == "imu_batch" else m["t"]
+
+    async def go(url):
+        async with connect(f"{url}/v1/ingest/order?token={SOURCE}", max_size=None) as ws:
+            await ws.send(json.dumps(HELLO))
+            assert json.loads(await ws.recv())["type"] == "hello"
+            for k, m in enumerate(data):
+                await ws.send(json.dumps(m))
+                await ws.send(json.dumps({"type": f"__s{k}__"}))
+            replies = []
+            while not replies or f"__s{len(data) - 1}__" not in replies[-1]["detail"]:
+                replies.append(json.loads(await ws.recv()))
+            return replies
+
+    with ServerThread(settings) as srv:
+        replies = asyncio.run(go(srv.ws_url))
+    owner = {}                                   # the messages a data reply may name, by their time
+    for k, m in enumerate(data):
+        owner.setdefault(f"{m['type']} at t={t_of(m)}", set()).add(k)
+    k, overloaded = 0, 0                         # k: the first message whose sentinel is not answered yet
+    for r in replies:
+        assert r["type"] == "error", r
+        named = r["detail"].split(":")[0]
+        if r["code"] == "unknown_type" or named.startswith("__s"):   # a sentinel: answered, or refused itself
+            assert named == f"__s{k}__" or f"'__s{k}__'" in r["detail"], (k, r)
+            k += 1
+        else:
+            assert r["code"] == "overloaded" and k in owner.get(named, ()), (k, r)
+            overloaded += 1
+    assert k == len(data) and overloaded > 0
+
+
+def test_replies_to_refused_messages_wait_in_their_place_within_a_bound():
+    """A refused message's reply takes its place among the received messages, outside their bounds;
+    the replies waiting at a time are bounded (the route closes a source beyond it)."""
+    from service.api.backlog import REPLY_OVERHEAD_BYTES, IngestBacklog
+
+    async def go():
+        backlog = IngestBacklog(max_messages=2, max_bytes=1024)
+        assert backlog.put({"n": 0}, 10, lambda: True) and backlog.put({"n": 1}, 10, lambda: True)
+        assert not backlog.put({"n": 2}, 10, lambda: True)          # full: the data message is refused
+        detail = "x" * 100
+        fitted = 0
+        while backlog.put_reply(("overloaded", detail)):
+            fitted += 1
+        assert fitted == backlog.max_reply_bytes // (len(detail) + REPLY_OVERHEAD_BYTES) and len(backlog) == 2
+        assert backlog.put({"type": "sync"}, 10, lambda: False)     # state and questions still queued
+        order = [await backlog.get() for _ in range(fitted + 3)]
+        assert order[:2] == [{"n": 0}, {"n": 1}] and order[-1] == {"type": "sync"}
+        assert order[2:-1] == [("overloaded", detail)] * fitted and len(backlog) == 0
+        assert backlog.put_reply(("overloaded", detail))            # room again once they left
+    asyncio.run(go())
+
+
 # -- item 4: kernels and their cache -------------------------------------------------------------------------
 
 def test_the_kernel_cache_is_a_writable_per_user_folder(tmp_path):

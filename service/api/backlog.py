@@ -9,14 +9,18 @@ had sent and the service not yet read was lost without a word.)
 
 The backlog holds at most ``ingest_backlog_messages`` messages and ``ingest_backlog_bytes`` bytes.
 When it is full the service cannot keep up with the source: every data message (``pose``, ``imu``,
-``imu_batch``) received from then on is refused at once with an ``overloaded`` error reply until the
+``imu_batch``) received from then on is refused with an ``overloaded`` error reply until the
 backlog has drained to half its bound (counted: the session summary's ``overloaded``, the frame
 status's ``dropped.overloaded`` and ``fingertrack_overloaded_messages_total``). Other messages
 (``hello``, ``calibration``, ``reference_pose``, ``sync``, anything unparsable) are few and carry
 state or a question: they are queued even then, up to twice the bound, so a ``sync`` is answered.
 Nothing received is dropped without a reply: a message is processed, or refused with a reply.
-Replies come in the order of the messages (a message refused at the door for its size or the rate
-limit is answered when the processor reaches its place), except ``overloaded``, which is sent at once.
+Replies leave in the order of the messages they answer, refusals included: a message refused at the
+door (``overloaded``, or its size, or the rate limit) is answered when the processor reaches its
+place (``put_reply``: its reply, not the message, is queued, outside the bounds above). Such replies
+waiting at a time are bounded too, to a quarter of ``ingest_backlog_bytes`` (64 KiB at least; each counted as its text
+plus ``REPLY_OVERHEAD_BYTES``: 8 MiB, some 25,000 replies by default); a source that keeps sending
+beyond that is closed with 1013 and the reason (what it sent before is still processed).
 
 A source that must not lose data paces itself: the Python ``Publisher`` keeps at most
 ``max_unconfirmed`` messages beyond its last answered ``sync`` (flow control), well inside the
@@ -28,6 +32,8 @@ import asyncio
 from collections import deque
 
 DATA_TYPES = ("pose", "imu", "imu_batch")
+REPLY_OVERHEAD_BYTES = 200
+"""What a queued reply takes beyond its detail's text (the tuples that hold it), counted generously."""
 """What an overloaded session refuses (the rest carries state and is always queued)."""
 
 
@@ -37,25 +43,30 @@ class IngestBacklog:
 
     def __init__(self, max_messages: int, max_bytes: int):
         self.max_messages, self.max_bytes = max_messages, max_bytes
+        self.max_reply_bytes = max(max_bytes // 4, 1 << 16)
+        """Replies to refused messages that may wait for their place (``put_reply``), bytes."""
         self._items: deque = deque()
         self._bytes = 0
+        self._messages = 0                   # received messages in _items (the rest: replies, the end)
+        self._reply_bytes = 0
         self._ready = asyncio.Event()
         self.overloaded = False
         """True from the moment the backlog was full until it drained to half."""
 
     def __len__(self) -> int:
-        return len(self._items)
+        """Received messages waiting (not the replies to refused ones)."""
+        return self._messages
 
     def _fits(self, size: int, factor: int = 1) -> bool:
-        if not self._items:                  # one message always fits (a single one larger than the byte bound)
+        if not self._messages:               # one message always fits (a single one larger than the byte bound)
             return True
-        return len(self._items) < factor * self.max_messages and self._bytes + size <= factor * self.max_bytes
+        return self._messages < factor * self.max_messages and self._bytes + size <= factor * self.max_bytes
 
     def put(self, item, size: int, data_message) -> bool:
         """Queue a received message of ``size`` bytes; ``False`` if it is refused because the service
         cannot keep up. ``data_message()`` says whether it is a data message (asked only when it
         might be refused; other messages are queued up to twice the bound)."""
-        if self.overloaded and len(self._items) <= self.max_messages // 2 and self._bytes <= self.max_bytes // 2:
+        if self.overloaded and self._messages <= self.max_messages // 2 and self._bytes <= self.max_bytes // 2:
             self.overloaded = False
         if self.overloaded or not self._fits(size):
             if data_message():
@@ -65,6 +76,18 @@ class IngestBacklog:
                 return False
         self._items.append((item, size))
         self._bytes += size
+        self._messages += 1
+        self._ready.set()
+        return True
+
+    def put_reply(self, reply: tuple[str, str]) -> bool:
+        """Queue the ``(code, detail)`` error reply of a message refused at the door, in the message's
+        place (``get`` returns the tuple); ``False`` if ``max_reply_bytes`` of replies wait already."""
+        size = len(reply[1]) + REPLY_OVERHEAD_BYTES
+        if self._reply_bytes + size > self.max_reply_bytes:
+            return False
+        self._items.append((reply, -size))
+        self._reply_bytes += size
         self._ready.set()
         return True
 
@@ -78,5 +101,9 @@ class IngestBacklog:
             self._ready.clear()
             await self._ready.wait()
         item, size = self._items.popleft()
-        self._bytes -= size
+        if size < 0:                         # a reply in a refused message's place
+            self._reply_bytes += size
+        elif item is not None:
+            self._bytes -= size
+            self._messages -= 1
         return item

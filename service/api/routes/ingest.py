@@ -15,7 +15,7 @@ from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, pa
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
 from ..config import ServiceSettings
-from ..deps import WS_POLICY_VIOLATION, MetricsDep, Role, SessionsDep, SettingsDep
+from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
 from ..backlog import DATA_TYPES, IngestBacklog
 from ..replies import drop_replies, failure_reply
@@ -127,12 +127,16 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 break
             size = _size(data)
             refused = _admit(size, settings, bucket)
-            # a refusal at the door is answered in order too (after the replies to earlier messages)
-            item, size = (data, size) if refused is None else ({"type": "refused", "reply": refused}, 0)
-            if not backlog.put(item, size, lambda: refused is None and _is_data(data)):
+            if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
                 live.overloaded += 1
                 metrics.overloaded.labels(session).inc()
-                await send_error(ws, metrics, *_overload_reply(data, backlog))      # at once
+                refused = _overload_reply(data, backlog)
+            # a refusal is answered in the message's place, after the replies to every earlier one
+            if refused is not None and not backlog.put_reply(refused):
+                metrics.disconnects.labels("overloaded").inc()
+                await _close_quietly(ws, WS_TRY_AGAIN_LATER, close_reason(
+                    f"overloaded: {backlog.max_reply_bytes} bytes of replies to refused messages wait; send less"))
+                break
     except (WebSocketDisconnect, RuntimeError):   # RuntimeError: the processor closed the connection
         pass
     finally:
@@ -166,8 +170,8 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
 
     greeted = False
     while (data := await backlog.get()) is not None:
-        if data["type"] == "refused":
-            await reply(*data["reply"])
+        if isinstance(data, tuple):          # the reply to a message refused at the door, in its place
+            await reply(*data)
             continue
         binary = data.get("bytes") is not None
         partial = None
