@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Smoke test of the service image: build it with docker or podman, start it, and check /health, that
 # the startup lines reach the container log, a glove stream seen by a subscriber, and a recording
-# that 'fingertrack replay' reads. Exit 0: all passed; 1: a check failed; 3: no container engine (or
-# one that builds but cannot start containers here).
+# that 'fingertrack replay' reads. Exit 0: all passed; 1: a check failed; 3: nothing could be tested
+# here (no container engine, the base image neither stored nor reachable, or an engine that builds but
+# cannot start containers).
 #   docker/smoke.sh                 (ENGINE=docker or ENGINE=podman to choose; PORT=18765 by default)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -36,6 +37,13 @@ FORMAT=()
 fail() { echo "smoke: FAILED: $*" >&2; "$ENGINE" logs "$NAME" >&2 || true; exit 1; }
 cleanup() { "$ENGINE" rm -f "$NAME" >/dev/null 2>&1 || true; }
 trap cleanup EXIT
+
+BASE="python:3.11-slim"
+if ! "$ENGINE" image inspect "$BASE" >/dev/null 2>&1 && ! "$ENGINE" pull "$BASE" >/dev/null 2>&1; then
+    echo "smoke: $ENGINE works, but the base image $BASE is neither in its store nor reachable (offline?);" \
+         "nothing was built or tested" >&2
+    exit 3
+fi
 
 echo "smoke: building $IMAGE with $ENGINE"
 start=$(date +%s)

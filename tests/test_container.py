@@ -98,3 +98,26 @@ def test_dockerfile_installs_dependencies_before_the_source_and_runs_unprivilege
     assert "HEALTHCHECK" in runtime and "--format docker" in text
     ignore = (ROOT / ".dockerignore").read_text().splitlines()
     assert ignore[ignore.index("*") + 1:] and "!service/" in ignore and "!.git" not in ignore
+
+
+def _smoke(tmp_path, engine_script: str | None):
+    """``docker/smoke.sh`` with a PATH that holds only ``dirname`` and, if given, a fake ``docker``."""
+    import shutil
+    if not (tmp_path / "dirname").exists():
+        (tmp_path / "dirname").symlink_to(shutil.which("dirname"))
+    if engine_script is not None:
+        fake = tmp_path / "docker"
+        fake.write_text("#!/bin/sh\n" + engine_script)
+        fake.chmod(0o755)
+    return subprocess.run([shutil.which("bash"), str(ROOT / "docker" / "smoke.sh")], env={"PATH": str(tmp_path)},
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_the_smoke_test_says_so_when_it_cannot_test_anything_here(tmp_path):
+    """Exit 3 with a sentence, not a failure of the image: no engine at all; an engine without the base
+    image (offline, nothing in its store)."""
+    done = _smoke(tmp_path, None)
+    assert done.returncode == 3 and "neither docker nor podman can run containers here" in done.stderr
+    done = _smoke(tmp_path, '[ "$1" = info ] && exit 0\nexit 1\n')    # works; has no base image, cannot pull
+    assert done.returncode == 3 and "base image python:3.11-slim is neither in its store nor reachable" in done.stderr
+    assert "building" not in done.stdout

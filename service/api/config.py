@@ -1,7 +1,7 @@
 """Service settings (pydantic-settings): environment variables ``FINGERTRACK_*`` and an optional
 JSON or ``.env`` file given with ``--config`` (or ``FINGERTRACK_CONFIG``). Every field has a unit and
 a default; unknown names are errors. ``ServiceSettings.load`` checks everything before the service
-opens its port (tokens, the default estimator, the listen address) and turns any mistake into one
+opens its port (tokens, the default estimator, the listen address, the recording folder) and turns any mistake into one
 ``SettingsError`` line per bad setting, naming it (never a token's value)."""
 from __future__ import annotations
 
@@ -175,12 +175,27 @@ class ServiceSettings(BaseSettings):
         if not settings.open_access and settings.host not in ("127.0.0.1", "localhost", "::1"):
             raise SettingsError(f"setting 'host': {settings.host!r} is not loopback; set open_access "
                                 "(FINGERTRACK_OPEN_ACCESS=true) to listen there")
+        if settings.record_dir is not None and (problem := _unusable_folder(Path(settings.record_dir))):
+            raise SettingsError(f"setting 'record_dir': {settings.record_dir!r} {problem}")
         from ..estimators.registry import estimator_class
         try:
             estimator_class(settings.estimator)
         except ValueError as err:
             raise SettingsError(f"setting 'estimator': {err}") from None
         return settings
+
+
+def _unusable_folder(path: Path) -> str | None:
+    """Why recordings cannot be written into ``path`` (created when first needed), or ``None``."""
+    import os
+    existing = path
+    while not existing.exists() and existing.parent != existing:
+        existing = existing.parent
+    if not existing.is_dir():
+        return "is not a folder" if existing == path else f"cannot be created ({str(existing)!r} is not a folder)"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return "is not writable" if existing == path else f"cannot be created ({str(existing)!r} is not writable)"
+    return None
 
 
 def describe_validation_error(err: ValidationError, what: str, prefix: str = "") -> str:
