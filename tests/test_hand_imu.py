@@ -120,3 +120,80 @@ def test_linear_map_fit_recovers_a_known_map():
         fit.update(x, 1.0, m @ x + c, forget=1.0)
     np.testing.assert_allclose(fit.map, m, atol=1e-5)
     np.testing.assert_allclose(fit.offset, c, atol=1e-5)
+
+
+def test_a_live_server_uses_it_and_its_recording_replays_to_the_live_frames(tmp_path):
+    """A glove with a back-of-hand IMU streams to a live server that records, through an occlusion:
+    no error, no sample dropped as from an unknown sensor; the live frames equal those of replaying
+    the service's recording, and differ from replaying it without the IMU's messages (the service
+    used them)."""
+    import asyncio
+    import json
+
+    from clients.client import Subscription, rest
+    from clients.glove import stream_glove
+    from service.api.config import ServiceSettings
+    from service.api.server import ServerThread
+    from service.pipeline.tracked import replay
+    from service.protocol import parse_line
+    from service.sim.motions import sequence_motion
+    from test_service import ADMIN, SOURCE, VIEWER, _wait_for, _wait_for_last_frame
+
+    config = SimConfig(motion="sequence", noise="both", seed=5, hand_motion="slow-rotation", metacarpus_imu=True,
+                       finger_motion=sequence_motion(steps=(("point", 0.8), ("grasp", 0.8))),
+                       optical=OpticalModel(occlusions_s=((1.5, 2.1),)))
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    record_dir=str(tmp_path))
+    with ServerThread(settings) as srv:
+        assert rest(srv.url, "PUT", "/v1/sessions/backimu/config", ADMIN, {"record": True})[0] == 200
+
+        async def go():
+            received = []
+            sub = Subscription(srv.ws_url, "backimu", VIEWER)
+
+            async def collect():
+                async for m in sub:
+                    received.append((None, m))
+
+            task = asyncio.create_task(collect())
+            await _wait_for(lambda: sub.server_hello is not None, "the subscription's hello")
+            pub = await stream_glove(srv.url, "backimu", SOURCE, config, speed=4.0)
+            await pub.close()
+            await _wait_for_last_frame(srv, "backimu", received)
+            await sub.close()
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+            return [m for _, m in received], pub
+
+        received, pub = asyncio.run(go())
+        path = next(s for s in rest(srv.url, "GET", "/v1/sessions", ADMIN)[1] if s["session"] == "backimu")["recording"]
+        assert rest(srv.url, "PUT", "/v1/sessions/backimu/config", ADMIN, {"record": False})[0] == 200
+    assert not pub.errors, list(pub.errors)
+    frames = [m for m in received if m["type"] == "frame"]
+    assert len(frames) > 100 and frames[-1]["status"]["dropped"]["unknown_sensor"] == 0
+    assert any(f["status"]["optics"] == "occluded" for f in frames)
+    with open(path) as fh:
+        recorded = [json.loads(line) for line in fh]
+
+    def samples(m):
+        return m["samples"] if m["type"] == "imu_batch" else [m] if m["type"] == "imu" else []
+
+    assert sum(s["id"] == "metacarpus" for m in recorded for s in samples(m)) > 100
+    stripped = []                              # the same recording without the back-of-hand IMU
+    for m in recorded:
+        if m["type"] == "imu_batch":
+            m = {**m, "samples": [s for s in m["samples"] if s["id"] != "metacarpus"]}
+            if not m["samples"]:
+                continue
+        elif m["type"] == "imu" and m["id"] == "metacarpus":
+            continue
+        stripped.append(m)
+
+    def angles(msgs):
+        return {m["seq"]: json.dumps(m["fingers"], sort_keys=True) for m in msgs if m["type"] == "frame"}
+
+    live = angles(frames)
+    replayed = angles(replay(parse_line(json.dumps(m)) for m in recorded))
+    without = angles(replay(parse_line(json.dumps(m)) for m in stripped))
+    assert all(replayed[seq] == a for seq, a in live.items())
+    assert any(without.get(seq) != a for seq, a in live.items())
