@@ -8,7 +8,9 @@
   its options survive a reconnect.
 
 Both report every retry through ``on_event`` (a callable taking one line of text; by default the
-``fingertrack.client`` logger), e.g. "no service at ws://host:8765/v1/ingest/s, retrying in 3.2 s". A
+``fingertrack.client`` logger), e.g. "no service at ws://host:8765/v1/ingest/s, retrying in 3.2 s"; the ``Publisher`` also reports each
+reconnect, what it sent again and how many messages of the dropped connection were never confirmed
+(``unconfirmed_at_drops``). A
 refusal that retrying cannot fix (a bad token or role, a token not valid for the session, another
 source on the session, an unsupported protocol) raises ``Refused`` with the service's reason. URLs
 in these lines and errors never show the token.
@@ -173,6 +175,10 @@ class Publisher:
         self._confirmed = self._confirmed_bytes = 0  # of those, handled by the service
         self._marks: dict[int, tuple[int, int]] = {}  # sync id -> (messages, bytes) sent before it
         self._progress = asyncio.Event()              # a sync was answered, or the connection ended
+        self.unconfirmed_at_drops = 0
+        """Messages sent on connections that dropped before the service confirmed them (a ``sync``
+        answered): they may be lost; each drop is reported through ``on_event``."""
+        self._dropped: int | None = None              # unconfirmed messages of the last drop, until reconnected
 
     async def connect(self) -> None:
         try:
@@ -187,6 +193,11 @@ class Publisher:
         if reply.get("type") == "error":
             raise Refused(f"{_shown(self.url)}: {reply['code']}: {reply['detail']}")
         self.server_hello = reply
+        if self._dropped is not None:
+            resent = "hello and calibration" if self.calibration is not None else "hello"
+            self.on_event(f"reconnected to {_shown(self.url)}; resent {resent}; "
+                          f"{self._dropped} messages sent on the dropped connection were not confirmed and may be lost")
+            self._dropped = None
         self._sent = self._sent_bytes = self._confirmed = self._confirmed_bytes = 0
         self._marks.clear()
         if self.calibration is not None:
@@ -252,6 +263,9 @@ class Publisher:
                     refused = Refused(f"{_shown(self.url)}: closed by the service ({err.rcvd.code}: {err.rcvd.reason})")
                 if refused is not None:
                     raise refused from None
+                if ws is not None and self._dropped is None:       # a connection that was up dropped
+                    self._dropped = self._sent - self._confirmed
+                    self.unconfirmed_at_drops += self._dropped
                 delay = self.backoff.next()
                 self.reconnects += 1
                 self.on_event(_retry_line(self.url, ws, err, delay))

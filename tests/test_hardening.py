@@ -567,6 +567,46 @@ async def _refusals_and_retries(server):
     return out
 
 
+def test_the_publisher_reports_a_reconnect_what_it_resent_and_what_may_be_lost():
+    """The service restarts on the same port between two messages: the Publisher reports the drop, the
+    reconnect, that it sent hello and calibration again and how many messages were unconfirmed."""
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source"}, admin_token=ADMIN)
+    msgs = _messages()
+    calibration = next(i for i, m in enumerate(msgs) if m["type"] == "calibration")
+    lines = []
+
+    async def go(port):
+        pub = Publisher(f"http://127.0.0.1:{port}", "again", SOURCE, on_event=lines.append)
+        for m in msgs[calibration:calibration + 20]:
+            await pub.send(m)
+        await pub.sync()
+        for m in msgs[calibration + 20:calibration + 25]:          # sent, not confirmed
+            await pub.send(m)
+        return pub
+
+    async def rest_of(pub):
+        for m in msgs[calibration + 25:calibration + 60]:
+            await pub.send(m)
+        await pub.close()
+        return pub
+
+    with ServerThread(settings) as first:
+        port = first.settings.port
+        loop = asyncio.new_event_loop()
+        pub = loop.run_until_complete(go(port))
+    with ServerThread(settings.model_copy(update={"port": port})) as second:
+        pub = loop.run_until_complete(rest_of(pub))
+        loop.close()
+        assert _sessions(second)["again"]["sources"] == 0
+    reconnected = [x for x in lines if x.startswith("reconnected to")]
+    assert len(reconnected) == 1 and pub.reconnects >= 1 and SOURCE not in reconnected[0]
+    assert "resent hello and calibration" in reconnected[0]
+    assert f"{pub.unconfirmed_at_drops} messages sent on the dropped connection" in reconnected[0]
+    # the five after the sync, and those sent before the client saw the connection gone
+    assert 5 <= pub.unconfirmed_at_drops <= 40
+    assert any("retrying in" in x for x in lines)
+
+
 def test_a_subscriber_that_never_reads_is_disconnected_and_forgotten():
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
                                     subscriber_send_timeout_s=1.0)
