@@ -228,7 +228,8 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
         if await proc.wait() != 0 or not out.strip():
             raise RuntimeError("a load-generator process failed")
         results.append(json.loads(out.strip().splitlines()[-1]))
-    drain = time.perf_counter() - wall0 - wall
+    service2, busy_wall = service_cpu(), time.perf_counter() - wall0      # every frame delivered or dropped
+    drain = busy_wall - wall
     received = {(n, k): [tuple(r) for r in rows] for res in results for n, k, rows in res["received"]}
     shares = [r["generator_cpu_s"] / r["wall_s"] for r in results]
     return {"names": [f"load-{i}" for i in range(hands)],
@@ -241,7 +242,10 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
             "accounts": {n: a for r in results for n, a in r["accounts"].items()},
             "glove_reconnects": sum(r["glove_reconnects"] for r in results),
             "wall_s": wall, "drain_s": drain, "generator_cpu_s": sum(r["generator_cpu_s"] for r in results),
-            "generator_processes": len(results), "generator_cpu_share_max": max(shares),
+            "generator_processes": len(results), "generator_cpu_share": sum(shares),
+            "generator_cpu_share_max": max(shares),
+            "service_cpu_until_drained_s": None if service0 is None or service2 is None else service2 - service0,
+            "until_drained_wall_s": busy_wall,
             "errors": sum(r["errors"] for r in results),
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
@@ -421,6 +425,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "behind_schedule_beyond_alignment_ms": _quantiles(beyond), "alignment_wait_ms": _quantiles(align),
         "frames_unaccounted": int(sum(max(0, a["expected"] - a["delivered"] - a["dropped"]) for a in accounts.values())),
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
+        "hand_worker_restarts": sum(x.get("worker", {}).get("restarts", 0) for x in every),
         "source_errors": int(lvl["errors"]),
         "subscriber_reconnects": lvl["subscriber_reconnects"], "glove_reconnects": lvl["glove_reconnects"],
         "service_cpu_share": service_share,
@@ -430,7 +435,11 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "web_cpu_share": None if service_share is None or worker_share is None else service_share - worker_share,
         "probe": lvl["probe"],
         "failover": _recovery(lvl["received"], lvl["killed"], subscribers),
-        "generator_cpu_share": lvl["generator_cpu_s"] / lvl["wall_s"],
+        "generator_cpu_share": lvl["generator_cpu_share"],
+        "service_cpu_share_until_drained": (None if lvl["service_cpu_until_drained_s"] is None
+                                            else lvl["service_cpu_until_drained_s"] / lvl["until_drained_wall_s"]),
+        "worker_cpu_share_until_drained": (None if len(readings) < 3 or None in readings[:3]
+                                           else (readings[2] - readings[0]) / lvl["until_drained_wall_s"]),
         "generator_processes": lvl["generator_processes"],
         "generator_cpu_share_max": lvl["generator_cpu_share_max"],
         "stream_wall_s": lvl["wall_s"],
@@ -512,19 +521,23 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
                      f"{lv['integrity_violations']} | {lv['source_errors']} | {_ms(probe.get('health'))} | {_ms(probe.get('metrics'))} | "
                      f"{lv.get('subscriber_reconnects', '-')} / {lv.get('glove_reconnects', '-')} |")
     front = "web process" if bus_workers is None else "gateways"
-    lines += ["", f"| hands | workers' CPU, % of a core | {front}' CPU, % | worker killed | sessions on it | "
+    lines += ["", f"| hands | workers' CPU, % of a core | {front}' CPU, % | service CPU until every frame was delivered, % "
+              "(workers') | hand worker restarts | worker killed | sessions on it | "
               "kill -> first frame after it, max s | frames never produced | source messages resent / lost |",
-              "|---|---|---|---|---|---|---|---|"]
+              "|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
         svc, work = lv["service_cpu_share"], lv["worker_cpu_share"]
         fc = "-" if svc is None or work is None else f"{100 * (svc - work):.0f}"
         fo = lv["failover"]
+        sd, wd = lv.get("service_cpu_share_until_drained"), lv.get("worker_cpu_share_until_drained")
+        drained = ("-" if sd is None else f"{100 * sd:.0f}") + ("" if wd is None else f" ({100 * wd:.0f})")
+        restarts = lv.get("hand_worker_restarts", "-")
         if fo is None:
-            lines.append(f"| {lv['hands']} | {wc} | {fc} | - | - | - | - | - |")
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {restarts} | - | - | - | - | - |")
         else:
             rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
-            lines.append(f"| {lv['hands']} | {wc} | {fc} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {restarts} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
                          f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule beyond "
