@@ -18,7 +18,9 @@ A worker that answers nothing while it owes answers (stuck in a loop, stopped) i
 the same way: after ``hand_worker_lag_s`` when the other workers answered at least ``LAG_EVIDENCE``
 source messages meanwhile (so the machine as a whole is not stalled, and the others can take the
 sessions), else after ``hand_worker_stall_s``. A worker in a long operation it knows of (loading an
-estimator's kernels) says it is alive meanwhile. What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
+estimator's kernels) says it is alive meanwhile; silence is counted only while this process waits for
+the worker's bytes (not while it is busy passing on that worker's outputs, nor while bytes the worker
+sent wait unread: an overloaded web process is not a stuck worker). What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
 the optical track and the gesture recogniser's state (an active gesture starts again), and the time
 the move takes (its sessions' frames come late then; other workers' sessions go on). Counted per
 session as ``worker.restarts`` and ``worker.resent_after_restart`` (``GET /v1/sessions``) and in
@@ -28,11 +30,14 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import fcntl
 import itertools
 import json
 import logging
 import socket
+import struct
 import sys
+import termios
 import threading
 import time
 
@@ -50,6 +55,8 @@ WINDOW = 512
 """source messages of one session on their way to its worker at once (more: the source waits)"""
 RESTART_BACKOFF_S = 1.0
 """pause before restarting a worker that died before it was ready, s"""
+READ_CHUNK = 1 << 16
+"""bytes of a worker's batch read at a time (each counts as a sign of life), bytes"""
 LAG_EVIDENCE = 20
 """source messages the other workers answer while one worker owing answers is silent, before that one
 counts as stuck after ``hand_worker_lag_s`` (not ``hand_worker_stall_s``)"""
@@ -69,6 +76,8 @@ class WorkerLink:
         self.sessions: dict[int, ProcessSession] = {}
         self.restarts = 0
         self._writer: asyncio.StreamWriter | None = None
+        self._sock: socket.socket | None = None
+        self._reader: asyncio.StreamReader | None = None
         self._out: list = []
         self._held: list = []                       # while restarting: messages other than source messages
         self._restarting = False
@@ -90,6 +99,7 @@ class WorkerLink:
             child.close()
         self.pid = self.proc.pid
         reader, self._writer = await asyncio.open_unix_connection(sock=parent)
+        self._sock, self._reader = parent, reader
         self._tasks = [asyncio.create_task(self._read(reader)), asyncio.create_task(self._watch(self.proc))]
         self._flush()
 
@@ -116,16 +126,32 @@ class WorkerLink:
         try:
             while True:
                 size, = HEADER.unpack(await reader.readexactly(HEADER.size))
-                batch = msgpack.unpackb(await reader.readexactly(size))
-                self.heard = time.monotonic()
-                self.answered_elsewhere_at_heard = self.pool.answered
-                for message in batch:
+                data = bytearray()
+                while len(data) < size:             # a worker whose bytes still arrive is not silent
+                    data += await reader.readexactly(min(size - len(data), READ_CHUNK))
+                    self._hear()
+                for message in msgpack.unpackb(data):
                     self._dispatch(message)
                     if message[0] == "out":
                         # the subscribers' senders go out before the next frame (their queues are bounded)
                         await asyncio.sleep(0)
+                        self._hear()                # this process was busy with its outputs, not waiting for it
         except (asyncio.IncompleteReadError, ConnectionError):
             return                                  # the process ended: _watch restarts it
+
+    def _unread(self) -> bool:
+        """Bytes from the worker that this process has not read yet (in the socket or the reader's buffer)."""
+        if self._reader is not None and len(getattr(self._reader, "_buffer", b"")):
+            return True
+        try:
+            return self._sock is not None and struct.unpack("i", fcntl.ioctl(self._sock.fileno(), termios.FIONREAD,
+                                                                             b"\0\0\0\0"))[0] > 0
+        except OSError:
+            return False
+
+    def _hear(self) -> None:
+        self.heard = time.monotonic()
+        self.answered_elsewhere_at_heard = self.pool.answered
 
     def _dispatch(self, message: list) -> None:
         kind = message[0]
@@ -186,6 +212,9 @@ class WorkerLink:
         for ``lag_s`` while the other workers answered ``LAG_EVIDENCE`` source messages (module docstring)."""
         if not (self.ready.is_set() and not self._restarting and self.proc is not None and self.proc.returncode is None
                 and any(live._pending for live in self.sessions.values())):
+            return False
+        if self._unread():                          # it did send: this process is behind, not the worker
+            self._hear()
             return False
         silent = now - self.heard
         return silent > limit_s or (silent > lag_s and self.pool.answered - self.answered_elsewhere_at_heard >= LAG_EVIDENCE)
