@@ -138,7 +138,8 @@ def test_quick_campaign_runs_end_to_end_and_accounts_for_every_message(tmp_path)
     assert {r["part"] for r in rows} == {"fuzz", "extremes", "never-readers", "storm", "kill -9", "soak"}
     assert all(r["met"] in ("True", "False") for r in rows)
     categories = list(csv.DictReader((out / "fuzz.csv").open()))
-    outcomes = ("error_reply", "other_reply", "silent", "closed_by_design", "closed_abnormally", "hangs", "crashes")
+    outcomes = ("error_reply", "other_reply", "silent", "closed_by_design", "closed_abnormally", "stalls", "hangs",
+                "crashes")
     for c in categories:                                      # every message has exactly one outcome
         assert int(c["sent"]) == sum(int(c[k]) for k in outcomes), c
     results = json.loads((out / "results.json").read_text())

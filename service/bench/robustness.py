@@ -10,7 +10,8 @@ deployed, see ``process.py``) and every loop is bounded in count and time:
   message is followed by a sentinel (a message of unknown type, always answered with an error), so
   every reply belongs to exactly one message. A good glove streams into its own session beside them
   with a subscriber counting its frames. Counted: error replies per message, messages accepted
-  without a word, connections dropped (by design or abnormally), hangs (no answer to the sentinel and
+  without a word, connections dropped (by design or abnormally), stalls (no answer to the sentinel
+  within the reply timeout while ``/health`` answers), hangs (no answer to the sentinel and
   ``/health`` silent: the service is killed and a fresh one continues), crashes, tracebacks in the
   service log, and at the end the time until each attacked session streams frames again.
 - **extremes**: one schema-valid extreme (gyro 1e300, pose 1e300 m, calibration base 1e300 m,
@@ -306,6 +307,8 @@ class CategoryStats:
     silent: int = 0
     closed_by_design: int = 0
     closed_abnormally: int = 0
+    stalls: int = 0
+    """sentinel not answered within the reply timeout while ``/health`` answered"""
     hangs: int = 0
     crashes: int = 0
     codes: Counter = field(default_factory=Counter)
@@ -594,7 +597,7 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
                     elif outcome == "closed_by_design":
                         st.closed_by_design += 1
                     elif outcome == "stalled":
-                        st.hangs += 1
+                        st.stalls += 1
                     else:
                         st.closed_abnormally += 1
         finally:
@@ -656,6 +659,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
             break
     total = sum(s.sent for s in stats.values())
     return {"sent": total, "requested": messages, "wall_s": time.perf_counter() - t_start, "stats": stats,
+            "stalls": sum(s.stalls for s in stats.values()),
             "hangs": sum(s.hangs for s in stats.values()), "crashes": sum(s.crashes for s in stats.values()),
             "service_restarts": restarts, "tracebacks": sum(x["tracebacks"] for x in lives),
             "good": goods, "recovery": recovery, "rss_kib": rss, "fds": fds,
@@ -1158,6 +1162,8 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
         ("fuzz", "hostile messages sent", f">= {p['messages']}", sent, sent >= p["messages"]),
         ("fuzz", "crashes", "0", fuzz["crashes"], fuzz["crashes"] == 0),
         ("fuzz", "hangs (service restarted)", "0", fuzz["hangs"], fuzz["hangs"] == 0),
+        ("fuzz", "stalls (no reply within the reply timeout, /health answering)", "0", fuzz["stalls"],
+         fuzz["stalls"] == 0),
         ("fuzz", "tracebacks in the service log", "0", fuzz["tracebacks"], fuzz["tracebacks"] == 0),
         ("fuzz", "connections dropped abnormally", "0", abnormal, abnormal == 0),
         ("fuzz", "messages with an error reply", f"{sent}", error_replies, error_replies == sent),
@@ -1208,10 +1214,10 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
     with open(out / "fuzz.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["category", "sent", "error_reply", "other_reply", "silent", "closed_by_design",
-                    "closed_abnormally", "hangs", "crashes", "codes"])
+                    "closed_abnormally", "stalls", "hangs", "crashes", "codes"])
         for name, s in sorted(st.items()):
             w.writerow([name, s.sent, s.error_reply, s.other_reply, s.silent, s.closed_by_design,
-                        s.closed_abnormally, s.hangs, s.crashes, " ".join(f"{c}={n}" for c, n in s.codes.most_common())])
+                        s.closed_abnormally, s.stalls, s.hangs, s.crashes, " ".join(f"{c}={n}" for c, n in s.codes.most_common())])
     ext_cols = ["probe", "hung", "service_alive", "frames_before", "frames_after", "expected_after",
                 "first_frame_after_s", "errors_after", "error_codes", "non_finite_messages"]
     with open(out / "extremes.csv", "w", newline="") as fh:
@@ -1233,12 +1239,12 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
              "", "| part | check | goal | measured | met |", "|---|---|---|---|---|"]
     lines += [f"| {a} | {b} | {c} | {_fmt(d)} | {'yes' if e else '**no**'} |" for a, b, c, d, e in rows]
     lines += ["", "## Fuzz by category", "",
-              "| category | sent | error reply | other reply | silent | closed by design | closed abnormally | hangs | "
-              "most frequent codes |", "|---|---|---|---|---|---|---|---|---|"]
+              "| category | sent | error reply | other reply | silent | closed by design | closed abnormally | stalls | "
+              "hangs | most frequent codes |", "|---|---|---|---|---|---|---|---|---|---|"]
     for name, s in sorted(st.items()):
         codes = ", ".join(f"{c} {n}" for c, n in s.codes.most_common(3))
         lines.append(f"| {name} | {s.sent} | {s.error_reply} | {s.other_reply} | {s.silent} | {s.closed_by_design} | "
-                     f"{s.closed_abnormally} | {s.hangs + s.crashes} | {codes} |")
+                     f"{s.closed_abnormally} | {s.stalls} | {s.hangs + s.crashes} | {codes} |")
     lines += ["", "Attacked sessions, right after their last bad message a fresh glove (new connection, its clock carrying on "
               "from the fuzz's) streams good data in real time; times on the source clock:", "",
               "| session | first frame after the glove's first data, s | frames / expected | error replies |",
