@@ -253,7 +253,7 @@ ENROLMENT_TRANSITION_S = 0.35
 def enrolment_steps(subject: Subject, start_s: float, rng: np.random.Generator,
                     calib: HandCalibration | None = None) -> list[Step]:
     """The enrolment procedure: rest, then each gesture held ``ENROLMENT_HOLD_S`` with rest between
-    (about 14 s); the intents are the labels the application shows the visitor."""
+    (9 steps of 1.85 s: about 17 s); the intents are the labels the application shows the visitor."""
     calib = calib or subject.calibration()
     steps, t = [], start_s
     for kind in ENROLMENT_ORDER:
