@@ -183,3 +183,35 @@ def test_switching_a_session_to_an_estimator_not_loaded_in_its_worker_does_not_s
     full = [w for w, count in windows.items() if count >= int(0.1 * RATE_HZ)]
     assert len(full) >= 3, f"session a's frames while b switched, per 100 ms window: {sorted(windows.items())}"
     assert summary["a"]["worker"]["pid"] == summary["b"]["worker"]["pid"]
+
+
+def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
+    """A terminal's Ctrl-C reaches the whole process group: the web process closes its hand workers in
+    order, so neither a worker's KeyboardInterrupt traceback nor a 'hand worker ... ended' warning (a
+    crash taken for real) appears, and no worker is left behind."""
+    import subprocess
+    import sys
+
+    from clients.client import wait_healthy
+    from service.api.server import free_port
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    try:
+        wait_healthy(f"http://127.0.0.1:{port}", 300.0, alive=lambda: proc.poll() is None)
+        workers = subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "service.api.hands.worker"],
+                                 capture_output=True, text=True).stdout.split()
+        assert len(workers) == 2, workers
+        os.killpg(proc.pid, signal.SIGINT)
+        output, _ = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 130, output            # the CLI's exit status after Ctrl-C (128 + SIGINT)
+    assert "Traceback" not in output and "KeyboardInterrupt" not in output, output
+    assert "ended with" not in output, output
+    for pid in workers:
+        with pytest.raises(ProcessLookupError):
+            os.kill(int(pid), 0)

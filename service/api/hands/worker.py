@@ -32,7 +32,10 @@ Worker -> web process:
 * ``["alive"]`` every ``ALIVE_S`` while it is in a long operation it knows of (loading an estimator's
   kernels), so that the web process does not take it for stuck.
 
-The process ends when the web process closes its end of the socket.
+The process ends when the web process closes its end of the socket (or dies). It ignores SIGINT and
+SIGTERM: a terminal's Ctrl-C and a service manager's SIGTERM reach the whole process group, and they are
+for the web process, which then closes its workers in order; a worker ending first printed a
+``KeyboardInterrupt`` traceback and was taken for a crashed one (its sessions moved for nothing).
 """
 from __future__ import annotations
 
@@ -41,6 +44,7 @@ import json
 import logging
 import os
 import select
+import signal
 import socket
 import struct
 import subprocess
@@ -262,6 +266,8 @@ class Worker:
 
 
 def main(argv: list[str]) -> int:
+    for sig in (signal.SIGINT, signal.SIGTERM):     # for the web process, which closes this one (module docstring)
+        signal.signal(sig, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s hand worker %(process)d: %(message)s")
     fd, given = int(argv[0]), json.loads(argv[1])
     sock = socket.socket(fileno=fd)
