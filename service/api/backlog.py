@@ -32,9 +32,9 @@ import asyncio
 from collections import deque
 
 DATA_TYPES = ("pose", "imu", "imu_batch")
+"""What an overloaded session refuses (the rest carries state and is always queued)."""
 REPLY_OVERHEAD_BYTES = 200
 """What a queued reply takes beyond its detail's text (the tuples that hold it), counted generously."""
-"""What an overloaded session refuses (the rest carries state and is always queued)."""
 
 
 class IngestBacklog:
