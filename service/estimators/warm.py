@@ -7,7 +7,7 @@ NAME [PARAMS_JSON]``), which fills the on-disk cache without competing with the 
 interpreter lock, then runs a few samples in a worker thread, which loads the cached code into this
 process. The container image runs the same command at build time.
 
-The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values) are warmed the same way, under the name
+The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values, the flexion-axis fit) are warmed the same way, under the name
 ``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
 cache (the usual case after the first run, and in the container image) the separate process is skipped:
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
@@ -30,8 +30,9 @@ PIPELINE = "pipeline"
 def _pipeline_kernels() -> tuple:
     from gestures import values
     from ..model import openxr_kernel
-    from ..pipeline import optical_kernel
-    return (openxr_kernel.joint_poses, optical_kernel.at, values.values_kernel)
+    from ..pipeline import mounting_kernel, optical_kernel
+    return (openxr_kernel.joint_poses, optical_kernel.at, values.values_kernel, mounting_kernel.correct,
+            mounting_kernel.fit)
 
 
 def _kernels(name: str) -> tuple:
@@ -56,6 +57,7 @@ def _warm_pipeline() -> None:
     from ..model.hand import default_calibration
     from ..model.openxr import joint_poses_compiled
 
+    from ..pipeline.mounting import HandMountings
     from ..pipeline.optical import OpticalTrack
 
     from gestures.values import frame_values
@@ -67,6 +69,12 @@ def _warm_pipeline() -> None:
     for k in range(3):
         track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)
     track.at(0.015)
+    mountings = HandMountings(calib)
+    rows = mountings.rows(tuple(calib.sensor_ids))
+    raw = np.zeros((len(rows), 2, 3))
+    mountings.correct(rows, raw)
+    mountings.fit(rows, raw, np.concatenate([np.eye(3).ravel(), np.zeros(9)]),
+                  np.zeros(sum(angles[n].shape[0] for n in angles)), np.ones(len(calib.fingers), dtype=np.bool_))
 
 
 def _to_warm(name: str) -> list[str]:

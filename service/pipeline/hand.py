@@ -50,7 +50,7 @@ from ..model.openxr import JOINT_NAMES, joint_pose_arrays, joint_radii, joint_ra
 from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
-from .mounting import HingeAxisFit
+from .mounting import HandMountings
 from .optical import OpticalTrack
 
 DEAD_RECKONING_PRIOR = 1e-2
@@ -247,7 +247,7 @@ class HandSession:
         self._tick_t: float | None = None
         self._hand_known = False            # the hand's acceleration is known (optics, or the back-of-hand IMU)
         self._hand_imu = self._new_hand_imu(MetacarpusImu())
-        self._mount_fits: dict[str, tuple[HingeAxisFit, str, int]] = {}     # sensor id -> (fit, finger, phalanx)
+        self._mount_fits: HandMountings | None = None       # every finger sensor's flexion-axis fit
         self._dropped: dict[str, int] | None = None      # this message's drops (``accept``), once there is one
         self._sensor_ids_of: HandCalibration | None = None
         self._sensor_ids: frozenset[str] = frozenset()
@@ -283,19 +283,15 @@ class HandSession:
         self._fingers = new
         self._build_mount_fits()
 
+    mountings = HandMountings
+    """The flexion-axis fits' implementation (``mounting.HandMountingsReference`` is its reference)."""
+
     def _build_mount_fits(self) -> None:
         """One flexion-axis fit per finger sensor; a sensor's fit is kept across rebuilds while its
         calibrated mounting and place stay the same."""
         if not self.settings.mounting_fit:
             return
-        fits = {}
-        for name, geom in self.calibration.fingers.items():
-            for sp in geom.sensors:
-                mount = sp.mounting_matrix()
-                old = self._mount_fits.get(sp.id)
-                keep = old is not None and old[1:] == (name, sp.phalanx) and np.array_equal(old[0].mount, mount)
-                fits[sp.id] = old if keep else (HingeAxisFit(mount), name, sp.phalanx)
-        self._mount_fits = fits
+        self._mount_fits = self.mountings(self.calibration, previous=self._mount_fits)
 
     def set_estimator(self, spec: EstimatorSpec | str, params: dict | None = None) -> None:
         """Switch the estimator of every finger live; each starts from the current estimate. A name
@@ -473,12 +469,17 @@ class HandSession:
         except (ValueError, np.linalg.LinAlgError):
             hand, tracking, usable = None, False, False
         fits = self._mount_fits
-        for sid, (g, a) in tick.items():
-            fit = fits.get(sid)
-            if fit is not None and fit[0].samples:
-                self._last_sample[sid] = (t, fit[0].correct(g), fit[0].correct(a))
-            else:
-                self._last_sample[sid] = (t, g, a)
+        last = self._last_sample
+        if fits:
+            # the tick's raw readings turned by the flexion-axis fits so far, in one call
+            ids = tuple(tick)
+            rows = fits.rows(ids)
+            raw = np.array(list(tick.values()), dtype=float).reshape(-1, 2, 3)     # gyro, accelerometer
+            for sid, (g, a) in zip(ids, fits.correct(rows, raw).tolist()):
+                last[sid] = (t, g, a)
+        else:
+            for sid, (g, a) in tick.items():
+                last[sid] = (t, g, a)
         self._processed_t = t
         if not usable:
             # the optical fit failed numerically (poses too far apart for their times): restart the
@@ -508,7 +509,7 @@ class HandSession:
             hand = self._dead_reckoned_hand(t - self._tick_t)
         self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
         if tracking and fits:
-            self._fit_mountings(tick, hand)
+            self._fit_mountings(fits, rows, raw, hand)
         together = []
         for fs in self._fingers.values():
             if self._prepare_finger(fs, t, tick):
@@ -521,25 +522,14 @@ class HandSession:
         self._apply_references(t)
         return self._emit_frames(t)
 
-    def _fit_mountings(self, tick: dict, hand: BaseMotion) -> None:
-        """Each finger sensor's raw gyro sample of this tick into its flexion-axis fit, with the hand's
-        rate from the optics and the finger's current angles (``mounting.py``)."""
-        w_metacarpus = None
-        w_bases: dict[str, list[float]] = {}
-        for sid, (g, _) in tick.items():
-            entry = self._mount_fits.get(sid)
-            if entry is None:
-                continue
-            fit, finger, phalanx = entry
-            fs = self._fingers.get(finger)
-            if fs is None or not fs.estimator.started or not fit.flexing(g):
-                continue
-            if w_metacarpus is None:
-                w_metacarpus = np.asarray(hand.rotation).T @ np.asarray(hand.angular_velocity)
-            w_base = w_bases.get(finger)
-            if w_base is None:                       # once per finger and tick
-                w_base = w_bases[finger] = (fs.base_matrix.T @ w_metacarpus).tolist()
-            fit.add(g, sum(fs.phi[:phalanx + 1].tolist()), w_base)     # np.sum's value (a few terms, in order)
+    def _fit_mountings(self, fits: HandMountings, rows: np.ndarray, raw: np.ndarray, hand: BaseMotion) -> None:
+        """Each finger sensor's raw gyro sample of this tick (``raw``, its ``rows`` in the fits) into its
+        flexion-axis fit, with the hand's rate from the optics and the finger's current angles
+        (``mounting.py``), every sensor in one call."""
+        fingers = self._fingers.values()
+        phi = np.concatenate([fs.phi for fs in fingers]).astype(float, copy=False)
+        started = np.array([fs.estimator.started for fs in fingers], dtype=np.bool_)
+        fits.fit(rows, raw, hand.flat, phi, started)
 
     def _dead_reckoned_hand(self, dt: float) -> BaseMotion:
         """While the optics are lost: the held pose turned by the hand's angular velocity as the finger

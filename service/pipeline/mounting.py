@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.units import DEG, MPU9250_GYRO_OFFSET_STD_RAD_S
+from . import mounting_kernel as K
 
 
 @dataclass(frozen=True)
@@ -152,3 +153,132 @@ def _rotation_about_yz(ey: float, ez: float, angle: float) -> np.ndarray:
     return np.array([[1.0 - k2 * (ey * ey + ez * ez), -k1 * ez, k1 * ey],
                      [k1 * ez, 1.0 - k2 * ez * ez, k2 * ey * ez],
                      [-k1 * ey, k2 * ey * ez, 1.0 - k2 * ey * ey]])
+
+
+class HandMountings:
+    """Every finger sensor's flexion-axis fit of one hand, kept in the flat arrays of the compiled
+    kernels (``mounting_kernel.py``): per tick one call turns the raw readings (``correct``) and one
+    adds the gyro samples (``fit``), the same arithmetic as ``HingeAxisFit`` on each sensor (its
+    reference, ``HandMountingsReference``). ``previous`` hands over the fits of the sensors whose
+    finger, phalanx and calibrated mounting stay the same."""
+
+    def __init__(self, calibration, settings: MountingFitSettings = MountingFitSettings(),
+                 previous: "HandMountings | None" = None):
+        self.settings = settings
+        self._st = np.array([settings.min_rate_rad_s, settings.max_tilt_rad])
+        s = settings
+        lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
+        lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
+        rows, meta, self.places = [], [], {}
+        offset = 0
+        for f, (name, geom) in enumerate(calibration.fingers.items()):
+            base = geom.base_matrix()
+            for sp in geom.sensors:
+                mount = np.asarray(sp.mounting_matrix(), dtype=float)
+                row = np.zeros(K.WIDTH)
+                row[K.M0:K.M0 + 9] = mount.ravel()
+                row[K.B0:K.B0 + 9] = base.ravel()
+                row[K.C0:K.C0 + 9] = np.eye(3).ravel()
+                row[K.A00], row[K.A11] = lam_e, lam_b
+                row[K.STRAIGHT] = float(np.array_equal(mount, np.eye(3)))
+                kept = previous.places.get(sp.id) if previous is not None else None
+                if kept is not None and kept[1:] == (name, sp.phalanx) and \
+                        np.array_equal(previous.state[kept[0], K.M0:K.M0 + 9], row[K.M0:K.M0 + 9]):
+                    row[K.C0:] = previous.state[kept[0], K.C0:]
+                self.places[sp.id] = (len(rows), name, sp.phalanx)
+                rows.append(row)
+                meta.append((f, sp.phalanx, offset))
+            offset += geom.n_phalanges
+        self.state = np.ascontiguousarray(np.array(rows, dtype=float).reshape(len(rows), K.WIDTH))
+        self._meta = np.array(meta, dtype=np.int64).reshape(len(meta), 3)
+        self._rows: dict[tuple, np.ndarray] = {}
+
+    def __bool__(self) -> bool:
+        return bool(self.places)
+
+    def rows(self, ids: tuple) -> np.ndarray:
+        """The state rows of a tick's sensor ids (-1: no fit), kept per order of ids (a glove sends
+        its sensors in the same order tick after tick)."""
+        idx = self._rows.get(ids)
+        if idx is None:
+            if len(self._rows) > 64:
+                self._rows.clear()
+            places = self.places
+            idx = self._rows[ids] = np.array([places[s][0] if s in places else -1 for s in ids], dtype=np.int64)
+        return idx
+
+    def correct(self, idx: np.ndarray, raw: np.ndarray) -> np.ndarray:
+        """A tick's raw readings ``raw`` (k, 2, 3) (gyro, accelerometer) turned by their sensors'
+        current corrections (``HingeAxisFit.correct``)."""
+        out = np.empty_like(raw)
+        K.correct(self.state, idx, raw, out)
+        return out
+
+    def fit(self, idx: np.ndarray, raw: np.ndarray, hand_flat: np.ndarray, phi: np.ndarray,
+            started: np.ndarray) -> int:
+        """A tick's raw samples into the fits (``HingeAxisFit.add`` on each whose finger ``started``
+        (per finger) and which flexes fast enough), with the hand's motion ``BaseMotion.flat`` and the
+        fingers' joint angles ``phi`` one after another in calibration order. Returns the number used."""
+        return K.fit(self.state, self._meta, idx, raw, hand_flat, phi, started, self._st)
+
+    def tilt_rad(self, sensor_id: str) -> np.ndarray:
+        """``(ε_y, ε_z)`` of a sensor, rad."""
+        j = self.places[sensor_id][0]
+        return self.state[j, K.TILT_Y:K.TILT_Z + 1].copy()
+
+    def correction(self, sensor_id: str) -> np.ndarray:
+        """The rotation applied to a sensor's raw readings (3, 3)."""
+        j = self.places[sensor_id][0]
+        return self.state[j, K.C0:K.C0 + 9].reshape(3, 3).copy()
+
+    def samples(self, sensor_id: str) -> int:
+        return int(self.state[self.places[sensor_id][0], K.SAMPLES])
+
+
+class HandMountingsReference(HandMountings):
+    """``HandMountings`` with one ``HingeAxisFit`` per sensor, sample by sample in Python: the reference
+    of the compiled kernels (``tests/test_mounting.py``)."""
+
+    def __init__(self, calibration, settings: MountingFitSettings = MountingFitSettings(),
+                 previous: "HandMountingsReference | None" = None):
+        super().__init__(calibration, settings)
+        self._fits: dict[int, HingeAxisFit] = {}
+        self._bases, self._ids = [], []
+        for name, geom in calibration.fingers.items():
+            for sp in geom.sensors:
+                j = self.places[sp.id][0]
+                old = previous.places.get(sp.id) if previous is not None else None
+                mount = sp.mounting_matrix()
+                keep = old is not None and old[1:] == (name, sp.phalanx) and \
+                    np.array_equal(previous._fits[old[0]].mount, mount)
+                self._fits[j] = previous._fits[old[0]] if keep else HingeAxisFit(mount, settings)
+                self._bases.append(geom.base_matrix())
+
+    def correct(self, idx, raw):
+        out = np.array(raw, dtype=float)
+        for r, j in enumerate(idx.tolist()):
+            if j >= 0 and self._fits[j].samples:
+                out[r] = [self._fits[j].correct(list(raw[r, 0])), self._fits[j].correct(list(raw[r, 1]))]
+        return out
+
+    def fit(self, idx, raw, hand_flat, phi, started):
+        w_metacarpus = hand_flat[:9].reshape(3, 3).T @ hand_flat[12:15]
+        used = 0
+        for r, j in enumerate(idx.tolist()):
+            if j < 0:
+                continue
+            f, phalanx, offset = self._meta[j].tolist()
+            if not started[f]:
+                continue
+            w_base = (self._bases[j].T @ w_metacarpus).tolist()
+            used += self._fits[j].add(raw[r, 0].tolist(), sum(phi[offset:offset + phalanx + 1].tolist()), w_base)
+        return used
+
+    def tilt_rad(self, sensor_id):
+        return self._fits[self.places[sensor_id][0]].tilt_rad.copy()
+
+    def correction(self, sensor_id):
+        return np.array(self._fits[self.places[sensor_id][0]].correction, dtype=float)
+
+    def samples(self, sensor_id):
+        return self._fits[self.places[sensor_id][0]].samples
