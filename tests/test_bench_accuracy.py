@@ -95,3 +95,22 @@ def test_a_rebuilt_chain_keeps_its_offsets():
     t2, err2 = _dropout_run(_Forgetful, session)
     forgot = np.sqrt(np.mean(err2[(t2 >= 6.5) & (t2 < 7.5)] ** 2))
     assert forgot > 2.0 * after                          # the test can tell the two apart
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_returning_sensor_is_placed_by_its_own_accelerometer(seed):
+    """The same design on the seeds where the fallback closure carried the silent distal phalanx far
+    off (the finger's MCP and PIP move independently here, against the closure PIP = MCP): the
+    returning sensor must not restart as if that guess were a known configuration. Bounds from the
+    physics, not from a run: 0.5 s after its return the sensor's accelerometer has given 100 samples,
+    each placing the angle to the filter's per-sample std of 0.3 rad (``acc_scale_uncertainty``), so
+    together to 0.3/√100 rad = 1.7°: the finger is then within half the tilt a forgotten offset
+    would cause (offset/g); and within 1 s a 0.25 s running RMS is back within 1.5x the undisturbed
+    error (the issue's recovery goal)."""
+    session = simulate(SimConfig(motion="random", noise="both", seed=seed, hand_motion="slow-rotation",
+                                 duration_s=10.0, fingers=("index",)))
+    tilt_deg = np.degrees(80 * MG / 9.81)
+    t, err = _dropout_run(Chain, session)
+    rms = lambda a, b: np.sqrt(np.mean(err[(t >= a) & (t < b)] ** 2))   # noqa: E731
+    assert rms(6.3, 6.5) > 2.0 * tilt_deg           # the closure's guess was far off when the sensor returned
+    assert rms(7.0, 8.0) < 0.5 * tilt_deg
+    assert accuracy._recovery(t, err, 6.5, 1.5 * rms(3.0, 6.0)) <= 1.0

@@ -302,20 +302,48 @@ class Chain(FingerEstimator):
         back, a calibration, an estimator switch) learned about each sensor, by sensor id: the
         offsets with their covariance always; the angle, with its covariance (at least
         ``rebuild_angle_std_rad``) and its correlation with the offsets, for sensors that were live in
-        ``previous`` up to now. A sensor that was silent starts from the given configuration with
-        ``unknown_angle_std_rad`` (nobody saw where it went) but keeps its offsets, so its first
-        accelerometer samples place it. Offsets of sensors not in this geometry are remembered for
-        a later rebuild."""
+        ``previous`` up to now. Offsets of sensors not in this geometry are remembered for a later
+        rebuild.
+
+        A sensor that was silent keeps its offsets and starts from the given configuration, which
+        for its phalanx is the fallback closure's guess (``PIP = c·MCP`` with the coupling), not an
+        observation. Its prior is what that guess was last seen to be worth: when the sensor fell
+        silent, the estimator it left had both its angle and the live sensors' ones, so the closure's
+        error for its phalanx at that moment, ``e`` (the deviation of the finger's joints from the
+        closure), is known; the angle's variance is ``e² + P_θθ`` (its own variance then). A finger
+        whose joints follow the closure (a grasp closing) gets a tight prior, and its accelerometer,
+        weak in fast motion, cannot pull it off; one bent against it (MCP straight, PIP flexed) gets
+        a wide one, and its first accelerometer samples place it. (With the ``initial_angle_std_rad``
+        of a known configuration instead, a sensor returning 20-30° off took seconds to come back.)
+        Without such a record (the sensor was never live in a ``Chain`` of this finger) the prior is
+        ``unknown_angle_std_rad``."""
         memory = dict(getattr(previous, "_memory", {}))
         fresh = set()
         state = getattr(previous, "_state", None)
-        if isinstance(previous, Chain) and state is not None and previous.batch_shape == self.batch_shape:
+        same = isinstance(previous, Chain) and state is not None and previous.batch_shape == self.batch_shape
+        if same:
             for k, sp in enumerate(previous.geom.sensors):
                 memory[sp.id] = (state["x"][..., k, :].copy(), state["P"][..., k, :, :].copy(), previous.last_t)
                 fresh.add(sp.id)
         self._memory = memory
         self._fresh = fresh
+        self._closure_error = {k: v for k, v in getattr(previous, "_closure_error", {}).items() if k not in fresh}
+        if same:
+            self._closure_error.update(self._fallback_errors(previous, state["x"][..., 0]))
         self._hand_untracked = getattr(previous, "_hand_untracked", False)
+
+    def _fallback_errors(self, previous: "Chain", theta: np.ndarray) -> dict:
+        """For each sensor of ``previous`` that this estimator goes on without, while all of this one's
+        sensors were live in ``previous``: its phalanx angle ``theta`` (``previous``'s, (..., S)) minus
+        what this estimator's closure gives for that phalanx from the other sensors' angles."""
+        ids = [sp.id for sp in previous.geom.sensors]
+        kept = [sp.id for sp in self.geom.sensors]
+        if any(i not in ids for i in kept) or len(kept) == len(ids):
+            return {}
+        live = np.stack([theta[..., ids.index(i)] for i in kept], axis=-1)
+        closure = np.cumsum(self.closure.joint_angles(live), axis=-1)
+        return {sp.id: theta[..., k] - closure[..., sp.phalanx]
+                for k, sp in enumerate(previous.geom.sensors) if sp.id not in kept}
 
     def _restore_memory(self, x: np.ndarray, P: np.ndarray) -> None:
         memory = getattr(self, "_memory", {})
@@ -329,7 +357,11 @@ class Chain(FingerEstimator):
                             + [s.calibration_walk_rts**2] * 9 + [s.gyro_scale_walk_rts**2]) * gap
             x[..., k, 1:] = mx[..., 1:]
             P[..., k, 1:, 1:] = mP[..., 1:, 1:] + np.diag(walk)
-            if sp.id in self._fresh:
+            if sp.id not in self._fresh:
+                error = getattr(self, "_closure_error", {}).get(sp.id)
+                var = error**2 + mP[..., 0, 0] if error is not None else s.unknown_angle_std_rad**2
+                P[..., k, 0, 0] = np.maximum(P[..., k, 0, 0], var)
+            else:
                 x[..., k, 0] = mx[..., 0]
                 P[..., k, 0, :] = mP[..., 0, :]
                 P[..., k, :, 0] = mP[..., :, 0]
