@@ -1,9 +1,7 @@
 """Running the app with uvicorn: ``fingertrack serve`` and an in-process server for tests and the demo."""
 from __future__ import annotations
 
-import contextlib
 import errno
-import gc
 import socket
 import threading
 import time
@@ -12,6 +10,7 @@ import uvicorn
 
 from .app import create_app
 from .config import ServiceSettings
+from ..pipeline.gc_policy import serving_gc  # noqa: F401  (re-exported: the CLI and the tests take it from here)
 
 
 def uvicorn_config(settings: ServiceSettings, app=None) -> uvicorn.Config:
@@ -31,26 +30,6 @@ class FingertrackServer(uvicorn.Server):
         if drain is not None:
             await drain()
         await super().shutdown(sockets)
-
-
-@contextlib.contextmanager
-def serving_gc():
-    """The garbage-collector policy of a serving process, for the duration of the block: the heap
-    built so far is frozen (never scanned again) and young-generation collections are rarer. The
-    per-tick work allocates many small short-lived arrays; with the default policy, collections that
-    scan a large heap put pauses of 10 ms and more into the frame latency tail (measured with
-    ``fingertrack bench latency``). On exit the thresholds are restored, and the heap is unfrozen
-    unless it was already frozen on entry (an enclosing block keeps its freeze)."""
-    old = gc.get_threshold()
-    was_frozen = gc.get_freeze_count() > 0
-    gc.freeze()
-    gc.set_threshold(50_000, 20, 100)
-    try:
-        yield
-    finally:
-        gc.set_threshold(*old)
-        if not was_frozen:
-            gc.unfreeze()
 
 
 def listen_socket(host: str, port: int) -> socket.socket:

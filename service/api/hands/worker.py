@@ -54,6 +54,7 @@ import time
 
 import msgpack
 
+from ...pipeline.gc_policy import serving_gc
 from ...protocol import ProtocolError, parse_message
 from ...estimators.warm import is_warm, warm, warm_ahead
 from ..config import ServiceSettings
@@ -278,7 +279,8 @@ def main(argv: list[str]) -> int:
     worker.out.append(["ready", os.getpid()])
     worker.send()
     try:
-        worker.run()
+        with serving_gc():                          # the loaded kernels and modules never scanned again
+            worker.run()
     except (BrokenPipeError, ConnectionResetError):
         pass
     return 0
