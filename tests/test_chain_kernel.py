@@ -143,3 +143,27 @@ def test_kernel_equals_the_reference_through_the_pipeline_on_a_faulty_recording(
         assert c.t == r.t and c.modes == r.modes
         for finger, phi in r.joint_angles.items():
             np.testing.assert_allclose(c.joint_angles[finger], phi, rtol=0, atol=TOL, err_msg=f"{finger} at t={c.t}")
+
+
+@pytest.mark.parametrize("implementation", ["compiled", "reference"])
+def test_a_clipped_gyro_stops_the_accelerometer_updates_of_the_whole_finger(implementation):
+    """The chain's kinematic terms take every sensor's rate and rate change, so while one gyro of a
+    finger is clipped they are unknown for every sensor of it: the other sensor's accelerometer must
+    not move its state, whatever it reads (the same state as with any other reading), while with
+    both gyros in range it does."""
+    rng = np.random.default_rng(5)
+    geom = default_calibration("right").finger("index")
+    est = Chain(geom, ChainSettings(implementation=implementation))
+    state = _random_state(rng, est)
+    hand = _random_hand(rng, ())
+    gyr = rng.normal(0.0, 2.0, (2, 3))
+    acc_a, acc_b = rng.normal(0.0, 9.0, (2, 3)), rng.normal(0.0, 9.0, (2, 3))
+    acc_b[0] = acc_a[0]                             # only the second sensor's reading differs
+
+    def step(g, a):
+        return est._step({k: v.copy() for k, v in state.items()}, 0.005, g, a, hand)[0]["x"][1]
+
+    clipped = gyr.copy()
+    clipped[0, 1] = 2001.0 * np.pi / 180.0          # the first sensor's gyro past ±2000 deg/s
+    np.testing.assert_allclose(step(clipped, acc_a), step(clipped, acc_b), rtol=0, atol=1e-8)   # σ = 1e6 m/s²
+    assert np.abs(step(gyr, acc_a) - step(gyr, acc_b)).max() > 1e-3

@@ -478,9 +478,10 @@ class Chain(FingerEstimator):
         sigma = np.sqrt(s.acc_noise_m_s2**2 + (s.kinematic_uncertainty * mu) ** 2 + (s.acc_scale_uncertainty * force_norm) ** 2
                         + (s.hand_jerk_time_s * jerk) ** 2
                         + (s.untracked_acc_noise_m_s2 if getattr(self, "_hand_untracked", False) else 0.0) ** 2)
-        # a clipped accelerometer (or a gyro whose rate, and so the kinematic terms, is unknown)
-        # carries no usable direction: no update
-        acc_sat = np.any(np.abs(acc) >= s.acc_range_m_s2 * (1.0 - 1e-3), axis=-1) | gyr_sat
+        # a clipped accelerometer carries no usable direction, nor does any sensor of the finger
+        # while one of its gyros is clipped: the chain's kinematic terms take every sensor's rate and
+        # rate change, so they are unknown for all of them: no update
+        acc_sat = np.any(np.abs(acc) >= s.acc_range_m_s2 * (1.0 - 1e-3), axis=-1) | np.any(gyr_sat, axis=-1, keepdims=True)
         sigma = np.where(acc_sat, 1e6, sigma)
         R = (sigma**2)[..., None, None] * np.eye(3)
         if self._settings_vector[K.ST_GS_LEARN] > 0.5:

@@ -178,8 +178,10 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
             jerk_var = (st[ST_JERK_TIME] * jerk) ** 2
 
             # predicted angles (trapezoid of the bias-corrected relative rate), then the chain
+            finger_sat = False
             for k in range(ns):
                 g0, g1, g2 = gyr[i, b, k, 0], gyr[i, b, k, 1], gyr[i, b, k, 2]
+                finger_sat = finger_sat or abs(g0) >= gyro_clip or abs(g1) >= gyro_clip or abs(g2) >= gyro_clip
                 hi = o_hinge + 3 * k
                 gx = geo[hi] * g0 + geo[hi + 1] * g1 + geo[hi + 2] * g2
                 rm = gx - hand_rate
@@ -298,7 +300,9 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                 fnorm = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
                 sigma = math.sqrt(st[ST_ACC_NOISE] ** 2 + (st[ST_KINEMATIC] * mu) ** 2 + (st[ST_ACC_SCALE] * fnorm) ** 2
                                   + jerk_var + untracked_var)
-                if acc_sat or gyr_sat:
+                if acc_sat or finger_sat:
+                    # a clipped accelerometer, or a clipped gyro anywhere on the finger (the chain's
+                    # kinematic terms take every sensor's rate): no usable direction, no update
                     sigma = SATURATED_SIGMA_M_S2
                 r = sigma * sigma
 
