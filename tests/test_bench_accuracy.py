@@ -114,3 +114,47 @@ def test_a_returning_sensor_is_placed_by_its_own_accelerometer(seed):
     assert rms(6.3, 6.5) > 2.0 * tilt_deg           # the closure's guess was far off when the sensor returned
     assert rms(7.0, 8.0) < 0.5 * tilt_deg
     assert accuracy._recovery(t, err, 6.5, 1.5 * rms(3.0, 6.0)) <= 1.0
+
+
+def _fast_reach_as_the_optics_return():
+    """A benchmark trial whose 0.74 s occlusion ends while the hand reaches fast (7.7 m/s²)."""
+    trial = accuracy.make_trial(503, 12.0)
+    (a, b), = trial.occlusions
+    session = accuracy.simulate_trial(trial)
+    return trial, session, a, b
+
+
+def test_the_hand_acceleration_counts_as_known_once_the_optical_fit_window_refilled():
+    """Right after the optics return, their fit window holds too few poses for an acceleration and
+    reports none: the estimators must go on treating the hand's acceleration as unknown until the
+    window holds only poses since the return (``pose_window_s``), and not longer."""
+    trial, session, a, b = _fast_reach_as_the_optics_return()
+    hs = HandSession(settings=PipelineSettings(estimator="chain"))
+    window = hs.settings.pose_window_s
+    seen = []
+    for m in accuracy.trial_messages(session, trial, True):
+        for f in hs.handle(m).frames:
+            seen.append((f.t, hs._fingers["index"].estimator._hand_untracked))
+    t = np.array([s[0] for s in seen])
+    untracked = np.array([s[1] for s in seen])
+    latency = 0.05                      # the optical stream's latency and timeout around the edges
+    assert not untracked[(t > a - 1.0) & (t < a - latency)].any()
+    assert untracked[(t > a + 0.2) & (t < b + window - latency)].all()
+    assert not untracked[(t > b + window + latency) & (t < b + 2.0)].any()
+
+
+def test_a_fast_reach_as_the_optics_return_is_not_read_as_a_tilt():
+    """The same trial through the pipeline: read as no acceleration, the reach (7.7 m/s² as the optics
+    return) would tilt every accelerometer's gravity by atan(a/g) = 38°. Through the occlusion the
+    hand's orientation was carried on by the finger gyros, so the angles need only a small widening
+    when it ends (``lost_optics_drift_rad_s``); in the 0.5 s after the return every joint stays within
+    a quarter of that tilt."""
+    trial, session, a, b = _fast_reach_as_the_optics_return()
+    t, phi = accuracy.run_pipeline(accuracy.trial_messages(session, trial, True), "chain", {})
+    idx = np.round((t - session.t[0]) * session.config.rate_hz).astype(int)
+    err = np.concatenate([np.degrees(np.abs(accuracy._wrap(phi[f] - session.joint_angles[f][idx])))
+                          for f in accuracy.FINGERS], axis=1)
+    acc = np.linalg.norm(session.base.acceleration[int(round(b * session.config.rate_hz))])
+    tilt_deg = np.degrees(np.arctan2(acc, 9.81))
+    assert tilt_deg > 30.0                           # the trial is what it claims
+    assert err[(t >= b) & (t < b + 0.5)].max() < 0.25 * tilt_deg

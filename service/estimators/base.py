@@ -107,10 +107,10 @@ class FingerTrack:
     mode: np.ndarray
 
 
-def lost_optics_variance(duration_s: float) -> float:
+def lost_optics_variance(duration_s: float, rate_rad_s: float = LOST_RATE_RAD_S) -> float:
     """Variance, rad², to add to an angle estimate after the optics were lost for ``duration_s``:
-    ``min(LOST_RATE_RAD_S · duration, LOST_MAX_STD_RAD)²``."""
-    return min(LOST_RATE_RAD_S * duration_s, LOST_MAX_STD_RAD) ** 2
+    ``min(rate · duration, LOST_MAX_STD_RAD)²`` (``LOST_RATE_RAD_S`` unless an estimator knows better)."""
+    return min(rate_rad_s * duration_s, LOST_MAX_STD_RAD) ** 2
 
 
 def _check_array(name: str, value: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:

@@ -174,6 +174,7 @@ class ChainSettings(EstimatorSettings):
     mounting_hinge_std_rad: float = Field(0.03, ge=0.0, description="prior std of each sensor's mounting turn about the hinge axis (a misalignment of up to 5 deg about a random axis: 0.029), taken up as a state at the first known configuration; 0 leaves it with the angle, rad")
     initial_gyro_scale_std: float = Field(0.017, ge=0.0, description="prior std of the gyro's scale error about the hinge axis (MPU-9250 ±3 %, uniform: 0.017); 0 keeps it at zero (item 6 of the module docstring)")
     gyro_scale_walk_rts: float = Field(0.0, ge=0.0, description="random walk of the gyro scale state, 1/√s")
+    lost_optics_drift_rad_s: float = Field(0.1, gt=0.0, description="growth of the angle std while the optics are lost, rad/s: the pipeline carries the hand's orientation on from the finger gyros, so it drifts by their scale (±3 %) and cross-axis (±2 %) errors of a hand turning at up to 2-3 rad/s and their offsets' residual, not by the hand's whole rotation (the shared LOST_RATE_RAD_S of 1 rad/s: tuning trials 500-511 2.55 -> 2.48 deg, 512-519 2.78 -> 2.67)")
     rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
@@ -422,7 +423,7 @@ class Chain(FingerEstimator):
 
     def reference_lost(self, duration_s: float) -> None:
         if self._state is not None:
-            self._state["P"][..., 0, 0] += lost_optics_variance(duration_s)
+            self._state["P"][..., 0, 0] += lost_optics_variance(duration_s, self.settings.lost_optics_drift_rad_s)
 
     def _step_reference(self, state, dt, gyr, acc, hand):
         """One sample in numpy (the reference the kernel is tested equal to)."""

@@ -246,6 +246,7 @@ class HandSession:
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
         self._hand_known = False            # the hand's acceleration is known (optics, or the back-of-hand IMU)
+        self._optics_back_t = -math.inf     # when the optics last started tracking
         self._hand_imu = self._new_hand_imu(MetacarpusImu())
         self._mount_fits: HandMountings | None = None       # every finger sensor's flexion-axis fit
         self._dropped: dict[str, int] | None = None      # this message's drops (``accept``), once there is one
@@ -493,11 +494,18 @@ class HandSession:
             return []                           # no pose seen yet: nothing to fuse with
         # the back-of-hand IMU keeps the hand's rotation and acceleration known through an occlusion
         imu_live = self._hand_imu.live(t) and (tracking or self._hand_motion is not None)
-        known = tracking or imu_live
+        if tracking and not self._tracking:
+            self._optics_back_t = t
+        # the optics give the hand's acceleration again once their fit window holds only poses since
+        # they came back (before, the fit has too few poses for it and reports none, which in a fast
+        # reach the accelerometers read as a tilt of tens of degrees); the angles are widened to be
+        # placed again by the accelerometers then, for as long as the optics were lost
+        known = imu_live or (tracking and t - self._optics_back_t >= self.settings.pose_window_s)
         if known and not self._hand_known and self._lost_since is not None:
+            back = self._optics_back_t if self._optics_back_t > self._lost_since else t
             for fs in self._fingers.values():
                 fs.estimator.hand_tracked(True)
-                fs.estimator.reference_lost(t - self._lost_since)
+                fs.estimator.reference_lost(back - self._lost_since)
             self._lost_since = None
         elif not known and self._hand_known:
             self._lost_since = t
