@@ -94,8 +94,9 @@ class ServiceSettings(BaseSettings):
     hand_worker_stall_s: float = Field(10.0, gt=0, le=600, description="a hand worker that answers nothing for this "
                                        "long while it owes answers is killed and its sessions move to the others, s")
     hand_worker_lag_s: float = Field(1.0, gt=0, le=600, description="sooner: a hand worker that answers nothing for "
-                                     "this long while it owes answers and the other workers go on answering theirs "
-                                     "(the machine is not stalled as a whole) is killed and its sessions move, s")
+                                     "this long while it owes answers, does not work either (stopped or blocked: neither runnable nor "
+                                     "using CPU) and the other workers go on answering theirs (the machine is not "
+                                     "stalled as a whole) is killed and its sessions move, s")
     bus: str | None = Field(None, pattern=r"^(nats|tls)://\S+$", description="NATS URL (nats://HOST:PORT): run as a gateway whose sessions run in "
                             "'fingertrack worker' processes; None: everything in this process")
 

@@ -14,12 +14,17 @@ at once to the live worker with the fewest sessions (with no other worker ready,
 process): each is opened again from its compact state (``hands.owner``: hello, calibration,
 configuration, the last frame's ``seq``, time and joint angles, applied as a reference pose) and every
 source message the dead worker had not answered is sent again, in order, so no source message is lost.
-A worker that answers nothing while it owes answers (stuck in a loop, stopped) is killed and handled
-the same way: after ``hand_worker_lag_s`` when the other workers answered at least ``LAG_EVIDENCE``
-source messages meanwhile (so the machine as a whole is not stalled, and the others can take the
-sessions), else after ``hand_worker_stall_s``. A worker in a long operation it knows of (loading an
-estimator's kernels) says it is alive meanwhile; silence is counted only while this process waits for
-the worker's bytes (not while it is busy passing on that worker's outputs, nor while bytes the worker
+A worker that answers nothing while it owes answers is killed and handled the same way: after
+``hand_worker_stall_s`` (stuck in a loop, or in one message that long), or already after
+``hand_worker_lag_s`` when it did not work meanwhile either (its main thread neither runnable nor using
+CPU: a stopped process, or one blocked on something that does not come) while the other workers
+answered at least ``LAG_EVIDENCE`` source messages (so the machine as a whole is not stalled, and the
+others can take the sessions). A busy worker (one long message, or starved of a core on an overloaded
+machine) is not killed for its silence before ``hand_worker_stall_s``: killing it would lose its
+sessions' learned state and put its load on the other workers. A worker in a long operation it knows of (loading an
+estimator's kernels) says it is alive meanwhile; silence is counted only while the worker owes answers
+(from the later of its last byte and the moment it began to owe one: an idle worker is not silent) and
+only while this process waits for the worker's bytes (not while it is busy passing on that worker's outputs, nor while bytes the worker
 sent wait unread: an overloaded web process is not a stuck worker). What is lost: the hand's filter state beyond the joint angles (covariances, learned sensor offsets),
 the optical track and the gesture recogniser's state (an active gesture starts again), and the time
 the move takes (its sessions' frames come late then; other workers' sessions go on). Counted per
@@ -84,7 +89,12 @@ class WorkerLink:
         self._flush_scheduled = False
         self._tasks: list[asyncio.Task] = []
         self.heard = time.monotonic()
-        """when the worker last sent anything (monotonic s)"""
+        """when the worker last sent anything, or began to owe answers (monotonic s)"""
+        self._owing_from_flush = False
+        """the next write to the worker carries the first answer it owes: its silence counts from then"""
+        self.worked = time.monotonic()
+        """when the watchdog last saw the worker's main thread runnable or its CPU time grown (monotonic s)"""
+        self._cpu_ns: int | None = None
         self.answered_elsewhere_at_heard = 0
         """the pool's count of answered source messages when this worker last sent anything"""
 
@@ -98,6 +108,7 @@ class WorkerLink:
         finally:
             child.close()
         self.pid = self.proc.pid
+        self._cpu_ns, self.worked = None, time.monotonic()
         reader, self._writer = await asyncio.open_unix_connection(sock=parent)
         self._sock, self._reader = parent, reader
         self._tasks = [asyncio.create_task(self._read(reader)), asyncio.create_task(self._watch(self.proc))]
@@ -121,6 +132,9 @@ class WorkerLink:
         if self._out and self._writer is not None and not self._writer.is_closing():
             self._writer.write(frame(self._out))
             self._out = []
+            if self._owing_from_flush:                # it has what it owes an answer to from now on
+                self._owing_from_flush = False
+                self._hear()
 
     async def _read(self, reader: asyncio.StreamReader) -> None:
         try:
@@ -152,6 +166,15 @@ class WorkerLink:
     def _hear(self) -> None:
         self.heard = time.monotonic()
         self.answered_elsewhere_at_heard = self.pool.answered
+
+    def owe(self, besides: "ProcessSession | None" = None) -> None:
+        """Before a source message goes to this worker: if it owed no answer until now (its sessions,
+        ``besides`` one moving to it, have nothing unanswered), its silence counts from now. A worker
+        has nothing to say while it owes nothing: silence since its last byte would count the idle
+        time (before the first stream, a 30 s pause) and kill it at the first message it is sent."""
+        if not any(live._pending for live in self.sessions.values() if live is not besides):
+            self._hear()
+            self._owing_from_flush = True
 
     def _dispatch(self, message: list) -> None:
         kind = message[0]
@@ -209,7 +232,8 @@ class WorkerLink:
 
     def stalled(self, now: float, lag_s: float, limit_s: float) -> bool:
         """A ready worker that owes source messages an answer and has sent nothing for ``limit_s``, or
-        for ``lag_s`` while the other workers answered ``LAG_EVIDENCE`` source messages (module docstring)."""
+        for ``lag_s`` while the other workers answered ``LAG_EVIDENCE`` source messages and it did not
+        work either (neither runnable nor using CPU: stopped, or blocked; module docstring)."""
         if not (self.ready.is_set() and not self._restarting and self.proc is not None and self.proc.returncode is None
                 and any(live._pending for live in self.sessions.values())):
             return False
@@ -217,7 +241,24 @@ class WorkerLink:
             self._hear()
             return False
         silent = now - self.heard
-        return silent > limit_s or (silent > lag_s and self.pool.answered - self.answered_elsewhere_at_heard >= LAG_EVIDENCE)
+        if silent > limit_s:
+            return True
+        if self._working():                         # busy or waiting for a core: not stuck (module docstring)
+            self.worked = now
+        idle = now - max(self.heard, self.worked)
+        return idle > lag_s and self.pool.answered - self.answered_elsewhere_at_heard >= LAG_EVIDENCE
+
+    def _working(self) -> bool:
+        """The worker's main thread is runnable now (running or waiting for a core) or has run since the
+        last look (Linux ``/proc``; elsewhere ``False``: silence alone counts). A stopped process, or one
+        blocked waiting for something that does not come, is neither."""
+        try:
+            state = open(f"/proc/{self.pid}/stat").read().rsplit(")", 1)[1].split()[0]
+            cpu_ns = int(open(f"/proc/{self.pid}/schedstat").read().split()[0])
+        except (OSError, ValueError, IndexError):
+            return False
+        ran, self._cpu_ns = self._cpu_ns is not None and cpu_ns != self._cpu_ns, cpu_ns
+        return state == "R" or ran
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -332,6 +373,7 @@ class ProcessSession(LiveSession):
         """After its worker died, on its new worker: the session from its state, then every unanswered
         message and configuration change."""
         self.restarts += 1
+        self.link.owe(besides=self)
         self.link.send(["open", self.sid, self.name, self.state()])
         for n in sorted(self._pending):
             self.resent += 1
@@ -362,6 +404,7 @@ class ProcessSession(LiveSession):
             self.hand_name = raw.get("hand", self.hand_name)
         self._n += 1
         kept = raw if parsed.type == "calibration" else None     # the session's state, once it is accepted
+        self.link.owe()
         self._pending[self._n] = (parsed.type, packed, time.perf_counter(), kept)
         self.link.send(["src", self.sid, self._n, packed])
         return None

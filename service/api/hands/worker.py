@@ -277,8 +277,8 @@ def main(argv: list[str]) -> int:
     warm_ahead(settings.estimator)                  # the pipeline's and the default estimator's kernels first
     worker = Worker(sock, settings)
     worker.out.append(["ready", os.getpid()])
-    worker.send()
     try:
+        worker.send()
         with serving_gc():                          # the loaded kernels and modules never scanned again
             worker.run()
     except (BrokenPipeError, ConnectionResetError):

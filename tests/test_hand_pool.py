@@ -1,0 +1,139 @@
+"""The hand worker pool's stall watchdog (``service.api.hands.pool``) with real worker processes: an
+idle worker is not silent when it is first sent a message, a stopped worker is replaced as soon as the
+other worker goes on answering, and a worker busy with a long message is not. Waits are for events and
+counts; timeouts only bound a failure."""
+import asyncio
+import os
+import signal
+import time
+
+from clients.glove import source_messages
+from service.api.config import ServiceSettings
+from service.api.hands.pool import LAG_EVIDENCE, HandPool
+from service.api.metrics import Metrics
+from service.protocol import parse_message
+from service.protocol.messages import MAX_BATCH_SAMPLES
+from service.sim.session import SimConfig
+
+HELLO = {"type": "hello", "protocol": 1, "hand": "right", "source": "pool-test"}
+
+
+async def _pool(workers: int, **extra) -> HandPool:
+    pool = HandPool(ServiceSettings.load(port=0, hand_workers=workers, **extra), Metrics())
+    await pool.start()
+    await pool.wait_ready()
+    return pool
+
+
+async def _ingest(live, raw: dict) -> None:
+    await live.ingest(raw, parse_message(raw))
+
+
+async def _until(condition, what: str, timeout_s: float = 120.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out after {timeout_s:g} s waiting for {what}"
+        await asyncio.sleep(0.01)
+
+
+def _glove(seconds: float, seed: int) -> list[dict]:
+    return [m for _, m in source_messages(SimConfig(motion="sequence", hand="right", noise="white", seed=seed,
+                                                    duration_s=seconds))]
+
+
+def test_a_worker_idle_for_longer_than_the_limits_is_not_taken_for_stuck_when_it_is_sent_its_first_message():
+    """Silence counts while a worker owes answers: one that owed nothing for longer than the limits
+    (the service waiting for its first glove) has just begun to owe when its first message is sent."""
+    async def run():
+        pool = await _pool(1)
+        try:
+            link, idle_s = pool.links[0], 0.5
+            await asyncio.sleep(idle_s)             # ready, no session: it has nothing to say
+            live = pool.session("a", pool.settings, pool.metrics)
+            await _ingest(live, HELLO)
+            owes = bool(live._pending)              # not answered yet: no turn of the loop since
+            stalled = link.stalled(time.monotonic(), idle_s / 2, idle_s / 2)
+            await live.settled()
+            return owes, stalled, link.restarts
+        finally:
+            await pool.close()
+    owes, stalled, restarts = asyncio.run(run())
+    assert owes and not stalled and restarts == 0
+
+
+async def _two_sessions(pool: HandPool):
+    a = pool.session("a", pool.settings, pool.metrics)
+    b = pool.session("b", pool.settings, pool.metrics)
+    assert a.link is not b.link                    # one session per worker
+    for live in (a, b):
+        await _ingest(live, HELLO)
+        await live.settled()
+    return a, b
+
+
+async def _stream_until(live, msgs: list[dict], done) -> int:
+    """``live``'s glove sends its messages (again from the start at their end) until ``done()``; the
+    number of messages answered."""
+    k = 0
+    while not done():
+        await _ingest(live, msgs[k % len(msgs)])
+        k += 1
+        if k % 8 == 0:
+            await live.settled()
+    await live.settled()
+    return k
+
+
+def test_a_stopped_worker_is_replaced_once_the_other_worker_answers_while_the_stall_limit_is_far():
+    """SIGSTOP: the worker owes an answer, is neither runnable nor using CPU; after ``hand_worker_lag_s``
+    with the other worker answering it is killed and its session answered by the other one (the stall
+    limit, 600 s, plays no part)."""
+    msgs = _glove(2.0, 1)
+
+    async def run():
+        pool = await _pool(2, hand_worker_lag_s=0.2, hand_worker_stall_s=600.0)
+        try:
+            a, b = await _two_sessions(pool)
+            stopped = a.link.pid
+            os.kill(stopped, signal.SIGSTOP)
+            try:
+                await _ingest(a, msgs[0])
+                answered = await _stream_until(b, msgs, lambda: a.restarts > 0)
+                await a.settled()                   # on the other worker
+            finally:
+                with_pid = a.link.pid
+            return answered, a.restarts, with_pid, stopped, b.link.pid
+        finally:
+            await pool.close()
+    answered, restarts, now_on, stopped, other = asyncio.run(run())
+    assert restarts == 1 and now_on == other != stopped
+    assert answered >= LAG_EVIDENCE
+
+
+def test_a_worker_busy_with_a_long_message_is_not_killed_while_the_other_worker_answers_many():
+    """Session a's worker handles imu_batch messages of the largest size (hundreds of ms each here),
+    answering nothing meanwhile, while session b's worker answers message after message; with
+    ``hand_worker_lag_s`` far below one such message the busy worker is not killed: it is running (or
+    waiting for a core) all along."""
+    msgs = _glove(4.0, 2)
+    samples = [x for m in msgs if m["type"] == "imu_batch" for x in m["samples"]][:MAX_BATCH_SAMPLES]
+    poses = [m for m in msgs if m["type"] == "pose"]
+
+    async def run():
+        pool = await _pool(2, hand_worker_lag_s=0.02, hand_worker_stall_s=600.0)
+        try:
+            a, b = await _two_sessions(pool)
+            worker = a.link.pid
+            for m in poses:
+                await _ingest(a, m)
+            await a.settled()
+            for _ in range(3):                      # three long messages in a row
+                await _ingest(a, {"type": "imu_batch", "samples": samples})
+            a_done = asyncio.create_task(a.settled())
+            answered = await _stream_until(b, msgs, a_done.done)
+            return answered, a.restarts, b.restarts, a.link.pid, worker, a.frames_out
+        finally:
+            await pool.close()
+    answered, a_restarts, b_restarts, now_on, worker, frames = asyncio.run(run())
+    assert a_restarts == 0 and b_restarts == 0 and now_on == worker
+    assert answered >= LAG_EVIDENCE and frames > 0
