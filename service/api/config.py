@@ -76,6 +76,10 @@ class ServiceSettings(BaseSettings):
                                              "this long (a send stuck on a full socket) is dropped and its buffers freed, s")
     ping_interval_s: float = Field(10.0, gt=0, description="WebSocket keepalive ping interval, s")
     ping_timeout_s: float = Field(20.0, gt=0, description="WebSocket keepalive timeout, s")
+    websocket_compression: bool = Field(False, description="accept a client's offer of per-message deflate: "
+                                        "JSON frames about 3x smaller on the wire, but every subscriber's copy is "
+                                        "compressed on its own, the largest CPU cost of a subscriber in the serving "
+                                        "process (off: for a venue's local network, CPU is scarcer than bandwidth)")
     ingest_backlog_messages: int = Field(1024, ge=1, le=100_000, description="source messages received and not yet "
                                          "processed, per connection; beyond it data messages are refused 'overloaded' "
                                          "until half of it is processed (api/backlog.py)")

@@ -18,7 +18,8 @@ def uvicorn_config(settings: ServiceSettings, app=None) -> uvicorn.Config:
     # times larger are cut off at the WebSocket layer (close 1009)
     return uvicorn.Config(app or create_app(settings), host=settings.host, port=settings.port, log_level="warning",
                           ws_max_size=4 * settings.max_message_bytes, ws_ping_interval=settings.ping_interval_s,
-                          ws_ping_timeout=settings.ping_timeout_s, timeout_graceful_shutdown=2, lifespan="on")
+                          ws_ping_timeout=settings.ping_timeout_s, ws_per_message_deflate=settings.websocket_compression,
+                          timeout_graceful_shutdown=2, lifespan="on")
 
 
 class FingertrackServer(uvicorn.Server):

@@ -65,6 +65,11 @@ READ_CHUNK = 1 << 16
 LAG_EVIDENCE = 20
 """source messages the other workers answer while one worker owing answers is silent, before that one
 counts as stuck after ``hand_worker_lag_s`` (not ``hand_worker_stall_s``)"""
+OUTS_PER_TURN = 16
+"""frames and events of a worker passed on to the subscribers' queues before the loop lets their senders
+run (a turn of the loop per frame, and a wake of every subscriber's sender per frame, cost the web process
+more than moving the frame); at most half a subscriber queue (``subscriber_queue_frames``), so that no
+frame is dropped for it"""
 CONFIG_WAIT_S = 300.0
 """longest wait for a worker to apply a configuration change (it may compile an estimator first), s"""
 
@@ -144,12 +149,17 @@ class WorkerLink:
                 while len(data) < size:             # a worker whose bytes still arrive is not silent
                     data += await reader.readexactly(min(size - len(data), READ_CHUNK))
                     self._hear()
+                outs = 0
                 for message in msgpack.unpackb(data):
                     self._dispatch(message)
                     if message[0] == "out":
-                        # the subscribers' senders go out before the next frame (their queues are bounded)
-                        await asyncio.sleep(0)
-                        self._hear()                # this process was busy with its outputs, not waiting for it
+                        outs += 1
+                        if outs % self.pool.outs_per_turn == 0:
+                            # the subscribers' senders go out before more frames come (their queues are bounded)
+                            await asyncio.sleep(0)
+                            self._hear()            # this process was busy with its outputs, not waiting for it
+                if outs % self.pool.outs_per_turn:
+                    await asyncio.sleep(0)
         except (asyncio.IncompleteReadError, ConnectionError):
             return                                  # the process ended: _watch restarts it
 
@@ -282,6 +292,7 @@ class HandPool:
         self.metrics = metrics
         self.worker_settings = {"estimator": settings.estimator, "output_rate_hz": settings.output_rate_hz}
         self.links = [WorkerLink(self, i) for i in range(settings.hand_workers)]
+        self.outs_per_turn = max(1, min(OUTS_PER_TURN, settings.subscriber_queue_frames // 2))
         self.loop: asyncio.AbstractEventLoop | None = None
         self.closing = False
         self._sids = itertools.count(1)
