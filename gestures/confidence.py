@@ -27,8 +27,8 @@ disjoint from the full run's (1-12) and the quick run's (101, 102), so every sco
 CONFIDENCE_TABLE: dict[str, tuple[float, float, float]] = {
     "grasp": (0.5, 0.875, 0.95),
     "point": (0.5, 0.5, 0.958),
-    "pinch": (0.5, 0.889, 0.941),
-    "open": (0.5, 0.667, 0.957),
+    "pinch": (0.667, 0.923, 0.917),
+    "open": (0.5, 0.75, 0.955),
 }
 """Observed precision per gesture and raw-strength bin (``fit_table`` on ``FIT_SEEDS``)."""
 

@@ -21,7 +21,11 @@ Discrete gestures, at most one at a time, priority grasp > point > pinch > open:
   ``pinch_others_curl_max`` (when a pointing hand closes into a fist the index tip sweeps past the
   thumb tip, which is not a pinch; a closing fist passes the pinch distance while the other fingers
   are still half way), and not closing fast (their mean curl rising by at most
-  ``pinch_others_rate_max`` per second);
+  ``pinch_others_rate_max`` per second), and while the index is not about to curl past a pinch: its curl,
+  extrapolated ``PINCH_LOOKAHEAD_S`` ahead at its rate (smoothed as the others'), at most
+  ``pinch_index_curl_max`` (a fist whose index and thumb close first passes the pinch distance for
+  20-40 ms while the others have barely moved; its index is then still closing fast, a pinching index
+  is slowing down at about half curl);
 * ``open``: every long finger's curl at most ``open_curl_enter`` and the thumb's at most
   ``open_thumb_enter``.
 
@@ -86,6 +90,9 @@ class GestureSettings(BaseModel):
     pinch_others_rate_max: float = Field(2.0, gt=0.0, description="a pinch starts only while the mean curl of middle, "
                                          "ring and little rises no faster than this, 1/s (a hand closing into a fist "
                                          "passes through a pinch-like pose)")
+    pinch_index_curl_max: float = Field(0.9, ge=0.0, le=1.0, description="a pinch starts only while the index curl, "
+                                        "extrapolated PINCH_LOOKAHEAD_S ahead at its rate, is at most this (an index "
+                                        "closing into a fist sweeps past the thumb)")
     pinch_full_m: float = Field(0.015, gt=0.0, description="pinch strength 1 at this tip distance or closer, m")
     pinch_zero_m: float = Field(0.07, gt=0.0, description="pinch strength 0 from this tip distance on, m")
     start_dwell_s: float = Field(0.02, ge=0.0, le=1.0, description="an enter condition must hold this long, s")
@@ -114,12 +121,14 @@ class Features:
     grab_strength: float
     others_curl_rate: float = 0.0
     """Rate of the mean curl of middle, ring and little, 1/s (smoothed over ``RATE_TAU_S``)."""
+    index_curl_rate: float = 0.0
+    """Rate of the index finger's curl, 1/s (smoothed over ``RATE_TAU_S``)."""
 
     @staticmethod
     def from_history(entry) -> "Features":
-        _, curls, distance, rate = entry
+        _, curls, distance, rate, index_rate = entry
         curl = dict(zip(FINGER_ORDER, curls))
-        return Features(curl, distance, _mean([curl[f] for f in LONG]), rate)
+        return Features(curl, distance, _mean([curl[f] for f in LONG]), rate, index_rate)
 
 
 QUANTITIES: dict[str, Callable[[Features], float]] = {
@@ -132,6 +141,7 @@ QUANTITIES: dict[str, Callable[[Features], float]] = {
     "pinch_distance_m": lambda x: x.pinch_distance_m,
     "others_curl_rate": lambda x: x.others_curl_rate,
     "others_curl_ahead": lambda x: _mean([x.curl[f] for f in OTHERS]) + PINCH_LOOKAHEAD_S * x.others_curl_rate,
+    "index_curl_ahead": lambda x: x.curl["index"] + PINCH_LOOKAHEAD_S * x.index_curl_rate,
 }
 """The scalar quantities the rules threshold, by name (curls dimensionless, distances in metres)."""
 
@@ -184,7 +194,8 @@ RULES: dict[str, GestureRule] = {
                                    Condition("others_curl_min", True, "point_others_enter", "point_others_exit", 1.0))),
     "pinch": GestureRule("pinch", (Condition("pinch_distance_m", False, "pinch_enter_m", "pinch_exit_m", 0.0),
                                    Condition("others_curl_ahead", False, "pinch_others_curl_max", None, 0.0),
-                                   Condition("others_curl_rate", False, "pinch_others_rate_max", None, 0.0))),
+                                   Condition("others_curl_rate", False, "pinch_others_rate_max", None, 0.0),
+                                   Condition("index_curl_ahead", False, "pinch_index_curl_max", None, 0.0))),
     "open": GestureRule("open", (Condition("long_curl_max", False, "open_curl_enter", "open_curl_exit", 0.0),
                                  Condition("thumb_curl", False, "open_thumb_enter", "open_thumb_exit", 0.0))),
 }
@@ -202,8 +213,9 @@ class GestureRecognizer:
     _candidate_since: float | None = None
     _failing_since: float | None = None
     _confidence: float = 0.0
-    _previous: tuple[float, float] | None = None
+    _previous: tuple[float, float, float] | None = None
     _rate: float = 0.0
+    _index_rate: float = 0.0
     _frame_ray: tuple = (None, None)
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
     """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
@@ -241,9 +253,11 @@ class GestureRecognizer:
             dt = t - self._previous[0]
             k = dt / (dt + RATE_TAU_S)           # first-order low-pass of the finite difference
             self._rate += k * ((others - self._previous[1]) / dt - self._rate)
-        self._previous = (t, others)
-        x.others_curl_rate = self._rate
-        self.history.append((t, tuple(x.curl.get(f, 0.0) for f in FINGER_ORDER), x.pinch_distance_m, self._rate))
+            self._index_rate += k * ((x.curl["index"] - self._previous[2]) / dt - self._index_rate)
+        self._previous = (t, others, x.curl["index"])
+        x.others_curl_rate, x.index_curl_rate = self._rate, self._index_rate
+        self.history.append((t, tuple(x.curl.get(f, 0.0) for f in FINGER_ORDER), x.pinch_distance_m, self._rate,
+                             self._index_rate))
         events: list[GestureDict] = []
         # candidates for starting: the highest-priority enter condition that holds
         candidates = [(g, RULES[g].score(x, s)) for g in GESTURES if RULES[g].enters(x, s)]

@@ -230,3 +230,38 @@ def test_enrolment_keeps_the_defaults_for_a_user_they_already_fit():
     settings, report = fit_thresholds(samples)
     assert settings.open_curl_exit < 0.2 and settings.open_curl_enter <= GestureSettings().open_curl_enter
     assert settings.model_copy(update={"open_curl_exit": 0.22, "open_curl_enter": 0.17}) == GestureSettings()
+
+
+CLOSING_FIST_SUBJECT = Subject(hand_length_m=0.18, coupling=0.86, grasp_style="loose", pinch_aperture_m=0.009,
+                               rest_deg=(20.7, 26.8))
+
+
+def closing_fist_trial(transition_s: float) -> Trial:
+    """Rest, then a fist whose index and thumb close first (in 45 % of the transition): on the way the tips
+    pass each other as in a pinch; then a pinch, for contrast."""
+    s = CLOSING_FIST_SUBJECT
+    steps = [Step("rest", "none", 0.5, 0.4, 1.0, gesture_pose(s, "rest"))]
+    t = steps[-1].end_s
+    steps.append(Step("grasp-through-pinch", "grasp", t, transition_s, 1.0, gesture_pose(s, "grasp"),
+                      {"index": 0.45, "thumb": 0.45}))
+    t = steps[-1].end_s
+    steps.append(Step("rest", "none", t, 0.4, 1.0, gesture_pose(s, "rest")))
+    t = steps[-1].end_s
+    steps.append(Step("pinch", "pinch", t, 0.3, 1.0, gesture_pose(s, "pinch")))
+    return Trial(0, s, tuple(steps), "slow-rotation", 0.5)
+
+
+@pytest.mark.parametrize("transition_s", [0.25, 0.35, 0.45])
+def test_a_fist_closing_through_a_pinch_like_pose_gives_no_pinch_and_a_real_pinch_still_starts_in_time(transition_s):
+    trial = closing_fist_trial(transition_s)
+    rec = truth_record(trial)
+    closest = min(tip_distance_m(trial.calibration(), {f: (a[0], a[1]) for f, a in (
+        (f, np.degrees(rec["frames"][k].joint_angles[f])) for f in ("thumb", "index", "middle", "ring", "little"))})
+        for k in range(len(rec["frames"])) if trial.steps[1].start_s <= rec["frames"][k].t < trial.steps[1].end_s)
+    assert closest < GestureSettings().pinch_enter_m          # the fist does pass a pinch-like pose
+    rec["runs"] = {"default": gestures.recognise(rec["frames"])}
+    detected = gestures._intervals(rec["runs"]["default"]["events"], rec["end_s"])
+    assert [d[0] for d in detected] == ["grasp", "pinch"]
+    s = gestures.score_trial(rec, "default")
+    assert s["grasp"]["tp"] == 1 and s["pinch"]["tp"] == 1 and sum(s["false_activations"].values()) == 0
+    assert s["onset_s"]["pinch"][0] <= 0.08

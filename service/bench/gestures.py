@@ -135,7 +135,9 @@ def recognise(frames: list[HandFrame], settings=None) -> dict:
     for f in frames:
         ann, evs = rec.update(f)
         for e in evs:
-            raw = RULES[e["gesture"]].score(rec.features(f), rec.settings)
+            x = rec.features(f)
+            x.others_curl_rate, x.index_curl_rate = rec._rate, rec._index_rate      # as the recogniser saw it
+            raw = RULES[e["gesture"]].score(x, rec.settings)
             events.append((e["gesture"], e["event"], e["t"], e["confidence"], raw))
         active.append(ann["active"])
         rays.append(ann["ray"]["direction"] if "ray" in ann else None)
