@@ -129,7 +129,8 @@ namespace Fingertrack
                     catch (Exception e)
                     {
                         if (ct.IsCancellationRequested) return;
-                        var reason = RefusalReason();
+                        var reason = await RefusalReason(ct).ConfigureAwait(false);
+                        if (ct.IsCancellationRequested) return;
                         if (reason != null)
                         {
                             Refused = reason;
@@ -152,15 +153,18 @@ namespace Fingertrack
         /// session's data (GET /v1/sessions, the same roles as the stream). The service refuses a bad
         /// token or role before upgrading, and not every WebSocket implementation reports the HTTP
         /// status (Mono's does not). Returns the service's reason for a 401/403, else null (a network
-        /// problem or a service still starting: retry).</summary>
-        string RefusalReason()
+        /// problem or a service still starting: retry). It waits for the answer (a service that has
+        /// just answered the handshake answers this too, however busy it is; a time limit would take a
+        /// slow refusal for a network problem and retry it), until the connection fails or Stop.</summary>
+        async Task<string> RefusalReason(CancellationToken ct)
         {
             try
             {
                 var req = (HttpWebRequest)WebRequest.Create(restBase + "/v1/sessions");
-                req.Timeout = 2000;
+                req.Timeout = System.Threading.Timeout.Infinite;
                 if (!string.IsNullOrEmpty(token)) req.Headers["Authorization"] = "Bearer " + token;
-                using (req.GetResponse()) { return null; }
+                using (ct.Register(req.Abort))
+                using (await req.GetResponseAsync().ConfigureAwait(false)) { return null; }
             }
             catch (WebException e)
             {
