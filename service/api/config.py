@@ -89,8 +89,9 @@ class ServiceSettings(BaseSettings):
     max_sessions: int = Field(64, ge=1, description="largest number of live sessions")
     max_sessions_per_token: int = Field(8, ge=1, description="live sessions one (non-admin) token may have created")
     max_connections_per_token: int = Field(32, ge=1, description="open WebSockets per (non-admin) token")
-    idle_timeout_s: float = Field(300.0, gt=0, description="a session with no source and no subscriber for this long "
-                                  "is removed and its recording closed, s")
+    idle_timeout_s: float = Field(300.0, gt=0, description="a session with no source and no output for this long "
+                                  "is removed and its recording closed, whether viewers watch it or not (they wait "
+                                  "for its next source), s")
     connection_gc_delay_s: float = Field(1.0, gt=0, le=60, description="a cycle collection (and a heap trim) this "
                                          "long after WebSocket connections ended frees their memory, s (api/churn.py)")
     hand_workers: int = Field(2, ge=0, le=64, description="worker processes that run the sessions' hands (each "

@@ -6,7 +6,9 @@ One source per session: a new connection of the same token takes over (the older
 Lifecycle (``Sessions``): only a source (or an admin changing a session's configuration) creates a
 session; a viewer subscribing to a name that does not exist yet waits for it without creating
 anything (its subscriber joins the session the moment a source creates it, before any frame). A
-session with no source and no subscriber for ``idle_timeout_s`` is removed and its recording closed.
+session with no source and no output for ``idle_timeout_s`` is removed and its recording closed, whether
+viewers watch it or not: a viewer neither creates nor keeps a table entry. Its viewers stay connected
+and wait for the session's next source as for a new session.
 
 Backpressure: every subscriber has its own bounded queue. Frames beyond ``subscriber_queue_frames``
 push out the subscriber's oldest frame (counted per session and in the metrics); gesture events are
@@ -160,7 +162,8 @@ class LiveSession:
         self.owner: str | None = None
         """The token that created it (its quota key; ``None``: an admin)."""
         self.idle_since: float | None = time.monotonic()
-        """Since when nobody (source or subscriber) is connected; ``None`` while somebody is."""
+        """Since when the session has had no source and no output; ``None`` while a source is connected.
+        Subscribers do not count (a viewer does not keep a session alive)."""
         self._lock = asyncio.Lock()
         self._apply_recording()
 
@@ -174,8 +177,8 @@ class LiveSession:
         return int(self.source is not None)
 
     def touch(self) -> None:
-        """Note a connection coming or going: idle from now if nobody is left."""
-        self.idle_since = None if (self.sources or self.subscribers) else time.monotonic()
+        """Note a connection coming or going: idle from now if no source is left."""
+        self.idle_since = None if self.sources else time.monotonic()
 
     def _apply_recording(self) -> None:
         want = self.config.record and self.settings.record_dir is not None
@@ -251,6 +254,8 @@ class LiveSession:
         """Every message ingested so far has been handled (here: as soon as ``ingest`` returned)."""
 
     def _fan_out(self, group: list[FrameDict | GestureDict], t0: float) -> None:
+        if self.idle_since is not None:       # output with no source here (its tail; on a bus, another gateway's source)
+            self.idle_since = time.monotonic()
         for out in group:
             if out["type"] == "frame":
                 self.last_status = out["status"]
@@ -363,13 +368,19 @@ class Sessions:
                 del self.waiting[name]
 
     def evict_idle(self, now: float) -> list[str]:
-        """Remove the sessions idle (no source, no subscriber) for ``idle_timeout_s``, closing their
-        recordings; returns their names."""
+        """Remove the sessions idle (no source, no output) for ``idle_timeout_s``, closing their
+        recordings; their subscribers wait for the name's next session. Returns their names."""
         gone = [name for name, live in self.by_name.items()
                 if live.idle_since is not None and now - live.idle_since >= self.settings.idle_timeout_s]
         for name in gone:
-            self.by_name.pop(name).close()
+            live = self.by_name.pop(name)
+            live.close()
             self.metrics.forget_session(name)
+            if live.subscribers:
+                self.waiting.setdefault(name, set()).update(live.subscribers)
+                live.subscribers.clear()
+                if self.bus is not None:
+                    self.bus.watch(self, name)
         if gone:
             self.metrics.sessions.set(len(self.by_name))
         return gone
