@@ -22,3 +22,20 @@ def test_a_pose_arriving_after_the_window_completes_the_frame():
     sends = [(0.0, "imu_batch", 0.00), (0.1, "pose", 0.00), (0.2, "imu_batch", 0.03), (0.3, "imu_batch", 0.05),
              (0.4, "pose", 0.04)]
     assert completing_sends(sends, np.array([0.0, 0.03]), 0.02).tolist() == [2, 4]
+
+
+def test_the_subscriber_s_collections_are_recorded_with_their_generation():
+    import gc
+
+    from service.bench.latency import _gc_pauses
+
+    pauses: list = []
+    callback = _gc_pauses(pauses)
+    gc.callbacks.append(callback)
+    try:
+        gc.collect(0)
+        gc.collect(2)
+    finally:
+        gc.callbacks.remove(callback)
+    assert [g for g, _ in pauses] == [0, 2]
+    assert all(d >= 0.0 for _, d in pauses)

@@ -10,7 +10,8 @@ since the glove's latest send, this benchmark's earlier figure, is reported besi
 rates a later message has often been sent by the time a frame arrives, which makes that figure too
 small.) The service's own ingest-to-send histogram (``/metrics``) is reported too. The pipeline's
 deliberate alignment delay (reorder window, optical latency) is on the source clock and not part of
-these figures.
+these figures. The subscriber freezes its heap once connected and reports its own garbage collections,
+so that a pause of the measuring process is neither counted as the service's latency nor unseen.
 """
 from __future__ import annotations
 
@@ -42,13 +43,30 @@ def _histogram_quantile(metrics_text: str, q: float) -> float | None:
     return None
 
 
+def _gc_pauses(pauses: list) -> object:
+    """A ``gc.callbacks`` entry that appends each collection's ``(generation, duration in ms)``."""
+    started = [0.0]
+
+    def callback(phase: str, info: dict) -> None:
+        if phase == "start":
+            started[0] = time.perf_counter()
+        else:
+            pauses.append((info["generation"], 1e3 * (time.perf_counter() - started[0])))
+    return callback
+
+
 def _subscriber(url: str, viewer: str, ready, stop, conn) -> None:
     """The subscriber, in its own process (so the glove's sends never delay its reads): every frame's
     ``(receive time, frame t)`` on the machine's monotonic clock (``time.perf_counter``), sent back
-    through ``conn`` once ``stop`` is set."""
+    through ``conn`` once ``stop`` is set, with its own garbage collections' pauses. Its heap is frozen
+    once it is connected (a full collection of its modules took 0.3 s on a busy machine, and would be
+    counted as the service's latency); the collections left are reported."""
+    import gc
+
     from clients.client import Subscription
 
     received: list[tuple[float, float]] = []
+    pauses: list[tuple[int, float]] = []
 
     async def main():
         sub = Subscription(url, "bench", viewer)
@@ -61,6 +79,8 @@ def _subscriber(url: str, viewer: str, ready, stop, conn) -> None:
         task = asyncio.create_task(collect())
         while sub.server_hello is None and not task.done():
             await asyncio.sleep(0.01)
+        gc.freeze()
+        gc.callbacks.append(_gc_pauses(pauses))
         ready.set()
         while not stop.is_set() and not task.done():
             await asyncio.sleep(0.05)
@@ -69,7 +89,7 @@ def _subscriber(url: str, viewer: str, ready, stop, conn) -> None:
         await asyncio.gather(task, return_exceptions=True)
 
     asyncio.run(main())
-    conn.send(received)
+    conn.send((received, pauses))
     conn.close()
 
 
@@ -113,13 +133,13 @@ def _measure(url: str, source: str, viewer: str, config: SimConfig) -> tuple[lis
             raise RuntimeError("the subscriber did not connect")
         sends = asyncio.run(_stream(url, source, config))
         stop.set()
-        received = parent.recv() if parent.poll(60.0) else []
+        received, pauses = parent.recv() if parent.poll(60.0) else ([], [])
     finally:
         stop.set()
         proc.join(10.0)
         if proc.is_alive():
             proc.kill()
-    return sends, received
+    return sends, received, pauses
 
 
 def _quantiles(ms: np.ndarray) -> dict:
@@ -145,7 +165,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
                            rate_hz=imu_rate_hz)
         cpu0 = (svc.cpu_seconds(), svc.children_cpu_seconds())
         wall0 = time.perf_counter()
-        sends, received = _measure(svc.url, svc.source, svc.viewer, config)
+        sends, received, sub_pauses = _measure(svc.url, svc.source, svc.viewer, config)
         wall = time.perf_counter() - wall0
         cpu1 = (svc.cpu_seconds(), svc.children_cpu_seconds())
         _, metrics_text = rest(svc.url, "GET", "/metrics", svc.admin)
@@ -172,6 +192,9 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
             q: (None if (v := _histogram_quantile(metrics_text, p)) is None else 1e3 * v)
             for q, p in (("p50", 0.5), ("p99", 0.99))},
         "service_cpu_while_streaming": service_cpu,
+        "subscriber_gc": {"collections": len(sub_pauses), "full": sum(1 for g, _ in sub_pauses if g == 2),
+                          "max_ms": max((d for _, d in sub_pauses), default=0.0),
+                          "total_ms": sum(d for _, d in sub_pauses)},
         "load_average_1min": [load_before, _load_average()],
     }
     (out / "results.json").write_text(json.dumps(result, indent=2))
@@ -188,7 +211,9 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
             + f"\nService histogram (ingest -> send, bucket upper bounds): p50 <= {s['p50']} ms, p99 <= {s['p99']} ms; "
             f"{len(received)} frames, {int(matched.sum())} with their completing message found. Service CPU while "
             f"streaming (incl. start-up of the subscriber): web process "
-            + " , hand workers ".join("?" if v is None else f"{v:.0f} %" for v in service_cpu.values()) + " of a core.\n")
+            + " , hand workers ".join("?" if v is None else f"{v:.0f} %" for v in service_cpu.values()) + " of a core. "
+            f"The subscriber's garbage collections while streaming: {result['subscriber_gc']['collections']} "
+            f"({result['subscriber_gc']['full']} full), longest {result['subscriber_gc']['max_ms']:.1f} ms.\n")
     (out / "summary.md").write_text(text)
     return text
 
