@@ -3,7 +3,7 @@ thumb-index tip distance, grab strength and the pointing ray, in one compiled ca
 
 A frame has five fingers' angles and 26 joint positions; computed with numpy, each value is a handful
 of calls on three-element arrays, whose per-call cost is the whole cost. ``frame_values`` packs the
-frame once and runs ``values_kernel`` (numba, ``cache=True``; compiled ahead of serving with the
+frame once and runs ``values_kernel`` (numba, cached where a writable cache folder exists, ``service.numba_cache_dir``; compiled ahead of serving with the
 pipeline's kernels, ``service.estimators.warm``). ``reference_values`` is the same computation in numpy,
 the definition the kernel is tested against (``tests/test_gesture_values.py``); the kernel keeps its
 order of operations (a sum left to right, the norm as the square root of a dot product), so the two
@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numba
 import numpy as np
 
+from service import JIT_CACHE
 from service.model.openxr import JOINT_NAMES
 
 FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
@@ -57,7 +58,7 @@ def reference_values(joint_angles, joints, curl_full_long_rad: float, curl_full_
     return Values(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])), ray)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=JIT_CACHE)
 def values_kernel(phi, ends, full, positions, rows, long_fingers, out):  # pragma: no cover - compiled
     """``out[:n]`` the curls of the ``n = len(ends)`` fingers (finger ``k``'s angles are
     ``phi[ends[k-1]:ends[k]]``, its full curl ``full[k]``); then the tip distance, the mean curl of

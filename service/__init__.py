@@ -1,5 +1,6 @@
 """fingertrack service: hand model, simulator, estimators, pipeline and API."""
 import os
+import sys
 import tempfile
 from pathlib import Path
 
@@ -16,13 +17,15 @@ def _writable_dir(path: Path) -> bool:
 
 
 def numba_cache_dir(environ=os.environ) -> str | None:
-    """Where compiled numba kernels are cached: ``NUMBA_CACHE_DIR`` when set, else the first writable
-    of the per-user cache (``$XDG_CACHE_HOME`` or ``~/.cache``, then ``fingertrack/numba``) and a
+    """Where compiled numba kernels are cached: the first writable of ``NUMBA_CACHE_DIR`` (when set),
+    the per-user cache (``$XDG_CACHE_HOME`` or ``~/.cache``, then ``fingertrack/numba``) and a
     per-user folder in the temporary directory; ``None`` if none is writable (e.g. a read-only root
-    file system without a writable /tmp), in which case kernels are compiled without a cache."""
-    if environ.get("NUMBA_CACHE_DIR"):
-        return environ["NUMBA_CACHE_DIR"]
+    file system without a writable /tmp), in which case kernels are compiled without a cache. numba
+    itself needs a writable cache folder: given an unwritable one it caches beside the package's
+    source instead, and fails at import where that is read-only too."""
     candidates = []
+    if environ.get("NUMBA_CACHE_DIR"):
+        candidates.append(Path(environ["NUMBA_CACHE_DIR"]))
     base = environ.get("XDG_CACHE_HOME")
     if not base:
         try:
@@ -40,5 +43,9 @@ def numba_cache_dir(environ=os.environ) -> str | None:
 _cache = numba_cache_dir()
 if _cache is not None:
     os.environ["NUMBA_CACHE_DIR"] = _cache
+else:
+    os.environ.pop("NUMBA_CACHE_DIR", None)
+if "numba" in sys.modules:          # imported before this package: it read the environment already
+    sys.modules["numba"].core.config.reload_config()
 JIT_CACHE = _cache is not None
 """Whether numba kernels may use ``cache=True`` (a writable cache folder exists)."""

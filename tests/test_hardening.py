@@ -804,13 +804,16 @@ def test_replies_to_refused_messages_wait_in_their_place_within_a_bound():
 # -- item 4: kernels and their cache -------------------------------------------------------------------------
 
 def test_the_kernel_cache_is_a_writable_per_user_folder(tmp_path):
-    assert numba_cache_dir({"NUMBA_CACHE_DIR": "/set/by/operator"}) == "/set/by/operator"
+    assert numba_cache_dir({"NUMBA_CACHE_DIR": str(tmp_path / "operator")}) == str(tmp_path / "operator")
     assert numba_cache_dir({"XDG_CACHE_HOME": str(tmp_path)}) == str(tmp_path / "fingertrack" / "numba")
     blocked = tmp_path / "a-file"
     blocked.write_text("")
     # an unwritable home cache (a read-only root file system): the temporary folder instead
     chosen = numba_cache_dir({"XDG_CACHE_HOME": str(blocked)})
     assert chosen is not None and chosen.startswith(__import__("tempfile").gettempdir())
+    # an unwritable NUMBA_CACHE_DIR is passed over too (numba would cache beside the package's source)
+    assert numba_cache_dir({"NUMBA_CACHE_DIR": str(blocked / "numba"), "XDG_CACHE_HOME": str(tmp_path)}) \
+        == str(tmp_path / "fingertrack" / "numba")
 
 
 def test_switching_to_a_compiled_estimator_warms_it_off_the_loop(server):
