@@ -3,8 +3,9 @@ thumb-index tip distance, grab strength and the pointing ray, in one compiled ca
 
 A frame has five fingers' angles and 26 joint positions; computed with numpy, each value is a handful
 of calls on three-element arrays, whose per-call cost is the whole cost. ``frame_values`` packs the
-frame once and runs ``values_kernel`` (numba, cached where a writable cache folder exists, ``service.numba_cache_dir``; compiled ahead of serving with the
-pipeline's kernels, ``service.estimators.warm``). ``reference_values`` is the same computation in numpy,
+frame once and runs ``values_kernel`` (numba, cached where a writable cache folder exists,
+``service.numba_cache_dir``; compiled ahead of serving with the pipeline's kernels,
+``service.estimators.warm``). ``reference_values`` is the same computation in numpy,
 the definition the kernel is tested against (``tests/test_gesture_values.py``); the kernel keeps its
 order of operations (a sum left to right, the norm as the square root of a dot product), so the two
 agree to the last bit, not just within tolerance.
