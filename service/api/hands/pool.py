@@ -45,6 +45,7 @@ import sys
 import termios
 import threading
 import time
+from pathlib import Path
 
 import msgpack
 
@@ -263,8 +264,8 @@ class WorkerLink:
         last look (Linux ``/proc``; elsewhere ``False``: silence alone counts). A stopped process, or one
         blocked waiting for something that does not come, is neither."""
         try:
-            state = open(f"/proc/{self.pid}/stat").read().rsplit(")", 1)[1].split()[0]
-            cpu_ns = int(open(f"/proc/{self.pid}/schedstat").read().split()[0])
+            state = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+            cpu_ns = int(Path(f"/proc/{self.pid}/schedstat").read_text().split()[0])
         except (OSError, ValueError, IndexError):
             return False
         ran, self._cpu_ns = self._cpu_ns is not None and cpu_ns != self._cpu_ns, cpu_ns
