@@ -37,7 +37,10 @@ def listen_socket(host: str, port: int) -> socket.socket:
     """The bound listening socket of ``host:port``; ``OSError`` with one clear line when the port is
     taken or the address is not local (checked before the service prints or starts anything)."""
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
+    # the protocol named: asyncio turns Nagle's algorithm off (TCP_NODELAY) only on sockets that say
+    # they are TCP, and accepted sockets inherit it; without it a frame written while the previous one
+    # waits for its acknowledgement waited for the peer's delayed acknowledgement (about 40 ms)
+    sock = socket.socket(family, socket.SOCK_STREAM, socket.IPPROTO_TCP)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
     try:
         sock.bind((host, port))
