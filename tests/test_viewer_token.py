@@ -7,6 +7,7 @@ import asyncio
 import json
 import time
 
+import pytest
 from websockets.asyncio.client import connect
 from websockets.exceptions import InvalidStatus
 
@@ -22,8 +23,8 @@ BOUND_S = 120
 """Bounds a failure only (an event that never comes); no test waits for it to pass."""
 
 
-def _settings(**extra) -> ServiceSettings:
-    return ServiceSettings.load(port=0, admin_token=ADMIN, hand_workers=0,
+def _settings(hand_workers=0, **extra) -> ServiceSettings:
+    return ServiceSettings.load(port=0, admin_token=ADMIN, hand_workers=hand_workers,
                                 tokens={SOURCE: "source", SOURCE2: "source", VIEWER: "viewer"}, **extra)
 
 
@@ -126,8 +127,9 @@ def test_a_viewer_token_creates_nothing_and_cannot_fill_the_table():
     assert seen["late"]["waiting"] is True and set(seen["table_late"]) == {"typo0", "fresh"}
 
 
-def test_a_viewer_cannot_close_a_session_nor_keep_it_alive():
-    with ServerThread(_settings(idle_timeout_s=0.5)) as srv:
+@pytest.mark.parametrize("hand_workers", [0, 1])
+def test_a_viewer_cannot_close_a_session_nor_keep_it_alive(hand_workers):
+    with ServerThread(_settings(hand_workers, idle_timeout_s=0.5)) as srv:
         async def go():
             seen = {}
             messages = _messages(t_m_s=4.0)
