@@ -87,7 +87,8 @@ def test_replies_are_attributed_to_the_message_that_caused_them():
         first, second = asyncio.run(go())
     assert [outcome for outcome, _ in first] == ["replied", "replied", "replied", "closed_by_design"]
     assert [[m["code"] for m in replies] for _, replies in first] == [
-        ["invalid_json"], [], ["unknown_type"], ["unsupported_protocol"]]
+        ["invalid_json"], [], ["unknown_type"], ["unsupported_protocol", 1008]]     # then the close, with its code
+    assert first[3][1][1]["type"] == "close" and "unsupported protocol" in first[3][1][1]["reason"]
     assert second == [("replied", [{"type": "error", "code": "invalid_json", "detail": second[0][1][0]["detail"]}])]
 
 
@@ -142,6 +143,9 @@ def test_quick_campaign_runs_end_to_end_and_accounts_for_every_message(tmp_path)
                 "crashes")
     for c in categories:                                      # every message has exactly one outcome
         assert int(c["sent"]) == sum(int(c[k]) for k in outcomes), c
+        # and every connection closed while answering one has its close code and reason listed
+        closes = sum(int(x.rsplit("=", 1)[1]) for x in c["closes"].split("; ") if x)
+        assert closes == int(c["closed_by_design"]) + int(c["closed_abnormally"]), c
     results = json.loads((out / "results.json").read_text())
     assert sum(int(c["sent"]) for c in categories) == results["fuzz"]["sent"] == 240
     good = results["fuzz"]["good"]

@@ -307,6 +307,9 @@ class CategoryStats:
     silent: int = 0
     closed_by_design: int = 0
     closed_abnormally: int = 0
+    closes: Counter = field(default_factory=Counter)
+    """close code and reason of the connections closed while answering a message (``None``: no close frame
+    received)"""
     stalls: int = 0
     """sentinel not answered within the reply timeout while ``/health`` answered"""
     hangs: int = 0
@@ -377,7 +380,8 @@ class Attacker:
         connection is answered in order, so the replies before the k-th sentinel's belong to the k-th
         message). Returns one ``(outcome, replies)`` per message answered, outcome ``"replied"``; when
         the connection closes, the message being answered gets ``"closed_by_design"`` or
-        ``"closed_abnormally"`` and the list ends there (the caller sends the rest again); a message
+        ``"closed_abnormally"`` (its replies end with ``{"type": "close", "code", "reason"}``, not sent by
+        the service) and the list ends there (the caller sends the rest again); a message
         whose sentinel is not answered in time while ``/health`` answers is ``"stalled"``. Raises
         :class:`ServiceDown` on a hang or a crash."""
         from websockets.exceptions import ConnectionClosed
@@ -406,11 +410,13 @@ class Attacker:
             return results + [("stalled", replies)]
         except (ConnectionClosed, OSError) as err:
             code = getattr(getattr(err, "rcvd", None), "code", None)
+            reason = getattr(getattr(err, "rcvd", None), "reason", "") or type(err).__name__
             await self.close()
             if not self.svc.alive():
                 raise ServiceDown("crash") from None
             # 1008 refusal (bad hello), 1009 too big, 1013 try later: the service closed on purpose
-            return results + [("closed_by_design" if code in (1008, 1009, 1013) else "closed_abnormally", replies)]
+            return results + [("closed_by_design" if code in (1008, 1009, 1013) else "closed_abnormally",
+                               replies + [{"type": "close", "code": code, "reason": reason}])]
 
 
 # -- the good glove beside the attack --------------------------------------------------------------
@@ -587,6 +593,9 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
                     errors = [m for m in replies if m.get("type") == "error"]
                     for m in errors:
                         st.codes[m.get("code")] += 1
+                    for m in replies:
+                        if m.get("type") == "close":
+                            st.closes[f"{m['code']} {m['reason'][:60]}"] += 1
                     if outcome == "replied":
                         if errors:
                             st.error_reply += 1
@@ -1214,10 +1223,11 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
     with open(out / "fuzz.csv", "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["category", "sent", "error_reply", "other_reply", "silent", "closed_by_design",
-                    "closed_abnormally", "stalls", "hangs", "crashes", "codes"])
+                    "closed_abnormally", "stalls", "hangs", "crashes", "codes", "closes"])
         for name, s in sorted(st.items()):
             w.writerow([name, s.sent, s.error_reply, s.other_reply, s.silent, s.closed_by_design,
-                        s.closed_abnormally, s.stalls, s.hangs, s.crashes, " ".join(f"{c}={n}" for c, n in s.codes.most_common())])
+                        s.closed_abnormally, s.stalls, s.hangs, s.crashes, " ".join(f"{c}={n}" for c, n in s.codes.most_common()),
+                        "; ".join(f"{c}={n}" for c, n in s.closes.most_common())])
     ext_cols = ["probe", "hung", "service_alive", "frames_before", "frames_after", "expected_after",
                 "first_frame_after_s", "errors_after", "error_codes", "non_finite_messages"]
     with open(out / "extremes.csv", "w", newline="") as fh:
