@@ -137,3 +137,43 @@ def test_a_worker_busy_with_a_long_message_is_not_killed_while_the_other_worker_
     answered, a_restarts, b_restarts, now_on, worker, frames = asyncio.run(run())
     assert a_restarts == 0 and b_restarts == 0 and now_on == worker
     assert answered >= LAG_EVIDENCE and frames > 0
+
+
+def _owed_matches(pool: HandPool) -> bool:
+    """Each worker's count of unanswered source messages is the sum over the sessions it holds."""
+    return all(link.owed == sum(len(live._pending) for live in link.sessions.values()) for link in pool.links)
+
+
+def test_a_worker_s_count_of_unanswered_messages_follows_its_sessions_through_a_kill_and_a_close():
+    """The count the watchdog and ``owe`` read (no walk over the sessions per message) stays the sum of
+    the sessions' unanswered messages while messages are in flight, when a killed worker's session
+    moves with its unanswered messages to the other worker, and when a session closes owing answers."""
+    msgs = _glove(1.0, 3)
+
+    async def run():
+        pool = await _pool(2)
+        checks = []
+        try:
+            a, b = await _two_sessions(pool)
+            for m in msgs[:60]:
+                await _ingest(a, m)
+            checks.append(("in flight", a.link.owed > 0 and _owed_matches(pool)))
+            a.link.proc.kill()
+            while a.restarts == 0:
+                checks.append(("moving", _owed_matches(pool)))
+                await asyncio.sleep(0.001)
+            checks.append(("moved", a.link is b.link and _owed_matches(pool)))
+            await a.settled()
+            checks.append(("answered", a.link.owed == 0 and _owed_matches(pool)))
+            for m in msgs[:60]:
+                await _ingest(b, m)
+            owed_before_close = b.link.owed
+            b.close()
+            checks.append(("closed", owed_before_close > 0 and _owed_matches(pool)))
+            await a.settled()
+            checks.append(("after close", _owed_matches(pool)))
+            return checks
+        finally:
+            await pool.close()
+    checks = asyncio.run(run())
+    assert [name for name, ok in checks if not ok] == []

@@ -85,6 +85,9 @@ class WorkerLink:
         self.pid: int | None = None
         self.ready = asyncio.Event()
         self.sessions: dict[int, ProcessSession] = {}
+        self.owed = 0
+        """source messages of its sessions it has not answered yet (the sum of their ``_pending``, kept
+        as a count so that a source message costs no walk over the worker's sessions)"""
         self.restarts = 0
         self._writer: asyncio.StreamWriter | None = None
         self._sock: socket.socket | None = None
@@ -183,7 +186,8 @@ class WorkerLink:
         ``besides`` one moving to it, have nothing unanswered), its silence counts from now. A worker
         has nothing to say while it owes nothing: silence since its last byte would count the idle
         time (before the first stream, a 30 s pause) and kill it at the first message it is sent."""
-        if not any(live._pending for live in self.sessions.values() if live is not besides):
+        others = self.owed - (len(besides._pending) if besides is not None and besides.link is self else 0)
+        if not others:
             self._hear()
             self._owing_from_flush = True
 
@@ -228,9 +232,11 @@ class WorkerLink:
             for live in list(self.sessions.values()):
                 target = min(others, key=lambda x: len(x.sessions))
                 del self.sessions[live.sid]
+                self.owed -= len(live._pending)
                 live.link = target
                 target.sessions[live.sid] = live
                 live.reopen()
+                target.owed += len(live._pending)
         if not was_ready:
             await asyncio.sleep(RESTART_BACKOFF_S)  # it died starting: do not restart in a tight loop
         await self.start()
@@ -246,7 +252,7 @@ class WorkerLink:
         for ``lag_s`` while the other workers answered ``LAG_EVIDENCE`` source messages and it did not
         work either (neither runnable nor using CPU: stopped, or blocked; module docstring)."""
         if not (self.ready.is_set() and not self._restarting and self.proc is not None and self.proc.returncode is None
-                and any(live._pending for live in self.sessions.values())):
+                and self.owed):
             return False
         if self._unread():                          # it did send: this process is behind, not the worker
             self._hear()
@@ -418,6 +424,7 @@ class ProcessSession(LiveSession):
         kept = raw if parsed.type == "calibration" else None     # the session's state, once it is accepted
         self.link.owe()
         self._pending[self._n] = (parsed.type, packed, time.perf_counter(), kept)
+        self.link.owed += 1
         self.link.send(["src", self.sid, self._n, packed])
         return None
 
@@ -432,6 +439,8 @@ class ProcessSession(LiveSession):
 
     def on_reply(self, n: int, errors: list) -> None:
         entry = self._pending.pop(n, None)
+        if entry is not None:
+            self.link.owed -= 1
         if entry is not None and entry[0] == "calibration" and not errors:
             self.calibration = entry[3]
         if errors and self._source_error is not None:
@@ -503,6 +512,7 @@ class ProcessSession(LiveSession):
 
     def close(self) -> None:
         super().close()
-        self.link.sessions.pop(self.sid, None)
+        if self.link.sessions.pop(self.sid, None) is not None:
+            self.link.owed -= len(self._pending)
         if not self.link.pool.closing:
             self._to_worker(["close", self.sid])
