@@ -232,7 +232,7 @@ class HandSession:
         self.calibration = calibration or default_calibration(hand)  # type: ignore[arg-type]
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
         self.counters = Counters()
-        self._pending: dict[float, dict[str, tuple[list[float], list[float]]]] = {}    # t -> id -> (gyr, acc)
+        self._pending: dict[float, dict[str, list[float]]] = {}    # t -> id -> gyr + acc (six numbers)
         self._last_sample: dict[str, tuple[float, list[float], list[float]]] = {}
         self._processed_t: float | None = None
         self._newest_imu_t: float | None = None
@@ -243,6 +243,10 @@ class HandSession:
         self._lost_since: float | None = None
         self._fingers: dict[str, FingerState] = {}
         self._together = ChainHand()        # the fingers advanced in one kernel call per tick
+        self._layouts: dict[tuple, _TogetherLayout] = {}
+        self._together_phi: tuple[np.ndarray, list[FingerState]] | None = None   # their last angles, all in one array
+        self._tick_ids: tuple[str, ...] | None = None          # the sensor ids of the tick being processed
+        self._tick_readings: np.ndarray | None = None          # and their corrected readings (k, 2, 3)
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
         self._hand_known = False            # the hand's acceleration is known (optics, or the back-of-hand IMU)
@@ -402,8 +406,9 @@ class HandSession:
         return self._sensor_ids
 
     def _add_imu(self, samples) -> None:
-        """Samples (each with ``t``, ``id``, ``gyr``, ``acc``; the vectors are the validated messages'
-        lists, kept as they are) into the table of pending ticks."""
+        """Samples (each with ``t``, ``id``, ``gyr``, ``acc``) into the table of pending ticks, each as one
+        list of six numbers, gyro then accelerometer (a tick's readings become one array in one step:
+        numpy reads flat lists several times faster than pairs of lists)."""
         known = self._known_sensor_ids()
         clock_step_s, max_pending = self.settings.clock_step_s, self.settings.max_pending_ticks
         pending, newest, processed = self._pending, self._newest_imu_t, self._processed_t
@@ -424,7 +429,7 @@ class HandSession:
             elif sid in tick:
                 self._drop("duplicate")
                 continue
-            tick[sid] = (sample.gyr, sample.acc)
+            tick[sid] = sample.gyr + sample.acc
             if newest is None or t > newest:
                 newest = t
             if len(pending) > max_pending:
@@ -476,11 +481,14 @@ class HandSession:
             ids = tuple(tick)
             rows = fits.rows(ids)
             raw = np.array(list(tick.values()), dtype=float).reshape(-1, 2, 3)     # gyro, accelerometer
-            for sid, (g, a) in zip(ids, fits.correct(rows, raw).tolist()):
+            corrected = fits.correct(rows, raw)
+            for sid, (g, a) in zip(ids, corrected.tolist()):
                 last[sid] = (t, g, a)
+            self._tick_ids, self._tick_readings = ids, corrected
         else:
-            for sid, (g, a) in tick.items():
-                last[sid] = (t, g, a)
+            for sid, ga in tick.items():
+                last[sid] = (t, ga[:3], ga[3:])
+            self._tick_ids = self._tick_readings = None
         self._processed_t = t
         if not usable:
             # the optical fit failed numerically (poses too far apart for their times): restart the
@@ -489,7 +497,8 @@ class HandSession:
             self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
             return []
         if METACARPUS_SENSOR_ID in tick:
-            self._hand_imu.add(t, *tick[METACARPUS_SENSOR_ID])
+            ga = tick[METACARPUS_SENSOR_ID]
+            self._hand_imu.add(t, ga[:3], ga[3:])
         if hand is None:
             return []                           # no pose seen yet: nothing to fuse with
         # the back-of-hand IMU keeps the hand's rotation and acceleration known through an occlusion
@@ -535,7 +544,12 @@ class HandSession:
         flexion-axis fit, with the hand's rate from the optics and the finger's current angles
         (``mounting.py``), every sensor in one call."""
         fingers = self._fingers.values()
-        phi = np.concatenate([fs.phi for fs in fingers]).astype(float, copy=False)
+        together = self._together_phi
+        if together is not None and len(together[1]) == len(fingers) and \
+                all(fs is g and fs.phi.base is together[0] for fs, g in zip(fingers, together[1])):
+            phi = together[0]               # every finger's angles are still the last call's: one array already
+        else:
+            phi = np.concatenate([fs.phi for fs in fingers]).astype(float, copy=False)
         started = np.array([fs.estimator.started for fs in fingers], dtype=np.bool_)
         fits.fit(rows, raw, hand.flat, phi, started)
 
@@ -609,19 +623,47 @@ class HandSession:
     def _update_together(self, fingers: list[FingerState], t: float, hand: BaseMotion) -> None:
         """Fingers whose estimators advance in one kernel call (``ChainHand``): the same as
         ``_update_finger`` on each."""
-        last = self._last_sample
-        samples = [last[s] for fs in fingers for s in fs.active_sensors]
-        gyr = np.array([x[1] for x in samples])
-        acc = np.array([x[2] for x in samples])
+        layout = self._together_layout(fingers)
+        if layout.rows is not None:
+            # every sensor sampled in this tick: its corrected readings, gathered in one step
+            readings = self._tick_readings
+            gyr, acc = readings[layout.rows, 0], readings[layout.rows, 1]
+        else:
+            last = self._last_sample
+            samples = [last[s] for s in layout.sensors]
+            gyr = np.array([x[1] for x in samples])
+            acc = np.array([x[2] for x in samples])
         phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
         finite = math.isfinite(sum(phi.tolist()))
+        names = layout.mode_names.get(tuple(modes))
+        if names is None:
+            if len(layout.mode_names) > 256:
+                layout.mode_names.clear()
+            names = layout.mode_names[tuple(modes)] = [
+                finger_mode(modes[sensor_start[f]:sensor_start[f + 1]]) for f in range(len(fingers))]
         for f, fs in enumerate(fingers):
             finger_phi = phi[phalanx_start[f]:phalanx_start[f + 1]]
             if not finite and not _all_finite(finger_phi):
                 self._reset_finger(fs)
                 continue
             fs.phi = finger_phi
-            fs.mode = finger_mode(modes[sensor_start[f]:sensor_start[f + 1]])
+            fs.mode = names[f]
+        self._together_phi = (phi, fingers) if finite else None
+
+    def _together_layout(self, fingers: list[FingerState]) -> "_TogetherLayout":
+        """How this tick's readings reach the fingers advanced together, kept per tick order of sensor
+        ids and per set of fingers and their live sensors (the same tick after tick)."""
+        key = (self._tick_ids, *[fs.active_sensors for fs in fingers])
+        layout = self._layouts.get(key)
+        if layout is None:
+            if len(self._layouts) > 64:
+                self._layouts.clear()
+            sensors = [s for fs in fingers for s in fs.active_sensors]
+            ids = self._tick_ids or ()
+            rows = np.array([ids.index(s) for s in sensors], dtype=np.int64) \
+                if self._tick_ids is not None and set(sensors) <= set(ids) else None
+            layout = self._layouts[key] = _TogetherLayout(sensors, rows)
+        return layout
 
     def _reset_finger(self, fs: FingerState) -> None:
         """A filter that diverged (non-finite estimate, or a numerical failure) restarts from the
@@ -703,6 +745,17 @@ class HandSession:
             "reference_poses": {"applied": self.counters.references_applied, "stale": self.counters.references_stale},
             "filter_resets": self.counters.filter_resets,
         }
+
+
+@dataclass
+class _TogetherLayout:
+    """The sensors of the fingers advanced together, finger after finger (``sensors``), their rows in the
+    tick's readings (``rows``; None when the tick lacks one, which then comes from its last sample),
+    and the finger modes per combination of sensor mode codes (``mode_names``)."""
+
+    sensors: list[str]
+    rows: np.ndarray | None
+    mode_names: dict[tuple, list[str]] = field(default_factory=dict)
 
 
 @lru_cache(maxsize=64)
