@@ -99,6 +99,10 @@ class _Point:
     {"type": "hello", "note": "caf\u00e9"},
     {"type": "x", 1: 2.0, "big": 123456789012345678901234567890},
     {"type": "x", "colour": _Colour.RED},
+    # a null that is never a number beside one that is a NaN (the shortcut for the first must not hide the second)
+    {"type": "frame", "gesture": {"active": None, "curl": {"index": math.nan}}},
+    {"type": "gesture", "ray": None, "confidence": math.inf},
+    {"type": "error", "detail": '"active":null "ray":null', "t": math.nan},
 ])
 def test_fast_encode_gives_the_standard_text_where_it_could_differ(message):
     assert encode(message, False) == _standard_text(message)

@@ -266,6 +266,28 @@ class HandSession:
     def _make_estimator(self, geom: FingerGeometry, theta0: np.ndarray | None, extra=()) -> FingerEstimator:
         return make_estimator(self._estimator, geom, initial_theta=theta0, extra_couplings=tuple(extra))
 
+    def _sensor_status(self, now: float) -> dict[str, SensorStatusDict]:
+        """Every calibrated sensor's age and silence at source time ``now``. At a tick that sampled every
+        one of them (all ages 0) the answer depends only on which sensors are live: one dict per set of
+        live sensors is kept and shared by the frames that have it (never modified)."""
+        complete = now == self._processed_t and self._tick_ids is not None
+        if complete:
+            key = (self._tick_ids, *[fs.active_sensors for fs in self._fingers.values()])
+            cached = self._sensor_status_kept.get(key)
+            if cached is not None:
+                return cached
+        sensors: dict[str, SensorStatusDict] = {}
+        for fs in self._fingers.values():
+            for s in fs.geom.sensors:
+                last = self._last_sample.get(s.id)
+                age = None if last is None else round(now - last[0], 6)
+                sensors[s.id] = {"age_s": age, "silent": s.id not in fs.active_sensors}
+        if complete and all(v["age_s"] == 0.0 for v in sensors.values()):
+            if len(self._sensor_status_kept) > 64:
+                self._sensor_status_kept.clear()
+            self._sensor_status_kept[key] = sensors
+        return sensors
+
     @property
     def estimator_name(self) -> str:
         return self._estimator.name
@@ -286,6 +308,7 @@ class HandSession:
                 estimator.inherit(old.estimator)
             new[name] = FingerState(geom, estimator, sensors, phi, old.mode if old is not None else "none")
         self._fingers = new
+        self._sensor_status_kept: dict[tuple, dict[str, SensorStatusDict]] = {}    # per calibration (``_sensor_status``)
         self._build_mount_fits()
 
     mountings = HandMountings
@@ -488,7 +511,7 @@ class HandSession:
         else:
             for sid, ga in tick.items():
                 last[sid] = (t, ga[:3], ga[3:])
-            self._tick_ids = self._tick_readings = None
+            self._tick_ids, self._tick_readings = tuple(tick), None
         self._processed_t = t
         if not usable:
             # the optical fit failed numerically (poses too far apart for their times): restart the
@@ -624,9 +647,9 @@ class HandSession:
         """Fingers whose estimators advance in one kernel call (``ChainHand``): the same as
         ``_update_finger`` on each."""
         layout = self._together_layout(fingers)
-        if layout.rows is not None:
+        readings = self._tick_readings
+        if layout.rows is not None and readings is not None:
             # every sensor sampled in this tick: its corrected readings, gathered in one step
-            readings = self._tick_readings
             gyr, acc = readings[layout.rows, 0], readings[layout.rows, 1]
         else:
             last = self._last_sample
@@ -729,16 +752,10 @@ class HandSession:
     def status(self, t: float | None = None) -> FrameStatusDict:
         """The frame's ``status`` (``protocol.outgoing.FrameStatus``) at source time ``t``."""
         now = t if t is not None else (self._processed_t or 0.0)
-        sensors: dict[str, SensorStatusDict] = {}
-        for fs in self._fingers.values():
-            for s in fs.geom.sensors:
-                last = self._last_sample.get(s.id)
-                age = None if last is None else round(now - last[0], 6)
-                sensors[s.id] = {"age_s": age, "silent": s.id not in fs.active_sensors}
         return {
             "optics": "tracking" if self._tracking else ("occluded" if self.optics.latest_t is not None else "waiting"),
             "estimator": self.estimator_name,
-            "sensors": sensors,
+            "sensors": self._sensor_status(now),
             "dropped": {"duplicate": self.counters.duplicate, "late": self.counters.late,
                         "overflow": self.counters.overflow, "unknown_sensor": self.counters.unknown_sensor},
             "clock_steps": self.counters.clock_steps,

@@ -60,6 +60,19 @@ _NON_FINITE_DOUBLE = re.compile(rb"\xcb[\x7f\xff][\xf0-\xff]")
 an infinity."""
 
 
+_NULLS_NEVER_NUMBERS = (b'"active":null', b'"ray":null')
+"""The ``null`` values protocol v1 writes under keys whose value is never a number (``outgoing.py``: a
+frame's ``gesture.active``, a gesture name or none; a ray, an object or none): most frames have one.
+Such a pattern cannot occur inside a JSON string (its quotes would be escaped), so text whose every
+``null`` is one of these holds no NaN or infinity that ``orjson`` wrote as ``null``."""
+
+
+def _nulls_all_known(text: bytes) -> bool:
+    """True if every ``null`` in ``text`` is one of ``_NULLS_NEVER_NUMBERS`` (a few C passes over the
+    text; no walk of the message)."""
+    return text.count(b"null") == sum(text.count(p) for p in _NULLS_NEVER_NUMBERS)
+
+
 def _maybe_non_finite(message: Mapping[str, Any]) -> bool:
     """False only if no number in ``message`` is NaN or infinite. MessagePack writes every float as a
     float64, so a non-finite one shows as ``_NON_FINITE_DOUBLE`` in its bytes (one C pass each, cheaper
@@ -77,7 +90,8 @@ def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
 
     JSON text is written by ``orjson`` (several times faster than the standard library) where that
     is safe. ``orjson`` writes NaN and infinity as ``null`` instead of refusing them, so a message with
-    a non-finite number (``_maybe_non_finite``, asked only when the text has a ``null``), a text with any byte beyond ASCII (the standard
+    a non-finite number (``_maybe_non_finite``, asked only when the text has a ``null`` other than
+    ``_NULLS_NEVER_NUMBERS``), a text with any byte beyond ASCII (the standard
     library escapes those), and a message ``orjson`` refuses are written by the standard library as
     before. The values are the same either way; only the spelling of some exponents differs
     (``1e-05`` is written ``0.00001``, ``1.5e-07`` ``1.5e-7``)."""
@@ -88,7 +102,8 @@ def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
     except (orjson.JSONEncodeError, TypeError):
         fast = None
     # orjson writes NaN and infinity as ``null``: text without ``null`` has none (no walk needed)
-    if fast is not None and fast.isascii() and (b"null" not in fast or not _maybe_non_finite(message)):
+    if fast is not None and fast.isascii() and (b"null" not in fast or _nulls_all_known(fast)
+                                                or not _maybe_non_finite(message)):
         return fast.decode()
     try:
         return json.dumps(message, separators=(",", ":"), allow_nan=False)
