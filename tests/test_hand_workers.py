@@ -215,3 +215,36 @@ def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
     for pid in workers:
         with pytest.raises(ProcessLookupError):
             os.kill(int(pid), 0)
+
+
+def test_json_and_messagepack_subscribers_of_a_worker_session_get_the_same_frames_also_when_one_joins_mid_stream():
+    """The worker encodes a session's frames once for every subscriber (JSON always, MessagePack once a
+    subscriber reads it) and the web process passes those bytes on: a JSON and a MessagePack subscriber
+    from the start, and a MessagePack subscriber joining mid-stream (whose first frames the worker
+    wrote as JSON only), receive the same frames, value for value; the session's summary shows the last
+    frame's status."""
+    msgs = _messages("left", 2.0, 11)
+
+    async def run(server):
+        frames = {"json": [], "packed": [], "late": []}
+        subs = {"json": Subscription(server.url, "fmt", VIEWER), "packed": Subscription(server.url, "fmt", VIEWER, binary=True)}
+        tasks = [asyncio.create_task(_collect(subs[k], frames[k])) for k in subs]
+        await _until(lambda: all(s.server_hello is not None for s in subs.values()), "the subscriptions' hellos")
+        stream = asyncio.create_task(_stream(server.url, "fmt", "left", msgs, paced=True))
+        await _until(lambda: len(frames["json"]) >= 20, "the first frames")
+        subs["late"] = Subscription(server.url, "fmt", VIEWER, binary=True)
+        tasks.append(asyncio.create_task(_collect(subs["late"], frames["late"])))
+        summary = await _finish(server, [stream], {"fmt": frames["json"]}, subs, [])
+        await _until(lambda: len(frames["packed"]) >= summary["fmt"]["frames_out"], "every frame in MessagePack")
+        for task in tasks:
+            task.cancel()
+        return frames, summary["fmt"]
+
+    with ServerThread(_settings(1)) as server:
+        frames, summary = asyncio.run(run(server))
+    by_seq = {f["seq"]: f for f in frames["json"]}
+    assert len(frames["json"]) == summary["frames_out"] > 90
+    assert frames["packed"] == frames["json"]
+    assert frames["late"] and frames["late"] == [by_seq[f["seq"]] for f in frames["late"]]
+    assert summary["status"] == frames["json"][-1]["status"]
+    assert {f["hand"] for f in frames["json"]} == {"left"}

@@ -254,24 +254,28 @@ class LiveSession:
         """Every message ingested so far has been handled (here: as soon as ``ingest`` returned)."""
 
     def _fan_out(self, group: list[FrameDict | GestureDict], t0: float) -> None:
-        if self.idle_since is not None:       # output with no source here (its tail; on a bus, another gateway's source)
-            self.idle_since = time.monotonic()
         for out in group:
             if out["type"] == "frame":
                 self.last_status = out["status"]
                 out["status"]["dropped"]["subscriber_frames"] = self.dropped_frames
                 out["status"]["dropped"]["overloaded"] = self.overloaded
-                self.frames_out += 1
-            encoded = Outgoing(out)           # serialised once, on first send, for every subscriber
-            for sub in list(self.subscribers):
-                try:
-                    dropped = sub.put(encoded, t0)
-                except SubscriberTooSlow:
-                    self.subscribers.discard(sub)
-                    continue
-                if dropped:
-                    self.dropped_frames += dropped
-                    self.metrics.dropped_frames.labels(self.name).inc(dropped)
+            self._deliver(Outgoing(out), t0)  # serialised once, on first send, for every subscriber
+
+    def _deliver(self, encoded: Outgoing, t0: float) -> None:
+        """One output message to every subscriber's queue."""
+        if self.idle_since is not None:       # output with no source here (its tail; on a bus, another gateway's source)
+            self.idle_since = time.monotonic()
+        if encoded.type == "frame":
+            self.frames_out += 1
+        for sub in list(self.subscribers):
+            try:
+                dropped = sub.put(encoded, t0)
+            except SubscriberTooSlow:
+                self.subscribers.discard(sub)
+                continue
+            if dropped:
+                self.dropped_frames += dropped
+                self.metrics.dropped_frames.labels(self.name).inc(dropped)
 
     def summary(self) -> dict:
         return {"session": self.name, "hand": self.hand.hand if self.hand is not None else None, "sources": self.sources,

@@ -440,6 +440,10 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                             else lvl["service_cpu_until_drained_s"] / lvl["until_drained_wall_s"]),
         "worker_cpu_share_until_drained": (None if len(readings) < 3 or None in readings[:3]
                                            else (readings[2] - readings[0]) / lvl["until_drained_wall_s"]),
+        "front_cpu_s_per_hand_s": (None if lvl["service_cpu_until_drained_s"] is None or len(readings) < 3
+                                   or None in readings[:3]
+                                   else (lvl["service_cpu_until_drained_s"] - (readings[2] - readings[0]))
+                                   / (hands * seconds)),
         "generator_processes": lvl["generator_processes"],
         "generator_cpu_share_max": lvl["generator_cpu_share_max"],
         "stream_wall_s": lvl["wall_s"],
@@ -522,9 +526,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
                      f"{lv.get('subscriber_reconnects', '-')} / {lv.get('glove_reconnects', '-')} |")
     front = "web process" if bus_workers is None else "gateways"
     lines += ["", f"| hands | workers' CPU, % of a core | {front}' CPU, % | service CPU until every frame was delivered, % "
-              "(workers') | hand worker restarts | worker killed | sessions on it | "
-              "kill -> first frame after it, max s | frames never produced | source messages resent / lost |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
+              f"(workers') | {front}' CPU per second of data per hand, ms | hand worker restarts | worker killed | "
+              "sessions on it | kill -> first frame after it, max s | frames never produced | source messages resent / lost |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
         svc, work = lv["service_cpu_share"], lv["worker_cpu_share"]
@@ -533,11 +537,12 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
         sd, wd = lv.get("service_cpu_share_until_drained"), lv.get("worker_cpu_share_until_drained")
         drained = ("-" if sd is None else f"{100 * sd:.0f}") + ("" if wd is None else f" ({100 * wd:.0f})")
         restarts = lv.get("hand_worker_restarts", "-")
+        per_hand = "-" if lv.get("front_cpu_s_per_hand_s") is None else f"{1e3 * lv['front_cpu_s_per_hand_s']:.1f}"
         if fo is None:
-            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {restarts} | - | - | - | - | - |")
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {per_hand} | {restarts} | - | - | - | - | - |")
         else:
             rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
-            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {restarts} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {per_hand} | {restarts} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
                          f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule beyond "
@@ -547,7 +552,10 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "wait: the pipeline's deliberate wait, that message's due time minus the tick's (the optics' 20 ms latency "
               "and the 20 ms reorder window). Unaccounted: frames the service sent out that were neither delivered nor "
               "counted as dropped. /health and /metrics: response times measured during the stream by a probe "
-              "in its own process (one request each every 50 ms, admin token). Reconnects: a subscriber whose connection "
+              "in its own process (one request each every 50 ms, admin token). CPU per second of data per hand: the "
+              "web process's (or gateways') user + system CPU time from the stream's start until every frame was "
+              "delivered, over hands x seconds streamed (it holds on a loaded machine, where shares of a core "
+              "do not). Reconnects: a subscriber whose connection "
               "dropped (e.g. a keepalive timeout on a starved machine) loses the frames its old connection had queued, "
               "which are then neither delivered nor counted as dropped. Each level runs in a fresh service; "
               f"the generator (gloves and subscribers, {GENERATOR_HANDS} hands per process) shares the machine with it: "

@@ -6,8 +6,9 @@ sync barriers) while its hand runs in that worker.
 The web process only moves messages: a validated source message goes to the worker at once
 (pipelined: ``ingest`` does not wait for the hand; at most ``WINDOW`` messages of a session are
 unanswered, beyond that the source waits); the worker's replies become the source's error replies,
-and its frames and gesture events are fanned out to the subscribers (encoded once per format). What
-is sent to a worker within one turn of the event loop goes in one write (a batch).
+and its frames and gesture events go to the subscribers as the bytes the worker encoded them to (this
+process decodes a frame only to answer a summary or to move its session). What is sent to a worker
+within one turn of the event loop goes in one write (a batch).
 
 A worker that dies (a crash, a kill) is replaced by a new process in its slot, and its sessions move
 at once to the live worker with the fewest sessions (with no other worker ready, they wait for the new
@@ -53,6 +54,7 @@ from ..config import ServiceSettings
 from ..metrics import Metrics
 from gestures.recognizer import GestureSettings
 
+from ..outgoing import Outgoing
 from ..sessions import LiveSession, SessionConfig, SessionConfigChange
 from .worker import HEADER, frame
 
@@ -202,7 +204,7 @@ class WorkerLink:
         if live is None:
             return
         if kind == "out":
-            live.on_output(message[2], message[3])
+            live.on_output(message[2], message[3], message[4], message[5])
         elif kind == "rep":
             self.pool.answered += 1
             live.on_reply(message[2], message[3])
@@ -350,7 +352,8 @@ class ProcessSession(LiveSession):
         self.hand_name: str | None = None
         self.hello: dict | None = None
         self.calibration: dict | None = None
-        self.last_frame: dict | None = None
+        self._last: tuple[int, Outgoing] | None = None         # the last frame passed on: its seq, itself
+        self._told: tuple | None = None             # (MessagePack wanted, drops) as the worker last heard
         self.restarts = 0
         self.resent = 0
         self._n = 0
@@ -366,6 +369,31 @@ class ProcessSession(LiveSession):
 
     def _make_hand(self):
         return None                                 # it runs in the worker
+
+    @property
+    def last_frame(self) -> dict | None:
+        """The last frame passed on (decoded from its bytes only when asked: a state, a summary)."""
+        return None if self._last is None else self._last[1].message
+
+    @property
+    def last_status(self) -> dict:
+        frame_ = self.last_frame
+        return {} if frame_ is None else frame_["status"]
+
+    @last_status.setter
+    def last_status(self, _value) -> None:
+        pass                                        # the last frame's, as the worker wrote it
+
+    def _tell_worker(self) -> None:
+        """The worker writes MessagePack too while a subscriber reads it, and the session's drop counts
+        into its frames' status: tell it when they change."""
+        told = (any(sub.binary for sub in self.subscribers), (self.dropped_frames, self.overloaded))
+        if told != self._told:
+            if self._told is None or told[0] != self._told[0]:
+                self.link.send(["fmt", self.sid, told[0]])
+            if self._told is None or told[1] != self._told[1]:
+                self.link.send(["drops", self.sid, *told[1]])
+            self._told = told
 
     def _to_worker(self, message: list) -> None:
         """Send from the event loop or from a thread of the API (in order either way)."""
@@ -393,6 +421,8 @@ class ProcessSession(LiveSession):
         self.restarts += 1
         self.link.owe(besides=self)
         self.link.send(["open", self.sid, self.name, self.state()])
+        self._told = None
+        self._tell_worker()
         for n in sorted(self._pending):
             self.resent += 1
             self.link.send(["src", self.sid, n, self._pending[n][1]])
@@ -425,17 +455,22 @@ class ProcessSession(LiveSession):
         self.link.owe()
         self._pending[self._n] = (parsed.type, packed, time.perf_counter(), kept)
         self.link.owed += 1
+        self._tell_worker()
         self.link.send(["src", self.sid, self._n, packed])
         return None
 
-    def on_output(self, n: int, message: dict) -> None:
+    def on_output(self, n: int, head: list, text: str, packed: bytes | None) -> None:
+        """An output of source message ``n`` as the worker encoded it, passed on as those bytes."""
         pending = self._pending.get(n)
-        if message.get("type") == "frame":
-            if self.last_frame is not None and message["seq"] <= self.last_frame["seq"]:
+        kind, seq, _, hand = head
+        out = Outgoing.encoded(kind, text, packed)
+        if kind == "frame":
+            if self._last is not None and seq <= self._last[0]:
                 return                              # already passed on (cannot happen without a restart)
-            self.last_frame = message
-            self.hand_name = message.get("hand", self.hand_name)
-        self._fan_out([message], pending[2] if pending else time.perf_counter())
+            self._last = (seq, out)
+            self.hand_name = hand or self.hand_name
+        self._deliver(out, pending[2] if pending else time.perf_counter())
+        self._tell_worker()
 
     def on_reply(self, n: int, errors: list) -> None:
         entry = self._pending.pop(n, None)

@@ -18,12 +18,20 @@ Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a ses
   enrolment; an estimator whose kernels this process has not loaded is first compiled into the cache
   by a separate process while the worker goes on serving (the session keeps its old estimator until
   then), then loaded here and applied;
+* ``["fmt", sid, binary]``: whether a subscriber of the session reads MessagePack (``binary``), so
+  that its outputs are encoded as that too;
+* ``["drops", sid, subscriber_frames, overloaded]``: the session's counts for its frames'
+  ``status.dropped`` (frames dropped for slow subscribers, source messages refused as overload), sent
+  when they change;
 * ``["close", sid]``.
 
 Worker -> web process:
 
-* ``["out", sid, n, message]``: a ``frame`` or ``gesture`` message caused by source message ``n``
-  (``seq`` continued across a restart), always before the reply to ``n``;
+* ``["out", sid, n, head, text, packed]``: a ``frame`` or ``gesture`` message caused by source message
+  ``n`` (``seq`` continued across a restart), always before the reply to ``n``, encoded here once for
+  every subscriber: ``text`` its JSON text, ``packed`` its MessagePack bytes (``None`` unless asked
+  with ``fmt``), ``head`` = ``[type, seq, t, hand]`` (``None`` but the type for a gesture event), what
+  the web process needs without decoding it;
 * ``["rep", sid, n, errors]``: source message ``n`` handled; ``errors`` lists the error replies the
   source gets, ``[code, detail]`` as the in-process service gives them (``api.replies``);
 * ``["cfgrep", sid, n, result, error]``: the applied configuration (or the enrolment's result), or the
@@ -93,6 +101,11 @@ class OwnedHand:
         self.live = LiveSession(name, settings, metrics)
         self.sink = OutputSink(settings.output_rate_hz, packed=False)
         self.resume_angles: dict | None = None
+        self.binary = False
+        """a subscriber of the session reads MessagePack: its frames are encoded as that too"""
+        self.drops = (0, 0)
+        """the session's frames dropped for slow subscribers and source messages refused as overload, as
+        the web process last said (each frame's ``status.dropped``)"""
         if state:
             for raw in (state.get("hello"), state.get("calibration")):
                 if raw is not None:
@@ -105,6 +118,21 @@ class OwnedHand:
             if state.get("seq"):
                 self.sink.resume_after = (int(state["seq"]), float(state["t"]))
             self.resume_angles = state.get("angles") or None
+
+    def encoded(self, sid: int, n: int) -> list[list]:
+        """The outputs in ``sink.pending`` (then emptied) as ``out`` messages for the web process, each
+        encoded here once: JSON text always, MessagePack too while a subscriber reads it."""
+        outs = []
+        for message in self.sink.pending:
+            if message["type"] == "frame":
+                message["status"]["dropped"]["subscriber_frames"], message["status"]["dropped"]["overloaded"] = self.drops
+                head = ["frame", message["seq"], message["t"], message["hand"]]
+            else:
+                head = [message["type"], None, None, None]
+            out = Outgoing(message)
+            outs.append(["out", sid, n, head, out.text(), out.packed() if self.binary else None])
+        self.sink.pending.clear()
+        return outs
 
     def handle(self, raw: dict) -> list[list[str]]:
         """One source message through the hand; its outputs are in ``sink.pending``. Returns the error
@@ -202,9 +230,14 @@ class Worker:
                 return
             n, raw = message[2], message[3]
             errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw)
-            self.out.extend(["out", sid, n, m] for m in owned.sink.pending)
-            owned.sink.pending.clear()
+            self.out.extend(owned.encoded(sid, n))
             self.out.append(["rep", sid, n, errors])
+        elif kind == "fmt":
+            if (owned := self.hands.get(sid)) is not None:
+                owned.binary = bool(message[2])
+        elif kind == "drops":
+            if (owned := self.hands.get(sid)) is not None:
+                owned.drops = (int(message[2]), int(message[3]))
         elif kind == "open":
             with self.alive():                      # a state's estimator may have to be loaded first
                 self.hands[sid] = OwnedHand(message[2], self.settings, self.metrics, message[3])
