@@ -103,6 +103,8 @@ class _Point:
     {"type": "frame", "gesture": {"active": None, "curl": {"index": math.nan}}},
     {"type": "gesture", "ray": None, "confidence": math.inf},
     {"type": "error", "detail": '"active":null "ray":null', "t": math.nan},
+    {"type": "x", 'a"ray': math.nan, "gesture": {"active": None}},
+    {"type": "x", "xactive": -math.inf, "gesture": {"active": None}},
 ])
 def test_fast_encode_gives_the_standard_text_where_it_could_differ(message):
     assert encode(message, False) == _standard_text(message)

@@ -483,12 +483,21 @@ class HandSession:
             (self.optics.latest_valid_t is not None or self._newest_imu_t - t >= 2 * self.settings.pose_timeout_s)
 
     def _process_ready(self) -> Iterator[HandFrame]:
-        while self._pending:
-            t = min(self._pending)
-            if not self._ready(t):
+        pending = self._pending
+        while pending:
+            frames = None
+            # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
+            # under one setting (never held across a ``yield``: the caller's own setting applies there)
+            with np.errstate(all="ignore"):
+                while pending:
+                    t = min(pending)
+                    if not self._ready(t):
+                        break
+                    frames = self._process_tick(t, pending.pop(t))
+                    if frames:
+                        break
+            if not frames:
                 return
-            with np.errstate(all="ignore"):     # a diverging filter is detected and reset, not warned about
-                frames = self._process_tick(t, self._pending.pop(t))
             yield from frames
 
     def _process_tick(self, t: float, tick: dict) -> list[HandFrame]:

@@ -60,17 +60,23 @@ _NON_FINITE_DOUBLE = re.compile(rb"\xcb[\x7f\xff][\xf0-\xff]")
 an infinity."""
 
 
-_NULLS_NEVER_NUMBERS = (b'"active":null', b'"ray":null')
-"""The ``null`` values protocol v1 writes under keys whose value is never a number (``outgoing.py``: a
-frame's ``gesture.active``, a gesture name or none; a ray, an object or none): most frames have one.
-Such a pattern cannot occur inside a JSON string (its quotes would be escaped), so text whose every
-``null`` is one of these holds no NaN or infinity that ``orjson`` wrote as ``null``."""
+_NULLS_NEVER_NUMBERS = (b'{"active":', b',"active":', b'{"ray":', b',"ray":')
+"""What precedes the ``null`` values protocol v1 writes under keys whose value is never a number
+(``outgoing.py``: a frame's ``gesture.active``, a gesture name or none; a ray, an object or none): most
+frames have one. Such a key cannot be part of a JSON string (its quotes would be escaped, and a key
+ending in an escaped quote is preceded by a backslash, not by ``{`` or ``,``), so text whose every
+``null`` follows one of these holds no NaN or infinity that ``orjson`` wrote as ``null``."""
 
 
 def _nulls_all_known(text: bytes) -> bool:
-    """True if every ``null`` in ``text`` is one of ``_NULLS_NEVER_NUMBERS`` (a few C passes over the
-    text; no walk of the message)."""
-    return text.count(b"null") == sum(text.count(p) for p in _NULLS_NEVER_NUMBERS)
+    """True if every ``null`` in ``text`` (none at all included) is the value of a key of
+    ``_NULLS_NEVER_NUMBERS``: one C search per ``null`` and one for the end, no walk of the message."""
+    i = text.find(b"null")
+    while i >= 0:
+        if not text.endswith(_NULLS_NEVER_NUMBERS, 0, i):
+            return False
+        i = text.find(b"null", i + 4)
+    return True
 
 
 def _maybe_non_finite(message: Mapping[str, Any]) -> bool:
@@ -102,8 +108,7 @@ def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
     except (orjson.JSONEncodeError, TypeError):
         fast = None
     # orjson writes NaN and infinity as ``null``: text without ``null`` has none (no walk needed)
-    if fast is not None and fast.isascii() and (b"null" not in fast or _nulls_all_known(fast)
-                                                or not _maybe_non_finite(message)):
+    if fast is not None and fast.isascii() and (_nulls_all_known(fast) or not _maybe_non_finite(message)):
         return fast.decode()
     try:
         return json.dumps(message, separators=(",", ":"), allow_nan=False)
