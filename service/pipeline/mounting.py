@@ -23,6 +23,18 @@ The fit turns both the gyro's and the accelerometer's readings by the estimated 
 one rotation for both), so every estimator reads them as if the sensor sat straight. It uses the
 pipeline's current angle ``θ`` (the accelerometer's, which includes ``ε_x`` as the cross axes do) and
 nothing the glove cannot give.
+
+**The gyro's cross-axis leak into its hinge-axis reading.** A gyro's cross-axis sensitivity (MPU-9250
+±2 %, Product Specification rev. 1.1, section 3.1) makes its hinge-axis reading
+``f_x = ω_x + k_y ω_y + k_z ω_z + b_x``: a hand turning at 2-3 rad/s about the phalanx's other axes
+reads as a flexion of 2-3 deg/s. The tilt fit above sees the *column* of the gyro's map (how a flexion
+appears on the cross axes); for a rotation that is its row too, for cross-axis sensitivity it is not.
+While the finger is still on its hand (``|f_x - w_x| <`` ``quiet_rate_rad_s``, with ``w_x`` the hand's
+rate about the hinge axis from the optics), ``f_x - w_x = b_x + k_y f_y + k_z f_z``: a ridge regression
+of that on ``[1, f_y, f_z]`` (readings turned by the tilt fit's current correction; priors ``k ~ 0 ±
+cross_axis_std``, ``b_x ~ 0 ± offset_std``, residual ``residual_std_rad_s``) gives ``(k_y, k_z)``,
+and the gyro's hinge-axis reading is corrected by them (``HingeAxisFit.correct_gyro``; the
+accelerometer is not). Measured on tuning trials in the README's accuracy section.
 """
 from __future__ import annotations
 
@@ -46,6 +58,11 @@ class MountingFitSettings:
         min_rate_rad_s: samples whose flexion rate ``|f_x|`` is below this are not used, rad/s.
         max_tilt_rad: the correction is clipped to this angle (a sensor turned further is not a
             mounting error but a wrong calibration), rad.
+        cross_axis_std: prior std of each of the gyro's two cross-axis sensitivities of its hinge-axis
+            reading (MPU-9250 ±2 %, uniform: 0.012); 0 leaves the hinge-axis reading as it is.
+        quiet_rate_rad_s: samples whose rate relative to the hand (the hinge-axis reading less the
+            hand's rate about the hinge axis) is below this feed the cross-axis fit: the finger is
+            still on the hand, rad/s.
     """
 
     prior_std_rad: float = 1.7 * DEG
@@ -53,6 +70,8 @@ class MountingFitSettings:
     residual_std_rad_s: float = 0.3
     min_rate_rad_s: float = 2.0
     max_tilt_rad: float = 10.0 * DEG
+    cross_axis_std: float = 0.012
+    quiet_rate_rad_s: float = 0.5
 
 
 class HingeAxisFit:
@@ -76,6 +95,13 @@ class HingeAxisFit:
         self.tilt_rad = np.zeros(2)                  # (ε_y, ε_z)
         self._correction, self._rows = np.eye(3), None          # None: readings pass unchanged
         self._straight = bool(np.array_equal(self.mount, np.eye(3)))
+        # the cross-axis fit: normal equations of the regressors [1, f_y, f_z] (3 x 3) and the right-hand
+        # side; its solution's last two entries are the cross-axis sensitivities (k_y, k_z)
+        lam_k = (s.residual_std_rad_s / s.cross_axis_std) ** 2 if s.cross_axis_std > 0 else 0.0
+        self._qa = np.diag([lam_b, lam_k, lam_k])
+        self._qb = np.zeros(3)
+        self.cross_axis = np.zeros(2)
+        self.quiet_samples = 0
 
     @property
     def correction(self) -> np.ndarray:
@@ -95,6 +121,7 @@ class HingeAxisFit:
         """One gyro sample (raw, sensor frame, rad/s), the phalanx angle (rad) and the hand's rate in the
         finger base frame (rad/s). Returns whether the sample was used (and the correction changed)."""
         if not self.flexing(gyr):
+            self._add_quiet(gyr, hand_rate_base)
             return False
         m = self._mount_rows
         gx, gy, gz = gyr
@@ -127,6 +154,33 @@ class HingeAxisFit:
         rot = _rotation_about_yz(ey, ez, norm)
         self.correction = rot if self._straight else self.mount.T @ rot @ self.mount
         return True
+
+    def _add_quiet(self, gyr, hand_rate_base) -> bool:
+        """A sample of a finger still on its hand into the cross-axis fit (module docstring): its
+        hinge-axis reading (turned by the current correction, phalanx frame) less the hand's rate about
+        the hinge axis against ``[1, f_y, f_z]``. Returns whether it was used."""
+        if self.settings.cross_axis_std <= 0:
+            return False
+        f = self.mount @ np.asarray(self.correct(list(gyr)), dtype=float)
+        r = f[0] - hand_rate_base[0]
+        if not abs(r) < self.settings.quiet_rate_rad_s:
+            return False
+        reg = np.array([1.0, f[1], f[2]])
+        self._qa = self._qa + np.outer(reg, reg)
+        self._qb = self._qb + reg * r
+        self.cross_axis = np.linalg.solve(self._qa, self._qb)[1:]
+        self.quiet_samples += 1
+        return True
+
+    def correct_gyro(self, vec) -> list[float]:
+        """A raw gyro reading (3,) turned by the current correction and with the cross-axis rates' leak
+        into its hinge-axis reading taken off (``f_x - k_y f_y - k_z f_z`` in the phalanx frame)."""
+        v = self.correct(vec)
+        if not self.quiet_samples:
+            return v
+        f = self.mount @ np.asarray(v, dtype=float)
+        leak = self.cross_axis[0] * f[1] + self.cross_axis[1] * f[2]
+        return (np.asarray(v, dtype=float) - self.mount[0] * leak).tolist()
 
     def correct(self, vec) -> list[float]:
         """A raw reading (3,) turned by the current correction (the reading itself while that is the
@@ -165,10 +219,12 @@ class HandMountings:
     def __init__(self, calibration, settings: MountingFitSettings = MountingFitSettings(),
                  previous: "HandMountings | None" = None):
         self.settings = settings
-        self._st = np.array([settings.min_rate_rad_s, settings.max_tilt_rad])
+        self._st = np.array([settings.min_rate_rad_s, settings.max_tilt_rad,
+                             settings.quiet_rate_rad_s if settings.cross_axis_std > 0 else 0.0])
         s = settings
         lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
         lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
+        lam_k = (s.residual_std_rad_s / s.cross_axis_std) ** 2 if s.cross_axis_std > 0 else 0.0
         rows, meta, self.places = [], [], {}
         offset = 0
         for f, (name, geom) in enumerate(calibration.fingers.items()):
@@ -180,6 +236,7 @@ class HandMountings:
                 row[K.B0:K.B0 + 9] = base.ravel()
                 row[K.C0:K.C0 + 9] = np.eye(3).ravel()
                 row[K.A00], row[K.A11] = lam_e, lam_b
+                row[K.Q00], row[K.Q11], row[K.Q22] = lam_b, lam_k, lam_k
                 row[K.STRAIGHT] = float(np.array_equal(mount, np.eye(3)))
                 kept = previous.places.get(sp.id) if previous is not None else None
                 if kept is not None and kept[1:] == (name, sp.phalanx) and \
@@ -234,6 +291,14 @@ class HandMountings:
     def samples(self, sensor_id: str) -> int:
         return int(self.state[self.places[sensor_id][0], K.SAMPLES])
 
+    def cross_axis(self, sensor_id: str) -> np.ndarray:
+        """``(k_y, k_z)``: the gyro's cross-axis sensitivities of its hinge-axis reading as fitted."""
+        j = self.places[sensor_id][0]
+        return self.state[j, K.LEAK_Y:K.LEAK_Z + 1].copy()
+
+    def quiet_samples(self, sensor_id: str) -> int:
+        return int(self.state[self.places[sensor_id][0], K.QUIET_SAMPLES])
+
 
 class HandMountingsReference(HandMountings):
     """``HandMountings`` with one ``HingeAxisFit`` per sensor, sample by sample in Python: the reference
@@ -257,8 +322,8 @@ class HandMountingsReference(HandMountings):
     def correct(self, idx, raw):
         out = np.array(raw, dtype=float)
         for r, j in enumerate(idx.tolist()):
-            if j >= 0 and self._fits[j].samples:
-                out[r] = [self._fits[j].correct(list(raw[r, 0])), self._fits[j].correct(list(raw[r, 1]))]
+            if j >= 0 and (self._fits[j].samples or self._fits[j].quiet_samples):
+                out[r] = [self._fits[j].correct_gyro(list(raw[r, 0])), self._fits[j].correct(list(raw[r, 1]))]
         return out
 
     def fit(self, idx, raw, hand_flat, phi, started):
@@ -282,3 +347,10 @@ class HandMountingsReference(HandMountings):
 
     def samples(self, sensor_id):
         return self._fits[self.places[sensor_id][0]].samples
+
+    def cross_axis(self, sensor_id):
+        return self._fits[self.places[sensor_id][0]].cross_axis.copy()
+
+    def quiet_samples(self, sensor_id):
+        return self._fits[self.places[sensor_id][0]].quiet_samples
+

@@ -9,7 +9,9 @@ Each sensor is one row of ``state`` (S, ``WIDTH``) float64:
 * ``M`` (9, row-major) its calibrated sensor-to-phalanx mounting, ``B`` (9) its finger's base frame in
   the metacarpus frame, ``C`` (9) the correction applied to raw readings (``Mᵀ R(ε) M``);
 * the normal equations' sums ``a00, a01, a11, by0, by1, bz0, bz1`` (``HingeAxisFit.add``);
-* the tilt ``(ε_y, ε_z)``, the number of samples used, and whether ``M`` is the identity.
+* the tilt ``(ε_y, ε_z)``, the number of samples used, and whether ``M`` is the identity;
+* the cross-axis fit of the hinge-axis reading (``HingeAxisFit._add_quiet``): its normal equations
+  ``q00 .. q22, qb0 .. qb2``, the sensitivities ``(k_y, k_z)`` and the number of samples it used.
 
 ``meta`` (S, 3) int64 holds each sensor's finger (its index among the hand's fingers), phalanx and the
 offset of its finger's joint angles in the flat ``phi`` the fit reads. A tick's samples come as
@@ -31,27 +33,77 @@ M0, B0, C0 = 0, 9, 18
 """Offsets of the mounting, the finger base and the correction (3 x 3 row-major each) in a row."""
 A00, A01, A11, BY0, BY1, BZ0, BZ1 = range(27, 34)
 TILT_Y, TILT_Z, SAMPLES, STRAIGHT = 34, 35, 36, 37
-WIDTH = 38
-ST_MIN_RATE, ST_MAX_TILT = 0, 1
-"""The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``."""
+Q00, Q01, Q02, Q11, Q12, Q22, QB0, QB1, QB2 = range(38, 47)
+"""The cross-axis fit's normal equations (symmetric 3 x 3, regressors ``[1, f_y, f_z]``) and right-hand side."""
+LEAK_Y, LEAK_Z, QUIET_SAMPLES = 47, 48, 49
+WIDTH = 50
+ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE = 0, 1, 2
+"""The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``, ``quiet_rate_rad_s`` (0: no cross-axis fit)."""
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def correct(state, idx, raw, out):
     """``out[r] = C raw[r]`` (both vectors of sample ``r``) with the correction of its sensor; the raw
-    reading itself where the sensor has no fit or its fit no sample yet (``HingeAxisFit.correct``)."""
+    reading itself where the sensor has no fit or its fit no sample yet (``HingeAxisFit.correct``); the
+    gyro's then without its cross-axis leak into the hinge-axis reading (``HingeAxisFit.correct_gyro``)."""
     for r in range(idx.shape[0]):
         j = idx[r]
         if j < 0 or state[j, SAMPLES] == 0.0:
             for v in range(2):
                 for i in range(3):
                     out[r, v, i] = raw[r, v, i]
-            continue
-        for v in range(2):
-            x, y, z = raw[r, v, 0], raw[r, v, 1], raw[r, v, 2]
+        else:
+            for v in range(2):
+                x, y, z = raw[r, v, 0], raw[r, v, 1], raw[r, v, 2]
+                for i in range(3):
+                    o = C0 + 3 * i
+                    out[r, v, i] = state[j, o] * x + state[j, o + 1] * y + state[j, o + 2] * z
+        if j >= 0 and state[j, QUIET_SAMPLES] != 0.0:
+            x, y, z = out[r, 0, 0], out[r, 0, 1], out[r, 0, 2]
+            f1 = state[j, M0 + 3] * x + state[j, M0 + 4] * y + state[j, M0 + 5] * z
+            f2 = state[j, M0 + 6] * x + state[j, M0 + 7] * y + state[j, M0 + 8] * z
+            leak = state[j, LEAK_Y] * f1 + state[j, LEAK_Z] * f2
             for i in range(3):
-                o = C0 + 3 * i
-                out[r, v, i] = state[j, o] * x + state[j, o + 1] * y + state[j, o + 2] * z
+                out[r, 0, i] = out[r, 0, i] - state[j, M0 + i] * leak
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
+    """A sample of a finger still on its hand into its sensor's cross-axis fit (``HingeAxisFit._add_quiet``):
+    the raw gyro ``g`` turned by the current correction into the phalanx frame, ``f = M C g``, and the
+    hand's rate about the hinge axis ``w0``; the 3 x 3 normal equations solved by Cramer's rule."""
+    if state[j, SAMPLES] != 0.0:
+        x = state[j, C0] * gx + state[j, C0 + 1] * gy + state[j, C0 + 2] * gz
+        y = state[j, C0 + 3] * gx + state[j, C0 + 4] * gy + state[j, C0 + 5] * gz
+        z = state[j, C0 + 6] * gx + state[j, C0 + 7] * gy + state[j, C0 + 8] * gz
+    else:
+        x, y, z = gx, gy, gz
+    f0 = state[j, M0] * x + state[j, M0 + 1] * y + state[j, M0 + 2] * z
+    f1 = state[j, M0 + 3] * x + state[j, M0 + 4] * y + state[j, M0 + 5] * z
+    f2 = state[j, M0 + 6] * x + state[j, M0 + 7] * y + state[j, M0 + 8] * z
+    r = f0 - w0
+    if not abs(r) < quiet_rate:
+        return
+    state[j, Q00] += 1.0
+    state[j, Q01] += f1
+    state[j, Q02] += f2
+    state[j, Q11] += f1 * f1
+    state[j, Q12] += f1 * f2
+    state[j, Q22] += f2 * f2
+    state[j, QB0] += r
+    state[j, QB1] += f1 * r
+    state[j, QB2] += f2 * r
+    a00, a01, a02 = state[j, Q00], state[j, Q01], state[j, Q02]
+    a11, a12, a22 = state[j, Q11], state[j, Q12], state[j, Q22]
+    b0, b1, b2 = state[j, QB0], state[j, QB1], state[j, QB2]
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    # the second and third unknowns (Cramer's rule with the symmetric matrix's cofactors)
+    state[j, LEAK_Y] = (c01 * b0 + (a00 * a22 - a02 * a02) * b1 + (a01 * a02 - a00 * a12) * b2) / det
+    state[j, LEAK_Z] = (c02 * b0 + (a01 * a02 - a00 * a12) * b1 + (a00 * a11 - a01 * a01) * b2) / det
+    state[j, QUIET_SAMPLES] += 1.0
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
@@ -60,7 +112,7 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
     ``min_rate_rad_s`` into its sensor's fit (``HingeAxisFit.add`` with the hand's rate in the finger
     base frame ``Bᵀ Rᵀ ω`` from ``hand`` = ``BaseMotion.flat`` (18) and the phalanx angle as the sum of
     the finger's joint angles up to it). Returns how many samples were used."""
-    min_rate, max_tilt = st[ST_MIN_RATE], st[ST_MAX_TILT]
+    min_rate, max_tilt, quiet_rate = st[ST_MIN_RATE], st[ST_MAX_TILT], st[ST_QUIET_RATE]
     # the hand's angular velocity in the metacarpus frame, Rᵀ ω
     wm0 = hand[0] * hand[12] + hand[3] * hand[13] + hand[6] * hand[14]
     wm1 = hand[1] * hand[12] + hand[4] * hand[13] + hand[7] * hand[14]
@@ -73,6 +125,10 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
         gx, gy, gz = raw[r, 0, 0], raw[r, 0, 1], raw[r, 0, 2]
         wx = state[j, M0] * gx + state[j, M0 + 1] * gy + state[j, M0 + 2] * gz     # f = M gyr, phalanx frame
         if not abs(wx) >= min_rate:
+            if quiet_rate > 0.0:
+                # the hand's rate about the hinge axis, (Bᵀ Rᵀ ω)_x
+                w0 = state[j, B0] * wm0 + state[j, B0 + 3] * wm1 + state[j, B0 + 6] * wm2
+                _add_quiet(state, j, gx, gy, gz, w0, quiet_rate)
             continue
         f1 = state[j, M0 + 3] * gx + state[j, M0 + 4] * gy + state[j, M0 + 5] * gz
         f2 = state[j, M0 + 6] * gx + state[j, M0 + 7] * gy + state[j, M0 + 8] * gz
