@@ -253,7 +253,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from .api.app import create_app
     from .api.config import ServiceSettings
     from .api.server import FingertrackServer, listen_socket, serving_gc, uvicorn_config
+    from .api.stacks import stacks_on_signal
 
+    stacks_on_signal()                                  # kill -USR1: every thread's stack into the log
     if args.bus is not None:
         _need_nats_extra()
     loaded = ServiceSettings.load(args.config, host=args.host, port=args.port, bus=args.bus)

@@ -155,3 +155,38 @@ def test_quick_campaign_runs_end_to_end_and_accounts_for_every_message(tmp_path)
     kill = results["kill9"][0]
     assert kill["files"] == 1 and kill["lines"] > 0
     assert "| part | check | goal | measured | met |" in (out / "summary.md").read_text()
+
+
+def _gone(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0] == "Z"
+    except OSError:
+        return True
+
+
+def test_a_hung_service_leaves_its_stacks_in_the_log_and_no_process_behind(tmp_path):
+    import signal
+    import time
+    from service.bench.process import descendants, service_process
+    log = tmp_path / "service.log"
+    with service_process(log_path=log) as svc:
+        workers = descendants(svc.pid)
+        assert len(workers) == 2
+        # a worker that cannot run (stopped) neither answers nor sees its web process end: left alone
+        # it would stay after the web process is killed
+        os.kill(workers[1], signal.SIGSTOP)
+        seen = rb.stop_hung(svc, bound_s=3.0)
+        procs = [svc.pid] + workers
+        deadline = time.monotonic() + 60                 # bounds a failure only
+        while not all(_gone(p) for p in procs):
+            assert time.monotonic() < deadline, [p for p in procs if not _gone(p)]
+            time.sleep(0.05)
+    text = log.read_text()
+    assert seen["stacks_written"] == 2 and set(seen["rss_mib"]) == {str(p) for p in procs}
+    assert all(seen["rss_mib"][str(p)] > 10 for p in procs)
+    assert seen["mem_available_mib"] > 0
+    for pid in procs:
+        assert f"(pid {pid}) for its stacks" in text
+    assert text.count("most recent call first") >= 2 and "service/cli.py" in text and "hands/worker.py" in text
+    assert "Traceback (most recent call last)" not in text

@@ -877,3 +877,33 @@ def test_replay_of_a_file_that_is_not_a_recording_fails(tmp_path):
     done = _cli("replay", str(path))
     assert done.returncode == 2 and "is not a recording" in done.stderr
     assert len(done.stderr.splitlines()) <= 12 and "Traceback" not in done.stderr
+
+
+# -- a service that stops answering can be looked into ---------------------------------------------------------
+
+def _wait_for(predicate, what, alive, bound_s=120.0):
+    deadline = time.monotonic() + bound_s                # bounds a failure only
+    while not predicate():
+        assert alive(), f"{what}: the process ended"
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+def test_serve_and_its_hand_workers_write_their_stacks_on_sigusr1_and_go_on(tmp_path):
+    import os
+    import signal
+    from service.bench.process import descendants, service_process
+    log = tmp_path / "service.log"
+    with service_process(log_path=log) as svc:
+        workers = descendants(svc.pid)
+        assert len(workers) == 2                         # the default hand workers
+        for pid, where in ((svc.pid, "service/cli.py"), (workers[0], "hands/worker.py")):
+            before = log.read_text().count("most recent call first")
+            os.kill(pid, signal.SIGUSR1)                 # without a handler: the default action ends the process
+            alive = lambda: os.path.exists(f"/proc/{pid}") and svc.alive()   # noqa: E731
+            _wait_for(lambda: log.read_text().count("most recent call first") > before, f"no stacks from {pid}", alive)
+            _wait_for(lambda: where in log.read_text(), f"the stacks of {pid} do not show {where}", alive)
+            assert svc.alive() and all(os.path.exists(f"/proc/{w}") for w in workers)
+        assert rest(svc.url, "GET", "/health")[0] == 200
+        assert rest(svc.url, "GET", "/v1/sessions", svc.admin)[0] == 200
+    assert "Traceback (most recent call last)" not in log.read_text()

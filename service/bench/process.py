@@ -11,6 +11,7 @@ import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 from ..api.server import free_port
 
@@ -22,21 +23,46 @@ def _stat(pid: int | str) -> list[str] | None:
         return None
 
 
+def _descendants(pid: int) -> dict[int, list[str]] | None:
+    """The running descendants of process ``pid`` (its children, theirs, ...) with their ``/proc/PID/stat``
+    fields after the name (Linux ``/proc``; None elsewhere)."""
+    if not Path("/proc").is_dir():
+        return None
+    stats = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit() and (fields := _stat(entry)) is not None:
+            stats[int(entry)] = fields
+    found, frontier = {}, {pid}
+    while frontier:
+        children = {p: f for p, f in stats.items() if int(f[1]) in frontier and p not in found}
+        found.update(children)
+        frontier = set(children)
+    return found
+
+
+def rss_kib(pid: int) -> int | None:
+    """Resident memory of process ``pid``, KiB (Linux ``/proc``; None elsewhere or once it is gone)."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        pass
+    return None
+
+
+def descendants(pid: int) -> list[int]:
+    """The pids of the running descendants of process ``pid`` (Linux ``/proc``; empty elsewhere)."""
+    return sorted(_descendants(pid) or ())
+
+
 def descendants_cpu_seconds(pid: int) -> float | None:
     """User + system CPU seconds of the running descendants of process ``pid`` (Linux ``/proc``; None
     elsewhere)."""
-    if not Path("/proc").is_dir():
+    tree = _descendants(pid)
+    if tree is None:
         return None
-    parent = {}
-    for entry in os.listdir("/proc"):
-        if entry.isdigit() and (fields := _stat(entry)) is not None:
-            parent[int(entry)] = (int(fields[1]), (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
-    total, frontier = 0.0, {pid}
-    while frontier:
-        children = {p for p, (pp, _) in parent.items() if pp in frontier}
-        total += sum(parent[p][1] for p in children)
-        frontier = children
-    return total
+    return sum((int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK") for f in tree.values())
 
 
 @dataclass
@@ -46,6 +72,8 @@ class ServiceProcess:
     source: str
     viewer: str
     admin: str
+    log: IO | None = None
+    """the service's log (its standard error), open; lines written here land between the service's own"""
 
     def cpu_seconds(self) -> float | None:
         """User + system CPU time the service process has used so far (Linux ``/proc``; None elsewhere)."""
@@ -69,13 +97,7 @@ class ServiceProcess:
 
     def rss_kib(self) -> int | None:
         """Resident memory, KiB (Linux ``/proc``; None elsewhere or once the process is gone)."""
-        try:
-            for line in Path(f"/proc/{self.pid}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1])
-        except OSError:
-            pass
-        return None
+        return rss_kib(self.pid)
 
     def fds(self) -> int | None:
         """Open file descriptors (Linux ``/proc``; None elsewhere or once the process is gone)."""
@@ -112,7 +134,7 @@ def service_process(start_timeout_s: float = 300.0, extra_settings: dict | None 
             except RuntimeError:
                 log.seek(0)
                 raise RuntimeError("the service did not start: " + log.read()) from None
-            yield ServiceProcess(url, proc.pid, source, viewer, admin)
+            yield ServiceProcess(url, proc.pid, source, viewer, admin, log)
         finally:
             proc.terminate()
             try:

@@ -32,6 +32,7 @@ category), ``extremes.csv``, ``soak.csv`` and the service logs under ``logs/``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import csv
 import json
 import math
@@ -48,7 +49,7 @@ from pathlib import Path
 
 import msgpack
 
-from .process import ServiceProcess, service_process
+from .process import ServiceProcess, descendants, rss_kib, service_process
 
 SENSORS = ("thumb.0", "thumb.1", "index.1", "index.2", "middle.1", "middle.2", "ring.1", "ring.2",
            "little.1", "little.2")
@@ -567,6 +568,8 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
     good = LoopingGlove(svc, "good", good_speed, seed=seed)
     good_task = asyncio.create_task(good.run())
     down: list[str] = []
+    machine = {"least_mem_available_mib": None, "highest_load_1min": None}
+    sampler = asyncio.create_task(_sample_machine(machine))
 
     async def worker(k: int):
         binary = k == workers - 1
@@ -621,11 +624,77 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
     if down:
         good_task.cancel()
         await asyncio.gather(good_task, return_exceptions=True)
-        return {"down": down[0], "good": None}
+        sampler.cancel()
+        return {"down": down[0], "good": None, "machine": machine}
     good_result = await good.finish(timeout_s=30)
     good_task.cancel()
-    await asyncio.gather(good_task, return_exceptions=True)
-    return {"down": None, "good": good_result}
+    sampler.cancel()
+    await asyncio.gather(good_task, sampler, return_exceptions=True)
+    return {"down": None, "good": good_result, "machine": machine}
+
+
+def _mem_available_mib() -> float | None:
+    """Memory the machine has available for new work (``MemAvailable``), MiB (Linux; None elsewhere)."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) / 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+async def _sample_machine(machine: dict, every_s: float = 2.0) -> None:
+    """The least memory available and the highest load of the machine while the fuzz runs: a service
+    that stops answering on a machine out of memory (its pages evicted and read back again and again)
+    is not the service's hang."""
+    while True:
+        mem, load = _mem_available_mib(), os.getloadavg()[0]
+        if mem is not None and (machine["least_mem_available_mib"] is None or mem < machine["least_mem_available_mib"]):
+            machine["least_mem_available_mib"] = mem
+        if machine["highest_load_1min"] is None or load > machine["highest_load_1min"]:
+            machine["highest_load_1min"] = load
+        await asyncio.sleep(every_s)
+
+
+def stop_hung(svc: ServiceProcess, settle_s: float = 0.5, bound_s: float = 10.0) -> dict:
+    """A service that stopped answering, before it is killed: the machine's available memory and load,
+    the RSS of the web process and of each of its hand workers, and in the service log the stack of
+    every thread of each of them (``api/stacks.py``: SIGUSR1; a process that does not run at all, e.g.
+    stopped, writes nothing and is passed after ``bound_s``), each after a line naming the process.
+    Then every one of them is killed with SIGKILL (a hung process may ignore SIGTERM, and a hand worker
+    stuck in a loop would not notice that its web process ended). Returns what was seen."""
+    procs = [svc.pid] + descendants(svc.pid)
+    seen = {"mem_available_mib": _mem_available_mib(), "load_1min": os.getloadavg()[0],
+            "rss_mib": {str(pid): (rss_kib(pid) or 0) / 1024 for pid in procs}, "stacks_written": 0}
+    fd = svc.log.fileno() if svc.log is not None and not svc.log.closed else None
+    for pid in procs:
+        if fd is None:
+            break
+        what = "web process" if pid == svc.pid else "hand worker"
+        # the service's standard error shares this file's offset: the line lands between its own lines
+        os.write(fd, f"--- the benchmark asks the {what} (pid {pid}) for its stacks: the service stopped "
+                     f"answering ---\n".encode())
+        size = os.fstat(fd).st_size
+        try:
+            os.kill(pid, signal.SIGUSR1)
+        except ProcessLookupError:
+            continue
+        grown, last_change, deadline = size, time.monotonic(), time.monotonic() + bound_s
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+            now = os.fstat(fd).st_size
+            if now != grown:
+                grown, last_change = now, time.monotonic()
+            elif grown > size and time.monotonic() - last_change >= settle_s:
+                break
+        seen["stacks_written"] += grown > size
+    for pid in procs:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    return seen
 
 
 def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: float = 0.25,
@@ -646,18 +715,30 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
     restarts = 0
     t_start = time.perf_counter()
     recovery_msgs = source_messages(SimConfig(motion="sequence", noise="white", seed=seed + 7))
+    machine = {"least_mem_available_mib": None, "highest_load_1min": None}
+    start_failure = None
     while True:
         log = logs / f"fuzz-{len(lives)}.log"
-        with service_process(log_path=log) as svc:
+        with contextlib.ExitStack() as stack:
+            try:
+                svc = stack.enter_context(service_process(log_path=log))
+            except RuntimeError as err:                     # it did not come up: reported, not a lost run
+                start_failure = {"log": log.name, "error": str(err)[:300], "mem_available_mib": _mem_available_mib(),
+                                 "load_1min": os.getloadavg()[0]}
+                break
             rss0, fd0 = svc.rss_kib(), svc.fds()
             life = asyncio.run(_fuzz_life(svc, positions, per, workers, seed, stats, good_speed, reply_timeout_s,
                                           deadline, recovery, recovery_seconds, recovery_msgs, batch))
+            down = None
             if life["down"] is None:
                 rss.append((rss0, svc.rss_kib()))
                 fds.append((fd0, svc.fds()))
             else:
-                os.kill(svc.pid, signal.SIGKILL)               # a hung service may ignore SIGTERM
-        lives.append({"down": life["down"], "tracebacks": _tracebacks(log)})
+                down = stop_hung(svc)                       # stacks into the log, then SIGKILL to all of it
+        for key, pick in (("least_mem_available_mib", min), ("highest_load_1min", max)):
+            seen = [v for v in (machine[key], life["machine"][key]) if v is not None]
+            machine[key] = pick(seen) if seen else None
+        lives.append({"down": life["down"], "tracebacks": _tracebacks(log), "log": log.name, "when_down": down})
         if life["good"] is not None:
             goods.append(life["good"])
         done = all(p >= n for p, n in zip(positions, per)) or time.monotonic() >= deadline
@@ -672,7 +753,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
             "hangs": sum(s.hangs for s in stats.values()), "crashes": sum(s.crashes for s in stats.values()),
             "service_restarts": restarts, "tracebacks": sum(x["tracebacks"] for x in lives),
             "good": goods, "recovery": recovery, "rss_kib": rss, "fds": fds,
-            "stopped_early": total < messages}
+            "stopped_early": total < messages, "lives": lives, "machine": machine, "start_failure": start_failure}
 
 
 # -- part 2: schema-valid extremes injected into a live stream -------------------------------------
@@ -818,7 +899,7 @@ def run_extremes(out: Path, seconds: float, seed: int, reply_timeout_s: float = 
                 rows.append(row)
                 i += 1
                 if row["hung"] or not svc.alive():
-                    os.kill(svc.pid, signal.SIGKILL)
+                    row["when_down"] = stop_hung(svc)       # stacks into the log, then SIGKILL to all of it
                     break
         tb = _tracebacks(log)
         rows[-1]["tracebacks_in_log"] = tb
@@ -1147,6 +1228,28 @@ def _fmt(x, digits=2):
     return str(x)
 
 
+def _machine_lines(fuzz: dict) -> list[str]:
+    """The machine beside the fuzz, and what was seen when the service stopped answering or did not start."""
+    machine, lines = fuzz.get("machine") or {}, []
+    if machine.get("least_mem_available_mib") is not None:
+        lines.append(f"While the fuzz ran the machine had at least {machine['least_mem_available_mib']:.0f} MiB of memory "
+                     f"available; its load (1 min) reached {machine['highest_load_1min']:.1f}.")
+    for life in fuzz.get("lives", []):
+        seen = life.get("when_down")
+        if seen:
+            rss = ", ".join(f"{v:.0f}" for v in seen["rss_mib"].values())
+            lines.append(f"The service of `logs/{life['log']}` {'hung' if life['down'] == 'hang' else 'crashed'}: the "
+                         f"machine had {_fmt(seen['mem_available_mib'], 0)} MiB available, load {seen['load_1min']:.1f}; "
+                         f"RSS of the web process and its hand workers {rss} MiB; the stacks of {seen['stacks_written']} "
+                         f"of {len(seen['rss_mib'])} processes are in that log.")
+    failure = fuzz.get("start_failure")
+    if failure:
+        lines.append(f"A fresh service (`logs/{failure['log']}`) did not start: the machine had "
+                     f"{_fmt(failure['mem_available_mib'], 0)} MiB available, load {failure['load_1min']:.1f}; the fuzz "
+                     "stopped there.")
+    return lines + [""] if lines else []
+
+
 def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
     st = fuzz["stats"]
     sent = fuzz["sent"]
@@ -1246,7 +1349,9 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
              f"Fuzz: {sent} messages in {fuzz['wall_s']:.0f} s ({'stopped early, ' if fuzz['stopped_early'] else ''}"
              f"{fuzz['service_restarts']} service restarts); soak {soak['seconds']:.0f} s; storm {storm['connects']} connects. "
              "Wall time per part, s: " + ", ".join(f"{k} {v:.0f}" for k, v in walls.items()) + ".",
-             "", "| part | check | goal | measured | met |", "|---|---|---|---|---|"]
+             ""]
+    lines += _machine_lines(fuzz)
+    lines += ["| part | check | goal | measured | met |", "|---|---|---|---|---|"]
     lines += [f"| {a} | {b} | {c} | {_fmt(d)} | {'yes' if e else '**no**'} |" for a, b, c, d, e in rows]
     lines += ["", "## Fuzz by category", "",
               "| category | sent | error reply | other reply | silent | closed by design | closed abnormally | stalls | "

@@ -70,6 +70,7 @@ from ..metrics import Metrics
 from ..outgoing import Outgoing
 from ..replies import drop_replies, failure_reply
 from ..sessions import LiveSession
+from ..stacks import stacks_on_signal
 from .owner import OutputSink, resume_reference
 
 HEADER = struct.Struct(">I")
@@ -303,6 +304,7 @@ def main(argv: list[str]) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):     # for the web process, which closes this one (module docstring)
         signal.signal(sig, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s hand worker %(process)d: %(message)s")
+    stacks_on_signal()                              # kill -USR1: its threads' stacks into the service log
     fd, given = int(argv[0]), json.loads(argv[1])
     sock = socket.socket(fileno=fd)
     sock.setblocking(True)
