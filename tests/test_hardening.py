@@ -907,3 +907,35 @@ def test_serve_and_its_hand_workers_write_their_stacks_on_sigusr1_and_go_on(tmp_
         assert rest(svc.url, "GET", "/health")[0] == 200
         assert rest(svc.url, "GET", "/v1/sessions", svc.admin)[0] == 200
     assert "Traceback (most recent call last)" not in log.read_text()
+
+
+def test_a_frame_too_large_is_closed_with_its_reason_while_the_peer_still_sends(server):
+    """uvicorn closed the socket right after its 1009 close frame: the rest of the frame, still arriving,
+    was answered with a reset, and a peer still sending lost the close frame (5 connections of the fuzz)."""
+    import base64
+    import os
+    import struct
+    port = int(server.url.rsplit(":", 1)[1])
+    for _ in range(3):
+        with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
+            key = base64.b64encode(os.urandom(16)).decode()
+            s.sendall((f"GET /v1/ingest/too-large?token={SOURCE} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+                       f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n").encode())
+            data = b""
+            while b"\r\n\r\n" not in data:
+                data += s.recv(4096)
+            assert b" 101 " in data.split(b"\r\n")[0]
+            data = data.split(b"\r\n\r\n", 1)[1]
+            # a masked text frame that says it holds 64 MiB (the limit is 4 MiB), and its first 64 KiB
+            s.sendall(bytes([0x81, 0x80 | 127]) + struct.pack(">Q", 64 << 20) + os.urandom(4) + b"x" * (64 << 10))
+            while len(data) < 4 or len(data) < 2 + data[1]:   # the server's close frame (unmasked, short)
+                more = s.recv(4096)
+                assert more, "the connection ended without a close frame"
+                data += more
+            assert data[0] == 0x88 and struct.unpack(">H", data[2:4])[0] == 1009, data[:40]
+            for _ in range(4):                          # the rest of the frame keeps coming
+                s.sendall(b"y" * (64 << 10))
+            s.shutdown(socket.SHUT_WR)
+            while s.recv(65536):                        # then the service ends the connection, no reset
+                pass
+    assert rest(server.url, "GET", "/health")[0] == 200
