@@ -308,6 +308,7 @@ class HandSession:
                 estimator.inherit(old.estimator)
             new[name] = FingerState(geom, estimator, sensors, phi, old.mode if old is not None else "none")
         self._fingers = new
+        self._finger_sensor_ids = frozenset(s for fs in new.values() for s in fs.sensor_ids)
         self._sensor_status_kept: dict[tuple, dict[str, SensorStatusDict]] = {}    # per calibration (``_sensor_status``)
         self._build_mount_fits()
 
@@ -560,12 +561,22 @@ class HandSession:
         if tracking and fits:
             self._fit_mountings(fits, rows, raw, hand)
         together = []
-        for fs in self._fingers.values():
-            if self._prepare_finger(fs, t, tick):
-                if ChainHand.takes(fs.estimator, t):
-                    together.append(fs)
-                else:
-                    self._update_finger(fs, t, hand)
+        fingers = self._fingers.values()
+        # every finger sensor sampled in this tick and live: no finger's sensors can have changed
+        settled = tick.keys() >= self._finger_sensor_ids and \
+            all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)
+        takes = ChainHand.takes
+        for fs in fingers:
+            if settled:
+                if not fs.active_sensors:
+                    fs.mode = "none"                # a finger without sensors, as ``_prepare_finger`` does
+                    continue
+            elif not self._prepare_finger(fs, t, tick):
+                continue
+            if takes(fs.estimator, t):
+                together.append(fs)
+            else:
+                self._update_finger(fs, t, hand)
         if together:
             self._update_together(together, t, hand)
         self._apply_references(t)
@@ -659,7 +670,8 @@ class HandSession:
         readings = self._tick_readings
         if layout.rows is not None and readings is not None:
             # every sensor sampled in this tick: its corrected readings, gathered in one step
-            gyr, acc = readings[layout.rows, 0], readings[layout.rows, 1]
+            ordered = readings.take(layout.rows, axis=0)
+            gyr, acc = ordered[:, 0], ordered[:, 1]
         else:
             last = self._last_sample
             samples = [last[s] for s in layout.sensors]
