@@ -73,7 +73,9 @@ class GestureSettings(BaseModel):
     curl_full_long_rad: float = Field(float(np.radians(250.0)), gt=0.0, description="total flexion of a fully curled long finger, rad")
     curl_full_thumb_rad: float = Field(float(np.radians(120.0)), gt=0.0, description="total flexion of a fully curled thumb, rad")
     grasp_curl_enter: float = Field(0.6, ge=0.0, le=1.0, description="grasp starts with every long finger's curl above this")
-    grasp_curl_exit: float = Field(0.45, ge=0.0, le=1.0, description="grasp ends when one long finger's curl falls below this")
+    grasp_curl_exit: float = Field(0.5, ge=0.0, le=1.0, description="grasp ends when one long finger's curl falls below this "
+                                   "(above the 0.43-0.47 of a pinch with the other fingers half curled, which a grasp's "
+                                   "stay band must not hold)")
     point_index_enter: float = Field(0.2, ge=0.0, le=1.0, description="index curl at most this to start pointing")
     point_index_exit: float = Field(0.35, ge=0.0, le=1.0, description="pointing ends above this index curl")
     point_others_enter: float = Field(0.6, ge=0.0, le=1.0, description="middle/ring/little curl at least this to start pointing")

@@ -265,3 +265,20 @@ def test_a_fist_closing_through_a_pinch_like_pose_gives_no_pinch_and_a_real_pinc
     s = gestures.score_trial(rec, "default")
     assert s["grasp"]["tp"] == 1 and s["pinch"]["tp"] == 1 and sum(s["false_activations"].values()) == 0
     assert s["onset_s"]["pinch"][0] <= 0.08
+
+
+def test_a_pinch_with_half_curled_fingers_straight_after_a_grasp_starts_in_time():
+    # every long finger of this pinch curls 0.46-0.55: inside a grasp stay band reaching down to 0.45
+    s = Subject(pinch_others="half-curled", coupling=1.0, pinch_aperture_m=0.010)
+    pose = gesture_pose(s, "pinch")
+    curls = [(a + b + b) / np.degrees(GestureSettings().curl_full_long_rad) for f, (a, b) in pose.items() if f != "thumb"]
+    assert 0.45 <= min(curls) < 0.5
+    trial = scripted(s, ["rest", "grasp", "pinch", "rest", "grasp", "pinch", "rest"], transition_s=0.35)
+    rec = truth_record(trial)
+    rec["runs"] = {"default": gestures.recognise(rec["frames"]),
+                   "old band": gestures.recognise(rec["frames"], GestureSettings(grasp_curl_exit=0.45))}
+    after = gestures.score_trial(rec, "default")
+    assert (after["grasp"]["tp"], after["pinch"]["tp"]) == (2, 2) and sum(after["false_activations"].values()) == 0
+    assert max(after["onset_s"]["pinch"]) <= 0.125    # from a tight fist: the curls pass 0.5 late in the move, then two dwells
+    before = gestures.score_trial(rec, "old band")     # the grasp held by its stay band: the pinches are missed
+    assert before["pinch"]["tp"] == 0
