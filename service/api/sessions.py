@@ -33,6 +33,7 @@ from ..estimators.warm import warm_ahead
 from ..pipeline.hand import Dropped, PipelineSettings
 from ..pipeline.tracked import TrackedHand
 from ..protocol.messages import dump_message
+from ..protocol.wire import parse_input
 from ..protocol.outgoing import FrameDict, FrameStatusDict, GestureDict
 from .config import ServiceSettings
 from .metrics import Metrics
@@ -229,6 +230,11 @@ class LiveSession:
         fitted, report = enrol(self.hand.recognizer, segments, self.config.gestures)
         config = self.update_config({"gestures": fitted.model_dump()})
         return {"gestures": config["gestures"], "changes": report}
+
+    def parse_input(self, data: str | bytes, binary: bool):
+        """``(decoded value, validated message)`` of a received message (``protocol.parse_input``; a
+        session whose hand runs in a worker process leaves data messages to the worker to validate)."""
+        return parse_input(data, binary)
 
     async def ingest(self, raw: dict, parsed) -> Dropped | None:
         """Run one validated source message through the hand and fan the outputs out; after each

@@ -142,7 +142,7 @@ beyond 64 bits becomes a float) cannot pass validation, and a message with other
 nobody checks) takes the standard path."""
 
 
-def _fast_fields_only(raw: dict) -> bool:
+def fast_fields_only(raw: dict) -> bool:
     keys = FAST_KEYS.get(raw.get("type"))
     if keys is None or not raw.keys() <= keys:
         return False
@@ -162,7 +162,7 @@ def parse_input(data: str | bytes, binary: bool = False) -> tuple[object, object
             raw = orjson.loads(data)
         except orjson.JSONDecodeError:
             raw = None
-        if type(raw) is dict and _fast_fields_only(raw):
+        if type(raw) is dict and fast_fields_only(raw):
             try:
                 return raw, parse_message(raw)
             except ProtocolError:

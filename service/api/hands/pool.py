@@ -49,11 +49,14 @@ import time
 from pathlib import Path
 
 import msgpack
+import orjson
 
 from ..config import ServiceSettings
 from ..metrics import Metrics
 from gestures.recognizer import GestureSettings
 
+from ...protocol import ProtocolError, parse_input
+from ...protocol.wire import fast_fields_only
 from ..outgoing import Outgoing
 from ..sessions import LiveSession, SessionConfig, SessionConfigChange
 from .worker import HEADER, frame
@@ -207,7 +210,7 @@ class WorkerLink:
             live.on_output(message[2], message[3], message[4], message[5])
         elif kind == "rep":
             self.pool.answered += 1
-            live.on_reply(message[2], message[3])
+            live.on_reply(message[2], message[3], message[4] if len(message) > 4 else None)
         elif kind == "cfgrep":
             live.on_config_reply(message[2], message[3], message[4])
 
@@ -343,6 +346,16 @@ class HandPool:
         return ProcessSession(name, settings, metrics, link, next(self._sids))
 
 
+class Unchecked:
+    """A received data message passed to the worker as it arrived, validated there
+    (``ProcessSession.parse_input``): its ``type``, its bytes and their encoding."""
+
+    __slots__ = ("type", "data", "binary")
+
+    def __init__(self, kind: str, data: str | bytes, binary: bool):
+        self.type, self.data, self.binary = kind, data, binary
+
+
 class ProcessSession(LiveSession):
     """A session whose hand runs in a worker process (module docstring)."""
 
@@ -357,7 +370,7 @@ class ProcessSession(LiveSession):
         self.restarts = 0
         self.resent = 0
         self._n = 0
-        self._pending: dict[int, tuple] = {}        # n -> (type, MessagePack, t_ingest, calibration or None)
+        self._pending: dict[int, tuple] = {}        # n -> (type, its message to the worker, t_ingest, calibration or None)
         self._replied = asyncio.Event()
         self._errors: collections.deque = collections.deque()
         self._error_task: asyncio.Task | None = None
@@ -425,7 +438,8 @@ class ProcessSession(LiveSession):
         self._tell_worker()
         for n in sorted(self._pending):
             self.resent += 1
-            self.link.send(["src", self.sid, n, self._pending[n][1]])
+            body = self._pending[n][1]
+            self.link.send([body[0], self.sid, n, *body[1:]])
         for n in sorted(self._config_waits):        # changes the dead worker had not answered
             self.link.send(self._config_waits[n][2])
 
@@ -433,10 +447,29 @@ class ProcessSession(LiveSession):
     def attach_source(self, send_error) -> None:
         self._source_error = send_error
 
+    def parse_input(self, data: str | bytes, binary: bool):
+        """``(decoded value, message)`` of a received message: a data message (``imu``, ``imu_batch``,
+        ``pose`` with only their fields) as ``Unchecked``, validated by the worker (the same checks and
+        error replies, off this process's event loop); any other, or any while the session records, as
+        ``LiveSession.parse_input`` gives it."""
+        if self.recorder is None:
+            try:
+                raw = msgpack.unpackb(data, max_bin_len=0, max_ext_len=0) if binary else orjson.loads(data)
+            except Exception:                       # the standard path names the problem
+                raw = None
+            if type(raw) is dict and fast_fields_only(raw):
+                return raw, Unchecked(raw["type"], data, binary)
+        return super().parse_input(data, binary)
+
     async def ingest(self, raw: dict, parsed) -> None:
         while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker
             self._replied.clear()
             await self._replied.wait()
+        if isinstance(parsed, Unchecked):
+            self._send_source(parsed.type, ["chk", parsed.data, parsed.binary], None)
+            if self.recorder is not None:           # recording began since it was received: as validated
+                self._record_unchecked(parsed)
+            return None
         self.metrics.messages_in.labels(self.name).inc()
         if self.recorder is not None:
             from ...protocol.messages import dump_message
@@ -450,14 +483,28 @@ class ProcessSession(LiveSession):
         if parsed.type == "hello":
             self.hello = raw
             self.hand_name = raw.get("hand", self.hand_name)
-        self._n += 1
         kept = raw if parsed.type == "calibration" else None     # the session's state, once it is accepted
+        self._send_source(parsed.type, ["src", packed], kept)
+        return None
+
+    def _send_source(self, kind: str, body: list, kept: dict | None) -> None:
+        """Source message number ``n`` (the next) to the worker: ``body`` is its message without the
+        session and the number (kept as it is for a restarted worker)."""
+        self._n += 1
         self.link.owe()
-        self._pending[self._n] = (parsed.type, packed, time.perf_counter(), kept)
+        self._pending[self._n] = (kind, body, time.perf_counter(), kept)
         self.link.owed += 1
         self._tell_worker()
-        self.link.send(["src", self.sid, self._n, packed])
-        return None
+        self.link.send([body[0], self.sid, self._n, *body[1:]])
+
+    def _record_unchecked(self, parsed: "Unchecked") -> None:
+        from ...protocol.messages import SamplesRefused, dump_message
+        try:
+            self.recorder.write(dump_message(parse_input(parsed.data, parsed.binary)[1]))
+        except SamplesRefused as err:
+            self.recorder.write(dump_message(err.kept))
+        except ProtocolError:
+            pass                                    # refused by the worker too, with the reason
 
     def on_output(self, n: int, head: list, text: str, packed: bytes | None) -> None:
         """An output of source message ``n`` as the worker encoded it, passed on as those bytes."""
@@ -472,8 +519,13 @@ class ProcessSession(LiveSession):
         self._deliver(out, pending[2] if pending else time.perf_counter())
         self._tell_worker()
 
-    def on_reply(self, n: int, errors: list) -> None:
+    def on_reply(self, n: int, errors: list, accepted: bool | None = None) -> None:
+        """Source message ``n`` handled: its error replies go to the source. ``accepted``: a message the
+        worker validated (``chk``) was not refused whole (it counts as received, as a message validated
+        here does)."""
         entry = self._pending.pop(n, None)
+        if accepted:
+            self.metrics.messages_in.labels(self.name).inc()
         if entry is not None:
             self.link.owed -= 1
         if entry is not None and entry[0] == "calibration" and not errors:
@@ -486,9 +538,9 @@ class ProcessSession(LiveSession):
 
     async def _send_errors(self) -> None:
         while self._errors:
-            code, detail = self._errors.popleft()
+            code, detail, *samples = self._errors.popleft()
             try:
-                await self._source_error(code, detail)
+                await self._source_error(code, detail, *samples)
             except Exception:                       # the source went away: its replies with it
                 self._errors.clear()
         self._replied.set()

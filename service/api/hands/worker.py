@@ -14,6 +14,9 @@ Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a ses
   hand continues from its last estimate);
 * ``["src", sid, n, raw]``: a validated source message (packed once more, as MessagePack bytes, so
   that the web process packs it once and can send it again as it is), numbered ``n`` per session;
+* ``["chk", sid, n, data, binary]``: a source data message (``imu``, ``imu_batch``, ``pose`` with only
+  their fields) as it arrived, JSON text or MessagePack bytes (``binary``), validated here: its
+  error replies, e.g. an ``imu_batch``'s refused samples, come back in its ``rep``;
 * ``["cfg", sid, n, change]`` / ``["enrol", sid, n, segments]``: a configuration change / a gesture
   enrolment; an estimator whose kernels this process has not loaded is first compiled into the cache
   by a separate process while the worker goes on serving (the session keeps its old estimator until
@@ -33,7 +36,9 @@ Worker -> web process:
   with ``fmt``), ``head`` = ``[type, seq, t, hand]`` (``None`` but the type for a gesture event), what
   the web process needs without decoding it;
 * ``["rep", sid, n, errors]``: source message ``n`` handled; ``errors`` lists the error replies the
-  source gets, ``[code, detail]`` as the in-process service gives them (``api.replies``);
+  source gets, ``[code, detail]`` as the in-process service gives them (``api.replies``), or
+  ``[code, detail, samples]`` for the samples of a ``chk``'s batch it refused; after a ``chk`` a
+  fifth item says whether the message was accepted (not refused whole);
 * ``["cfgrep", sid, n, result, error]``: the applied configuration (or the enrolment's result), or the
   reason it was refused;
 * ``["ready", pid]`` once, when the default estimator is loaded and messages are read;
@@ -63,7 +68,8 @@ import time
 import msgpack
 
 from ...pipeline.gc_policy import serving_gc
-from ...protocol import ProtocolError, parse_message
+from ...protocol import ProtocolError, parse_input, parse_message
+from ...protocol.messages import SamplesRefused, dump_message
 from ...estimators.warm import is_warm, warm, warm_ahead
 from ..config import ServiceSettings
 from ..metrics import Metrics
@@ -135,6 +141,20 @@ class OwnedHand:
         self.sink.pending.clear()
         return outs
 
+    def check(self, data: str | bytes, binary: bool) -> tuple[list[list], bool]:
+        """A source message as it arrived (the web process only looked at its type): validated here as
+        the web process validates the others (``protocol.parse_input``), then through the hand. Returns
+        its error replies (``[code, detail]``, or ``[code, detail, samples]`` for an ``imu_batch``'s
+        refused samples, whose valid samples go on) and whether it was accepted (not refused whole)."""
+        try:
+            raw, msg = parse_input(data, binary)
+        except SamplesRefused as err:
+            refused = [err.code, err.detail, err.refused]
+            return [refused, *self.handle_valid(dump_message(err.kept), err.kept)], True
+        except ProtocolError as err:
+            return [[err.code, err.detail]], False
+        return self.handle_valid(raw, msg), True
+
     def handle(self, raw: dict) -> list[list[str]]:
         """One source message through the hand; its outputs are in ``sink.pending``. Returns the error
         replies the source gets, ``[code, detail]`` (the same as the in-process service's)."""
@@ -142,6 +162,10 @@ class OwnedHand:
             msg = parse_message(raw)
         except ProtocolError as err:                # validated by the web process: only a version skew
             return [[err.code, err.detail]]
+        return self.handle_valid(raw, msg)
+
+    def handle_valid(self, raw: dict, msg) -> list[list[str]]:
+        """A validated source message through the hand (``handle``)."""
         if self.resume_angles is not None and (ref := resume_reference(self.resume_angles, raw)) is not None:
             self.resume_angles = None
             try:
@@ -233,6 +257,13 @@ class Worker:
             errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw)
             self.out.extend(owned.encoded(sid, n))
             self.out.append(["rep", sid, n, errors])
+        elif kind == "chk":
+            owned = self.hands.get(sid)
+            if owned is None:
+                return
+            errors, accepted = owned.check(message[3], message[4])
+            self.out.extend(owned.encoded(sid, n=message[2]))
+            self.out.append(["rep", sid, message[2], errors, accepted])
         elif kind == "fmt":
             if (owned := self.hands.get(sid)) is not None:
                 owned.binary = bool(message[2])

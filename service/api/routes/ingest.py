@@ -11,7 +11,7 @@ import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
-from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode, parse_input
+from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
 from ..config import ServiceSettings
@@ -116,7 +116,7 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         return
     if not await claim_source(ws, live, metrics):
         return
-    live.attach_source(lambda code, detail: send_error(ws, metrics, code, detail))
+    live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
     bucket = TokenBucket(settings.rate_limit_msgs_per_s)
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
     processor = asyncio.create_task(_process(ws, session, live, backlog, metrics))
@@ -176,7 +176,7 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
         binary = data.get("bytes") is not None
         partial = None
         try:
-            raw, msg = parse_input(data["bytes"] if binary else data["text"], binary)
+            raw, msg = live.parse_input(data["bytes"] if binary else data["text"], binary)
         except SamplesRefused as err:          # the batch's valid samples go on (answered below)
             partial, msg = err, err.kept
             raw = dump_message(msg)
