@@ -82,7 +82,7 @@ class GestureSettings(BaseModel):
     point_others_exit: float = Field(0.45, ge=0.0, le=1.0, description="pointing ends when one of them falls below this")
     pinch_enter_m: float = Field(0.024, gt=0.0, description="pinch starts with the thumb and index tips this close, m")
     pinch_exit_m: float = Field(0.032, gt=0.0, description="pinch ends beyond this tip distance, m")
-    pinch_others_curl_max: float = Field(0.75, ge=0.0, le=1.0, description="a pinch starts only while the mean curl of "
+    pinch_others_curl_max: float = Field(0.65, ge=0.0, le=1.0, description="a pinch starts only while the mean curl of "
                                          "middle, ring and little, extrapolated PINCH_LOOKAHEAD_S ahead at its rate, is at "
                                          "most this (a closing fist sweeps the tips past each other)")
     open_curl_enter: float = Field(0.17, ge=0.0, le=1.0, description="open starts with every long finger's curl below this")

@@ -282,3 +282,20 @@ def test_a_pinch_with_half_curled_fingers_straight_after_a_grasp_starts_in_time(
     assert max(after["onset_s"]["pinch"]) <= 0.125    # from a tight fist: the curls pass 0.5 late in the move, then two dwells
     before = gestures.score_trial(rec, "old band")     # the grasp held by its stay band: the pinches are missed
     assert before["pinch"]["tp"] == 0
+
+
+LOOSE_FIST_SUBJECT = Subject(hand_length_m=0.167, coupling=0.76, grasp_style="loose", pinch_aperture_m=0.0083,
+                             rest_deg=(20.7, 31.7))
+
+
+@pytest.mark.parametrize("transition_s", [0.35, 0.45])
+def test_a_small_loose_fist_closing_every_finger_together_gives_no_pinch(transition_s):
+    # the tips pass the pinch distance while middle, ring and little are a third of the way to the fist,
+    # closing at under 2 /s: only their curl 0.15 s ahead tells the fist from a pinch
+    s = LOOSE_FIST_SUBJECT
+    trial = scripted(s, ["rest", "grasp", "rest", "pinch", "rest"], transition_s=transition_s)
+    rec = truth_record(trial)
+    rec["runs"] = {"default": gestures.recognise(rec["frames"])}
+    assert [d[0] for d in gestures._intervals(rec["runs"]["default"]["events"], rec["end_s"])] == ["grasp", "pinch"]
+    score = gestures.score_trial(rec, "default")
+    assert score["grasp"]["tp"] == score["pinch"]["tp"] == 1 and sum(score["false_activations"].values()) == 0
