@@ -248,3 +248,49 @@ def test_json_and_messagepack_subscribers_of_a_worker_session_get_the_same_frame
     assert frames["late"] and frames["late"] == [by_seq[f["seq"]] for f in frames["late"]]
     assert summary["status"] == frames["json"][-1]["status"]
     assert {f["hand"] for f in frames["json"]} == {"left"}
+
+
+def _gone(pid: int) -> bool:
+    """The process has ended (no longer there, or a zombie waiting for its new parent to reap it)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except (FileNotFoundError, ProcessLookupError):
+        return True
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc") or not hasattr(os, "killpg"), reason="Linux process table")
+def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
+    """SIGKILL to ``serve`` (no chance to close its workers): the running worker ends at the end of its
+    input, and the stopped one, which never reads it, is killed by the kernel with its parent
+    (``PR_SET_PDEATHSIG``); before, a stopped or stuck worker stayed for good."""
+    import subprocess
+    import sys
+
+    from clients.client import wait_healthy
+    from service.api.server import free_port
+
+    port = free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    workers: list[int] = []
+    try:
+        wait_healthy(f"http://127.0.0.1:{port}", 300.0, alive=lambda: proc.poll() is None)
+        workers = [int(p) for p in subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "service.api.hands.worker"],
+                                                  capture_output=True, text=True).stdout.split()]
+        assert len(workers) == 2, workers
+        os.kill(workers[0], signal.SIGSTOP)
+        proc.kill()
+        proc.wait()
+        deadline = time.monotonic() + 60.0          # bounds a failure only
+        while not all(_gone(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        left = [pid for pid in workers if not _gone(pid)]
+        assert not left, f"hand workers left after their web process was killed: {left}"
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        for pid in workers:
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)

@@ -40,6 +40,7 @@ import fcntl
 import itertools
 import json
 import logging
+import os
 import socket
 import struct
 import sys
@@ -118,7 +119,7 @@ class WorkerLink:
         try:
             self.proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "service.api.hands.worker", str(child.fileno()), json.dumps(self.pool.worker_settings),
-                pass_fds=(child.fileno(),))
+                str(os.getpid()), pass_fds=(child.fileno(),))
         finally:
             child.close()
         self.pid = self.proc.pid

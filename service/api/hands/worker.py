@@ -1,4 +1,4 @@
-"""A hand worker process of the embedded service (``python -m service.api.hands.worker FD SETTINGS``).
+"""A hand worker process of the embedded service (``python -m service.api.hands.worker FD SETTINGS [PARENT]``).
 
 It owns the sessions the web process opens on it and runs their hands (``TrackedHand``, through the
 same ``LiveSession`` the in-process service uses). It talks to the web process over one stream socket
@@ -45,7 +45,10 @@ Worker -> web process:
 * ``["alive"]`` every ``ALIVE_S`` while it is in a long operation it knows of (loading an estimator's
   kernels), so that the web process does not take it for stuck.
 
-The process ends when the web process closes its end of the socket (or dies). It ignores SIGINT and
+The process ends when the web process closes its end of the socket (or dies). Given the web process's
+pid (``PARENT``), on Linux it is also killed when the web process ends (``PR_SET_PDEATHSIG``): a worker
+stuck in a loop, stopped, or busy loading kernels never reads the end of its input, and outlived a
+killed web process before. It ignores SIGINT and
 SIGTERM: a terminal's Ctrl-C and a service manager's SIGTERM reach the whole process group, and they are
 for the web process, which then closes its workers in order; a worker ending first printed a
 ``KeyboardInterrupt`` traceback and was taken for a crashed one (its sessions moved for nothing).
@@ -331,7 +334,33 @@ class Worker:
         self.out.append(["cfgrep", sid, n, result, None])
 
 
+PR_SET_PDEATHSIG = 1
+"""``prctl`` option: the signal this process gets when its parent ends (Linux, ``<linux/prctl.h>``)"""
+
+
+def die_with_parent(parent: int) -> bool:
+    """Have the kernel SIGKILL this process when ``parent`` (the process that started it) ends; if it
+    has already ended, end now. ``False`` where ``prctl`` is not available (not Linux): the worker then
+    ends at the end of its input only."""
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+            return False
+    except (OSError, AttributeError):
+        return False
+    # the signal comes when the thread that started this process ends: the web process's event loop
+    # thread, which closes its workers first anyway
+    if os.getppid() != parent:                      # it ended before the request: no signal will come
+        os._exit(0)
+    return True
+
+
 def main(argv: list[str]) -> int:
+    if len(argv) > 2:
+        die_with_parent(int(argv[2]))
     for sig in (signal.SIGINT, signal.SIGTERM):     # for the web process, which closes this one (module docstring)
         signal.signal(sig, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s hand worker %(process)d: %(message)s")
