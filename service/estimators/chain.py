@@ -166,6 +166,7 @@ class ChainSettings(EstimatorSettings):
     acc_scale_uncertainty: float = Field(0.3, ge=0.0, le=1.0, description="accelerometer scale, cross-axis, mounting and hand-geometry error as a fraction of the specific force's magnitude, as per-sample white noise (see 'Honest accelerometer weight' in the module docstring)")
     gyro_range_rad_s: float = Field(2000.0 * DEG, gt=0.0, description="gyro full scale (MPU-9250: ±2000 deg/s); a sample at it is saturated, rad/s")
     acc_range_m_s2: float = Field(16.0 * 9.80665, gt=0.0, description="accelerometer full scale (±16 g); a sample at it is saturated, m/s²")
+    clipped_rate_std_rad_s: float = Field(200.0 * DEG, ge=0.0, description="the angle's process noise per clipped gyro sample, rad/s: the pipeline adds what a clipped run missed after it (mounting.py), to within 3.2 deg RMS on runs of about ten samples on tuning trials, about 200 deg/s per sample; without that reconstruction the unknown excess rate is up to the full scale (2000 deg/s)")
     hand_jerk_time_s: float = Field(0.0, ge=0.0, description="added accelerometer std per m/s³ of the optical hand jerk: the optical acceleration is a windowed derivative fit that lags by about this long in fast reaches, s")
     untracked_acc_noise_m_s2: float = Field(3.0, gt=0.0, description="accelerometer std while the hand's acceleration is unknown (optics lost), m/s²")
     initial_acc_scale_std: float = Field(0.0, ge=0.0, description="prior std of each diagonal term of the accelerometer's linear map error (MPU-9250 scale ±3 %, uniform: 0.017); 0 (the default) keeps the map at identity (item 4 of the module docstring)")
@@ -449,10 +450,11 @@ class Chain(FingerEstimator):
         Q = np.broadcast_to(np.diag(q_diag), P.shape).copy()
         Q[..., GA, GA] = _HINGE_FREE * (s.calibration_walk_rts**2 * dt)
         # scale and cross-axis errors move the angle by a fraction of the rate; a saturated gyro
-        # says only that the rate is at least its range
+        # says only that the rate is at least its range (what it missed comes after the clipped run,
+        # reconstructed by the pipeline to within about clipped_rate_std_rad_s per sample)
         gyr_norm = np.linalg.norm(gyr, axis=-1)
         gyr_sat = np.any(np.abs(gyr) >= s.gyro_range_rad_s * (1.0 - 1e-3), axis=-1)
-        Q[..., TH, TH] += (dt * (s.gyro_scale_uncertainty * gyr_norm + np.where(gyr_sat, s.gyro_range_rad_s, 0.0))) ** 2
+        Q[..., TH, TH] += (dt * (s.gyro_scale_uncertainty * gyr_norm + np.where(gyr_sat, s.clipped_rate_std_rad_s, 0.0))) ** 2
         P = kalman.predict(P, F, Q)
 
         # accelerometer through the chain model (both sensors' angles and corrected rates), read through

@@ -42,8 +42,9 @@ HAND_SIZE = 18
 
 # --- settings vector -------------------------------------------------------------------------
 (ST_GYRO_NOISE, ST_GYRO_WALK, ST_ACC_WALK, ST_ACC_NOISE, ST_KINEMATIC, ST_GYRO_SCALE, ST_ACC_SCALE,
- ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE, ST_CAL_WALK, ST_GS_WALK, ST_GS_LEARN) = range(14)
-SETTINGS_SIZE = 14
+ ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE, ST_CAL_WALK, ST_GS_WALK, ST_CLIPPED_STD,
+ ST_GS_LEARN) = range(15)
+SETTINGS_SIZE = 15
 SATURATED_SIGMA_M_S2 = 1e6
 """Accelerometer std of a clipped sample (no update in effect), as in the reference."""
 SATURATION_MARGIN = 1.0 - 1e-3
@@ -55,7 +56,7 @@ def settings_vector(s) -> np.ndarray:
     return np.array([s.gyro_noise_density_rad_s_rthz, s.gyro_bias_walk_rad_s_rts, s.acc_bias_walk_m_s2_rts,
                      s.acc_noise_m_s2, s.kinematic_uncertainty, s.gyro_scale_uncertainty, s.acc_scale_uncertainty,
                      s.gyro_range_rad_s, s.acc_range_m_s2, s.hand_jerk_time_s, s.untracked_acc_noise_m_s2,
-                     s.calibration_walk_rts, s.gyro_scale_walk_rts, 1.0], dtype=float)
+                     s.calibration_walk_rts, s.gyro_scale_walk_rts, s.clipped_rate_std_rad_s, 1.0], dtype=float)
     """The last entry (``ST_GS_LEARN``) is 1 where the gyro scale state learns; the estimator sets it."""
 
 
@@ -128,6 +129,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     q_gs = st[ST_GS_WALK] ** 2
     gs_learn = st[ST_GS_LEARN] > 0.5
     gyro_range, acc_range = st[ST_GYRO_RANGE], st[ST_ACC_RANGE]
+    clipped_std = st[ST_CLIPPED_STD]
     gyro_clip, acc_clip = gyro_range * SATURATION_MARGIN, acc_range * SATURATION_MARGIN
     untracked_var = (st[ST_UNTRACKED_NOISE] if untracked else 0.0) ** 2
     two_pi = 2.0 * math.pi
@@ -259,7 +261,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
                 # predict: F = I - dt e0 e1ᵀ - dt g_x e0 e_sᵀ, P = F P Fᵀ + Q (Q from the gyro noise,
                 # its scale error and saturation, and the offsets' random walks)
-                scale = st[ST_GYRO_SCALE] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2) + (gyro_range if gyr_sat else 0.0)
+                scale = st[ST_GYRO_SCALE] * math.sqrt(g0 * g0 + g1 * g1 + g2 * g2) + (clipped_std if gyr_sat else 0.0)
                 # a held scale state is taken as known: it corrects the rate but adds no uncertainty
                 fs = dt * gxs[k] if gs_learn else 0.0
                 for jj in range(N_STATE):

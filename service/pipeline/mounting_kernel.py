@@ -11,7 +11,8 @@ Each sensor is one row of ``state`` (S, ``WIDTH``) float64:
 * the normal equations' sums ``a00, a01, a11, by0, by1, bz0, bz1`` (``HingeAxisFit.add``);
 * the tilt ``(ε_y, ε_z)``, the number of samples used, and whether ``M`` is the identity;
 * the cross-axis fit of the hinge-axis reading (``HingeAxisFit._add_quiet``): its normal equations
-  ``q00 .. q22, qb0 .. qb2``, the sensitivities ``(k_y, k_z)`` and the number of samples it used.
+  ``q00 .. q22, qb0 .. qb2``, the sensitivities ``(k_y, k_z)`` and the number of samples it used;
+* per raw gyro axis, the record of a clipped run (``HingeAxisFit.reconstruct``).
 
 ``meta`` (S, 3) int64 holds each sensor's finger (its index among the hand's fingers), phalanx and the
 offset of its finger's joint angles in the flat ``phi`` the fit reads. A tick's samples come as
@@ -36,25 +37,70 @@ TILT_Y, TILT_Z, SAMPLES, STRAIGHT = 34, 35, 36, 37
 Q00, Q01, Q02, Q11, Q12, Q22, QB0, QB1, QB2 = range(38, 47)
 """The cross-axis fit's normal equations (symmetric 3 x 3, regressors ``[1, f_y, f_z]``) and right-hand side."""
 LEAK_Y, LEAK_Z, QUIET_SAMPLES = 47, 48, 49
-WIDTH = 50
-ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE = 0, 1, 2
-"""The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``, ``quiet_rate_rad_s`` (0: no cross-axis fit)."""
+CLIP_N, CLIP_RISE, LAST1, LAST2, HISTORY = 50, 53, 56, 59, 62
+"""The clipped-sample reconstruction (``HingeAxisFit.reconstruct``), three columns each (one per raw gyro
+axis): the number of clipped samples in the current run, the rise of the reading over the two samples
+before it, the last two readings and how many of them there are (up to 2)."""
+WIDTH = 65
+ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE, ST_CLIP_RANGE, ST_CLIP_MAX = 0, 1, 2, 3, 4
+"""The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``, ``quiet_rate_rad_s`` (0: no cross-axis fit),
+``clip_range_rad_s`` (0: no reconstruction) and ``clip_max_samples``."""
+
+
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+def _reconstruct(state, j, k, g, clip_range, clip_max):
+    """The raw reading ``g`` of gyro axis ``k`` of sensor row ``j``, with the angle its clipped run
+    missed added at the run's end (``HingeAxisFit.reconstruct``, the same arithmetic); the axis's record
+    updated."""
+    if abs(g) >= clip_range * (1.0 - 1e-3):
+        if state[j, CLIP_N + k] == 0.0:
+            sign = 1.0 if g > 0.0 else -1.0
+            state[j, CLIP_RISE + k] = sign * (state[j, LAST1 + k] - state[j, LAST2 + k]) \
+                if state[j, HISTORY + k] >= 2.0 else 0.0
+        state[j, CLIP_N + k] += 1.0
+        state[j, LAST1 + k] = g
+        state[j, HISTORY + k] = 0.0
+        return g
+    out = g
+    n = state[j, CLIP_N + k]
+    if n > 0.0:
+        rise = state[j, CLIP_RISE + k]
+        if rise > 0.0 and n <= clip_max:
+            height = min(0.25 * rise * n, clip_range)
+            extra = (2.0 / 3.0) * height * n
+            out = g + extra if state[j, LAST1 + k] > 0.0 else g - extra
+        state[j, CLIP_N + k] = 0.0
+    state[j, LAST2 + k] = state[j, LAST1 + k]
+    state[j, LAST1 + k] = g
+    state[j, HISTORY + k] = min(state[j, HISTORY + k] + 1.0, 2.0)
+    return out
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
-def correct(state, idx, raw, out):
+def correct(state, idx, raw, out, st):
     """``out[r] = C raw[r]`` (both vectors of sample ``r``) with the correction of its sensor; the raw
     reading itself where the sensor has no fit or its fit no sample yet (``HingeAxisFit.correct``); the
-    gyro's then without its cross-axis leak into the hinge-axis reading (``HingeAxisFit.correct_gyro``)."""
+    gyro's then without its cross-axis leak into the hinge-axis reading (``HingeAxisFit.correct_gyro``).
+    First, a gyro axis whose clipped run has just ended gets the angle the run missed
+    (``HingeAxisFit.reconstruct``; ``st[ST_CLIP_RANGE]`` 0: none)."""
+    clip_range, clip_max = st[ST_CLIP_RANGE], st[ST_CLIP_MAX]
     for r in range(idx.shape[0]):
         j = idx[r]
+        g0, g1, g2 = raw[r, 0, 0], raw[r, 0, 1], raw[r, 0, 2]
+        if j >= 0 and clip_range > 0.0:
+            g0 = _reconstruct(state, j, 0, g0, clip_range, clip_max)
+            g1 = _reconstruct(state, j, 1, g1, clip_range, clip_max)
+            g2 = _reconstruct(state, j, 2, g2, clip_range, clip_max)
         if j < 0 or state[j, SAMPLES] == 0.0:
-            for v in range(2):
-                for i in range(3):
-                    out[r, v, i] = raw[r, v, i]
+            out[r, 0, 0], out[r, 0, 1], out[r, 0, 2] = g0, g1, g2
+            for i in range(3):
+                out[r, 1, i] = raw[r, 1, i]
         else:
             for v in range(2):
-                x, y, z = raw[r, v, 0], raw[r, v, 1], raw[r, v, 2]
+                if v == 0:
+                    x, y, z = g0, g1, g2
+                else:
+                    x, y, z = raw[r, 1, 0], raw[r, 1, 1], raw[r, 1, 2]
                 for i in range(3):
                     o = C0 + 3 * i
                     out[r, v, i] = state[j, o] * x + state[j, o + 1] * y + state[j, o + 2] * z
