@@ -31,6 +31,7 @@ from websockets.asyncio.client import connect
 from websockets.exceptions import ConnectionClosed, InvalidStatus
 
 from service.protocol import PROTOCOL_VERSION, decode, encode, parse_message, parse_output
+from service.protocol.messages import dump_message
 
 
 class Backoff:
@@ -233,6 +234,8 @@ class Publisher:
         back-off) if the connection dropped."""
         if hasattr(message, "model_dump"):
             message = message.model_dump(exclude_none=True)
+        elif not isinstance(message, dict):         # a sample or pose as ``parse_line`` reads it (``protocol.fast``)
+            message = {k: v for k, v in dump_message(message).items() if v is not None}
         if message.get("type") == "calibration":
             self.calibration = message
         if message.get("type") == "hello":

@@ -1,6 +1,7 @@
-"""``protocol.parse_input`` (``orjson`` for samples and poses) gives exactly what the standard path
-(the standard library's ``json`` through ``decode``, then ``parse_message``) gives: the same value and
-message for good input, the same error code and detail for bad input. ``protocol.encode`` (``orjson``
+"""``protocol.parse_input`` (``protocol.fast``'s compiled structs, or ``orjson`` and pydantic, for
+samples and poses) gives exactly what the standard path (the standard library's ``json`` through
+``decode``, then ``parse_message``) gives: the same value and message (the same fields, values and
+recorded form) for good input, the same error code and detail for bad input. ``protocol.encode`` (``orjson``
 for JSON text where safe) writes the same values as the standard library, and exactly its text
 wherever a ``null`` is written (NaN and infinity among them) or it refuses the message."""
 import dataclasses
@@ -13,7 +14,9 @@ import orjson
 import pytest
 
 from service.pipeline.tracked import replay
-from service.protocol import ProtocolError, decode, encode, parse_input, parse_message
+from service.protocol import ProtocolError, decode, encode, parse_input, parse_line, parse_message
+from service.protocol.fast import FastImu, FastImuBatch, FastPose
+from service.protocol.messages import dump_message
 from service.protocol.wire import finite_copy
 from service.sim.session import SimConfig, simulate
 
@@ -32,13 +35,48 @@ HOSTILE = [
     '{"type":"imu","t":0.5', "[1,2,3]", "17", '"imu"', '{"type":"nope"}', '{"type":"imu","t":0.5} trailing', "",
     '{"type":"imu","type":"pose","t":0.5,"position":[0,0,0],"orientation":[0,0,0,1],"valid":false}',
     "[" * 3000 + "]" * 3000,
+    # what the compiled path must refuse or read exactly as pydantic does
+    IMU.replace("index.1", "index.1\\n") % "", IMU.replace("index.1", "index.1\n") % "",
+    IMU.replace("index.1", "ind\\u0065x.1") % "", IMU.replace('"t"', '"\\u0074"') % "",
+    IMU.replace("0.5", "true") % "", IMU.replace("0.5", '"0.5"') % "", IMU.replace("0.5", "1") % "",
+    IMU.replace("0.5", "-0.0") % "", IMU.replace("0.5", "1E-5") % "", IMU.replace("0.5", "0.50000000000000011102230246251565404236316680908203125") % "",
+    IMU.replace("0.5", "1e10") % "", IMU.replace("0.5", "10000000001") % "", IMU.replace("0.1,", "100,") % "",
+    IMU.replace("0.1,", "100.00000000000001,") % "", IMU.replace("0.1,", "-1e-400,") % "",
+    IMU % ',"t":0.75', IMU.replace('"type":"imu",', "") % ',"type":"imu"', ' \n' + IMU % "" + '\n ',
+    POSE.replace(',"valid":true', "") % "", POSE.replace("true", "false") % "",
+    '{"type":"pose","t":0.5,"position":null,"orientation":null,"valid":false}',
+    '{"type":"pose","t":0.5,"position":null,"orientation":[0,0,0,1],"valid":true}',
+    POSE.replace("[0,0,0,1]", "[0,0,0,1.0009]") % "", POSE.replace("[0,0,0,1]", "[0,0,0,1.0011]") % "",
+    POSE.replace("[0,0,0,1]", "[0,0,1]") % "", POSE.replace("[0.1,1.2,0.3]", "[0.1,1.2,1000.5]") % "",
+    '{"type":"imu_batch","samples":[]}', '{"type":"imu_batch","samples":[' + IMU % "" + "]}",
+    '{"type":"imu_batch","samples":[' + IMU.replace('"type":"imu",', "") % "" + "]}",
+    '{"type":"imu_batch","samples":[' + IMU.replace('"type":"imu",', "") % ',"x":1' + "]}",
+    '{"type":"imu_batch","samples":[' + ",".join([IMU.replace('"type":"imu",', "") % ""] * 4097) + "]}",
+    '{"type":"imu_batch","samples":[' + IMU.replace('"type":"imu",', "") % "" + '],"samples":[]}',
+    '{"type":"imu_batch","samples":{"t":1}}', '{"type":"imu_batch"}',
 ]
+
+
+def _view(msg):
+    """A message as the service reads it: its kind, each field's value with its Python type (an
+    ``imu_batch``'s samples field by field), and its recorded text (``dump_message``)."""
+    def fields(m, names):
+        return {n: (repr(getattr(m, n)), type(getattr(m, n))) for n in names}
+    kind = msg.type
+    names = [n for n in type(parse_message({"type": kind, "t": 0, "id": "thumb.0", "gyr": [0] * 3, "acc": [0] * 3,
+                                             "samples": [{"t": 0, "id": "thumb.0", "gyr": [0] * 3, "acc": [0] * 3}],
+                                             "valid": False})).model_fields if n != "samples"] \
+        if kind in ("imu", "imu_batch", "pose") else None
+    if names is None:
+        return ("model", msg)
+    samples = [fields(s, ("t", "id", "gyr", "acc")) for s in getattr(msg, "samples", ())]
+    return (kind, fields(msg, names), samples, json.dumps(dump_message(msg)))
 
 
 def _standard(text):
     try:
         raw = decode(text)
-        return ("ok", raw, parse_message(raw))
+        return ("ok", raw, _view(parse_message(raw)))
     except ProtocolError as err:
         return ("error", type(err).__name__, err.code, err.detail, getattr(err, "kept", None))
 
@@ -46,9 +84,24 @@ def _standard(text):
 def _fast(text):
     try:
         raw, msg = parse_input(text)
-        return ("ok", raw, msg)
+        assert parse_line(text) is not msg and _view(parse_line(text)) == _view(msg)
+        return ("ok", raw, _view(msg))
     except ProtocolError as err:
+        with pytest.raises(ProtocolError) as again:
+            parse_line(text)
+        assert (again.value.code, again.value.detail) == (err.code, err.detail)
         return ("error", type(err).__name__, err.code, err.detail, getattr(err, "kept", None))
+
+
+def test_samples_and_poses_are_read_by_the_compiled_path():
+    sample = IMU.replace('"type":"imu",', "") % ""
+    assert type(parse_input(IMU % "")[1]) is FastImu and type(parse_line(POSE % "")) is FastPose
+    batch = parse_line('{"type":"imu_batch","samples":[' + sample + "," + sample.replace("0.5", "0.505") + "]}")
+    assert type(batch) is FastImuBatch and [s.t for s in batch.samples] == [0.5, 0.505]
+    assert batch.samples[1].gyr == [0.1, -0.2, 0.3] and batch.samples[1].id == "index.1"
+    # what it refuses goes the pydantic way: unknown fields dropped, a pose without all its fields
+    assert type(parse_line(IMU % ',"note":1')).__name__ == "Imu"
+    assert type(parse_line('{"type":"pose","t":3.0,"valid":false}')).__name__ == "Pose"
 
 
 @pytest.mark.parametrize("text", HOSTILE)

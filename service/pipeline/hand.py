@@ -47,7 +47,8 @@ from ..model.hand import METACARPUS_SENSOR_ID, FingerGeometry, HandCalibration, 
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
 from ..model.openxr import JOINT_NAMES, joint_pose_arrays, joint_radii, joint_radii_list, joint_tracked_list
-from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth
+from ..protocol import Calibration, Hello, ReferencePose, Truth
+from ..protocol.fast import IMU, IMU_BATCH, POSE
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
 from .mounting import HandMountings
@@ -369,11 +370,11 @@ class HandSession:
         self._dropped[reason] += count
 
     def _accept(self, msg) -> None:
-        if isinstance(msg, ImuBatch):
+        if isinstance(msg, IMU_BATCH):
             self._add_imu(msg.samples)
-        elif isinstance(msg, Imu):
+        elif isinstance(msg, IMU):
             self._add_imu((msg,))
-        elif isinstance(msg, Pose):
+        elif isinstance(msg, POSE):
             if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
                 self._drop("late")
             else:

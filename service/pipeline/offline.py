@@ -16,7 +16,8 @@ import numpy as np
 from ..estimators.base import FingerEstimator, FingerSamples, FingerTrack
 from ..model.hand import HandCalibration, default_calibration, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
-from ..protocol import Calibration, Hello, Imu, ImuBatch, Pose, ReferencePose, Truth, read_recording
+from ..protocol import Calibration, Hello, ReferencePose, Truth, read_recording
+from ..protocol.fast import IMU, IMU_BATCH, POSE
 from .optical import hand_kinematics_acausal
 
 
@@ -80,12 +81,12 @@ def load_recording(path: str | Path) -> Recording:
             rec = Recording(default_calibration(hand))
         if isinstance(msg, Calibration):
             rec.calibration = rec.calibration.with_overrides(msg.overrides())
-        elif isinstance(msg, Imu):
+        elif isinstance(msg, IMU):
             rec.imu.setdefault(msg.t, {})[msg.id] = (msg.gyr, msg.acc)
-        elif isinstance(msg, ImuBatch):
+        elif isinstance(msg, IMU_BATCH):
             for s in msg.samples:
                 rec.imu.setdefault(s.t, {})[s.id] = (s.gyr, s.acc)
-        elif isinstance(msg, Pose):
+        elif isinstance(msg, POSE):
             rec.pose_t.append(msg.t)
             rec.pose_valid.append(msg.valid)
             rec.pose_position.append(msg.position or [0.0, 0.0, 0.0])

@@ -308,4 +308,6 @@ def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | 
 def dump_message(msg: _Message) -> dict:
     """A validated message as a JSON-safe dict with only its known fields, as the client set them:
     what a recording stores, so that a replay parses exactly what was processed live."""
-    return msg.model_dump(mode="json", exclude_unset=True)
+    if isinstance(msg, _Message):
+        return msg.model_dump(mode="json", exclude_unset=True)
+    return msg.dump()                          # a sample or pose read by ``fast``: the same dict

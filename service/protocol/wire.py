@@ -17,6 +17,7 @@ from typing import Any, Callable, Iterator, Literal, Mapping
 import msgpack
 import orjson
 
+from . import fast as _fast
 from .messages import Imu, ImuBatch, ImuSample, Pose, ProtocolError, parse_message
 
 MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
@@ -154,10 +155,13 @@ def fast_fields_only(raw: dict) -> bool:
 def parse_input(data: str | bytes, binary: bool = False) -> tuple[object, object]:
     """``(decoded value, validated message)`` of one message as it arrives: ``decode`` then
     ``parse_message``, with the same results and the same ``ProtocolError`` for bad input. JSON
-    samples and poses are read by ``orjson`` (several times faster than the standard library); any
-    other message, and any text ``orjson`` refuses or whose message fails validation, goes through
-    the standard path, whose value or error is the answer (``FAST_KEYS``)."""
+    samples and poses are read into compiled structs that the pydantic models accept as theirs
+    (``protocol.fast``, the value by ``orjson``) where that path accepts them; else by ``orjson`` and
+    pydantic; any other message, and any text ``orjson`` refuses or whose message fails validation,
+    goes through the standard path, whose value or error is the answer (``FAST_KEYS``)."""
     if not binary:
+        if (msg := _fast.read(data)) is not None:
+            return orjson.loads(data), msg
         try:
             raw = orjson.loads(data)
         except orjson.JSONDecodeError:
@@ -173,8 +177,10 @@ def parse_input(data: str | bytes, binary: bool = False) -> tuple[object, object
 
 def parse_line(line: str | bytes):
     """Decode one JSON text and validate it as a source message; raises ``ProtocolError``
-    (``invalid_json`` for bad JSON, including the non-standard ``NaN``/``Infinity`` literals)."""
-    return parse_input(line)[1]
+    (``invalid_json`` for bad JSON, including the non-standard ``NaN``/``Infinity`` literals). The
+    message of ``parse_input``, without its decoded value (samples and poses: ``protocol.fast`` only)."""
+    msg = _fast.read(line)
+    return parse_input(line)[1] if msg is None else msg
 
 
 def read_recording(path: str | Path, on_error: Literal["raise", "skip"] = "raise",
