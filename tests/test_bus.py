@@ -277,6 +277,7 @@ def test_the_bus_answers_every_message_as_the_embedded_service_does(tmp_path, mo
         {"type": "pose", "t": 0.5, "valid": False},                     # internal_error (the injected defect)
         {"type": "imu", "t": 1.0},                                      # refused at the edge
         "{not json",
+        '{"type":"imu_batch","samples":[{"t":1.0,',                   # a data message's head, cut: invalid_json
         *msgs[batches[13] + 1:batches[13] + 20],
     ]
     settings = dict(port=0, admin_token="admin-token-1", tokens={"src-token-1": "source"})
@@ -296,7 +297,7 @@ def test_the_bus_answers_every_message_as_the_embedded_service_does(tmp_path, mo
     assert alone[0][0]["type"] == "hello"
     codes = [r["code"] for rs in alone[1:] for r in rs]
     assert codes == ["time_backwards", "duplicate", "unknown_sensor", "invalid_samples", "invalid_message",
-                     "internal_error", "invalid_message", "invalid_json"]
+                     "internal_error", "invalid_message", "invalid_json", "invalid_json"]
 
 
 def test_a_worker_loads_kernels_before_it_takes_sessions_and_before_a_session_switches(tmp_path, monkeypatch):

@@ -177,3 +177,26 @@ def test_a_worker_s_count_of_unanswered_messages_follows_its_sessions_through_a_
             await pool.close()
     checks = asyncio.run(run())
     assert [name for name, ok in checks if not ok] == []
+
+
+def test_a_data_message_is_known_by_its_head_only_when_nothing_else_could_make_it_another_type():
+    """``data_type``: the web process passes a JSON data message to its worker unread only when its
+    first key is a ``"type"`` of a data message and no repeated or escaped ``"type"`` key could make the
+    decoded message another type (the last of repeated keys wins in JSON decoders)."""
+    import json
+
+    from service.api.hands.pool import data_type
+
+    batch = {"type": "imu_batch", "samples": [{"t": 0.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [0, 9.81, 0]}]}
+    assert data_type(json.dumps(batch, separators=(",", ":"))) == "imu_batch"
+    assert data_type(json.dumps(batch)) == "imu_batch"                     # with spaces
+    assert data_type('{"type":"pose","t":0.5,"valid":false}') == "pose"
+    assert data_type('{"type":"imu","t":1.0,"id":"a","gyr":[0,0,0],"acc":[0,0,0]}') == "imu"
+    repeated = '{"type":"imu","t":1.0,"type":"sync","id":"x"}'
+    assert json.loads(repeated)["type"] == "sync" and data_type(repeated) is None
+    escaped = '{"type":"imu","t":1.0,"\\u0074ype":"sync","id":"x"}'
+    assert json.loads(escaped)["type"] == "sync" and data_type(escaped) is None
+    assert data_type('{"t":1.0,"type":"imu"}') is None                     # not its first key
+    assert data_type('{"type":"hello","protocol":1}') is None
+    assert data_type('{"type":"imu_batchX","samples":[]}') is None
+    assert data_type(' {"type":"imu"}') is None and data_type('["type","imu"]') is None
