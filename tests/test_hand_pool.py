@@ -147,7 +147,8 @@ def _owed_matches(pool: HandPool) -> bool:
 def test_a_worker_s_count_of_unanswered_messages_follows_its_sessions_through_a_kill_and_a_close():
     """The count the watchdog and ``owe`` read (no walk over the sessions per message) stays the sum of
     the sessions' unanswered messages while messages are in flight, when a killed worker's session
-    moves with its unanswered messages to the other worker, and when a session closes owing answers."""
+    moves with its unanswered messages to the other worker, and when a session closes owing answers.
+    Both workers, the one started again after the kill too, run ``hand_worker_nice`` (5) nicer than the web process."""
     msgs = _glove(1.0, 3)
 
     async def run():
@@ -158,6 +159,7 @@ def test_a_worker_s_count_of_unanswered_messages_follows_its_sessions_through_a_
             for m in msgs[:60]:
                 await _ingest(a, m)
             checks.append(("in flight", a.link.owed > 0 and _owed_matches(pool)))
+            killed, killed_pid = a.link, a.link.pid
             a.link.proc.kill()
             while a.restarts == 0:
                 checks.append(("moving", _owed_matches(pool)))
@@ -172,6 +174,14 @@ def test_a_worker_s_count_of_unanswered_messages_follows_its_sessions_through_a_
             checks.append(("closed", owed_before_close > 0 and _owed_matches(pool)))
             await a.settled()
             checks.append(("after close", _owed_matches(pool)))
+            # the workers, the restarted one too, run nicer than this (web) process
+            own = os.getpriority(os.PRIO_PROCESS, 0)
+            want = min(19, own + pool.settings.hand_worker_nice)
+            checks.append(("a nicer worker by default", want > own or own == 19))
+            await _until(lambda: killed.pid != killed_pid and killed.ready.is_set(), "the killed worker's successor",
+                         timeout_s=600.0)           # niced once ready
+            checks += [(f"nice of worker {link.slot}", os.getpriority(os.PRIO_PROCESS, link.pid) == want)
+                       for link in pool.links]
             return checks
         finally:
             await pool.close()

@@ -96,6 +96,10 @@ class ServiceSettings(BaseSettings):
                                          "long after WebSocket connections ended frees their memory, s (api/churn.py)")
     hand_workers: int = Field(2, ge=0, le=64, description="worker processes that run the sessions' hands (each "
                               "session in one of them); 0: every hand on the web process's event loop")
+    hand_worker_nice: int = Field(5, ge=0, le=19, description="a hand worker runs this much nicer than the web "
+                                  "process once its kernels are loaded, so that the web process, on every frame's and "
+                                  "health check's path, gets a core first; 0 on a machine shared with other work where "
+                                  "the workers should not yield to it")
     hand_worker_stall_s: float = Field(10.0, gt=0, le=600, description="a hand worker that answers nothing for this "
                                        "long while it owes answers is killed and its sessions move to the others, s")
     hand_worker_lag_s: float = Field(1.0, gt=0, le=600, description="sooner: a hand worker that answers nothing for "

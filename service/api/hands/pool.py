@@ -31,6 +31,10 @@ the optical track and the gesture recogniser's state (an active gesture starts a
 the move takes (its sessions' frames come late then; other workers' sessions go on). Counted per
 session as ``worker.restarts`` and ``worker.resent_after_restart`` (``GET /v1/sessions``) and in
 ``fingertrack_hand_worker_restarts_total``.
+
+A worker runs ``hand_worker_nice`` nicer than the web process once it has loaded its kernels (``hands.worker``):
+on a machine short of cores, the process that moves every message (and answers the health checks) gets a
+core first when it has work.
 """
 from __future__ import annotations
 
@@ -304,7 +308,8 @@ class HandPool:
     def __init__(self, settings: ServiceSettings, metrics: Metrics):
         self.settings = settings
         self.metrics = metrics
-        self.worker_settings = {"estimator": settings.estimator, "output_rate_hz": settings.output_rate_hz}
+        self.worker_settings = {"estimator": settings.estimator, "output_rate_hz": settings.output_rate_hz,
+                                "hand_worker_nice": settings.hand_worker_nice}
         self.links = [WorkerLink(self, i) for i in range(settings.hand_workers)]
         self.outs_per_turn = max(1, min(OUTS_PER_TURN, settings.subscriber_queue_frames // 2))
         self.loop: asyncio.AbstractEventLoop | None = None

@@ -370,6 +370,14 @@ def main(argv: list[str]) -> int:
     sock.setblocking(True)
     settings = ServiceSettings(**given, record_all=False, record_dir=None)
     warm_ahead(settings.estimator)                  # the pipeline's and the default estimator's kernels first
+    if len(argv) > 2 and settings.hand_worker_nice:
+        # below its web process once its kernels are loaded (start-up as fast as before): on a machine short
+        # of cores the web process, whose work is small and on every frame's path (and every health check's),
+        # gets a core first when it has something to do (CFS weight 1024 against 335 at 5)
+        try:
+            os.nice(settings.hand_worker_nice)
+        except OSError:
+            pass
     worker = Worker(sock, settings)
     worker.out.append(["ready", os.getpid()])
     try:
