@@ -257,3 +257,26 @@ def test_frames_without_radius_or_tracked_still_parse():
              "joints": {name: joint for name in JOINT_NAMES}, "status": status}
     parsed = parse_output(frame)
     assert parsed.joints["palm"].radius is None and parsed.joints["palm"].tracked is True
+
+
+def test_a_clock_step_is_told_to_the_message_that_made_it():
+    """A jump of more than ``clock_step_s`` either way starts a new clock: the message that made it
+    gets a ``clock_step`` notice (its source hears it), a message within the step gets nothing."""
+    from service.api.replies import drop_replies
+    hand = HandSession()
+
+    def imu(t, sid="index.1"):
+        return parse_message({"type": "imu", "t": t, "id": sid, "gyr": [0.0, 0.0, 0.0], "acc": [0.0, 0.0, 9.81]})
+    assert not hand.accept(imu(10.0)) and not hand.accept(imu(10.4))          # within the step: nothing
+    back = imu(9.0)
+    dropped = hand.accept(back)
+    assert dropped == Dropped(clock_step=1) and hand.counters.clock_steps == 1
+    [(code, detail)] = drop_replies(back, dropped)
+    assert code == "clock_step" and detail.startswith("imu at t=9.0 jumps by more than the clock step")
+    batch = parse_message({"type": "imu_batch", "samples": [
+        {"t": 9.01, "id": "index.1", "gyr": [0.0, 0.0, 0.0], "acc": [0.0, 0.0, 9.81]},
+        {"t": 20.0, "id": "index.2", "gyr": [0.0, 0.0, 0.0], "acc": [0.0, 0.0, 9.81]}]})
+    dropped = hand.accept(batch)                                            # forward: a gap in the stream
+    assert dropped == Dropped(clock_step=1) and hand.counters.clock_steps == 2
+    assert drop_replies(batch, dropped)[0][0] == "clock_step"
+    assert not hand.accept(imu(20.0, "middle.1"))

@@ -40,7 +40,17 @@ GOOD_IMU = {"type": "imu", "t": 1.0, "id": "index.1", "gyr": [0, 0, 0], "acc": [
     (json.dumps({**GOOD_IMU, "gyr": [0, 0]}), "invalid_message", "gyr"),
     (json.dumps({**GOOD_IMU, "id": "index.7"}), "invalid_message", "id"),
     (json.dumps({k: v for k, v in GOOD_IMU.items() if k != "acc"}), "invalid_message", "acc: Field required"),
-    (json.dumps({**GOOD_IMU, "acc": [0, 1e400, 0]}).replace("Infinity", "1e400"), "invalid_message", "acc"),
+    (json.dumps({**GOOD_IMU, "acc": [0, 1e400, 0]}).replace("Infinity", "1e400"), "invalid_json", "non-finite number at acc.1"),
+    # non-finite anywhere, unknown fields included (a JSON literal that overflows a float64)
+    (json.dumps({**GOOD_IMU, "note": [1, {"x": 1e400}]}).replace("Infinity", "1e400"), "invalid_json",
+     "non-finite number at note.1.x"),
+    (json.dumps({**GOOD_IMU, "note": -1e400}).replace("-Infinity", "-1" + "9" * 309 + ".5"), "invalid_json", "at note"),
+    # booleans and strings are not numbers (pydantic would take true as 1.0 and "1.5" as 1.5)
+    (json.dumps({**GOOD_IMU, "gyr": [True, 0, 0]}), "invalid_message", "gyr.0: Input should be a valid number (got true)"),
+    (json.dumps({**GOOD_IMU, "t": "1.5"}), "invalid_message", "t: Input should be a valid number"),
+    ('{"type":"pose","t":true,"position":[0,0,0],"orientation":[0,0,0,1]}', "invalid_message", "t: Input should be a valid number"),
+    ('{"type":"pose","t":0,"position":[0,0,0],"orientation":[0,0,0,1],"valid":"yes"}', "invalid_message", "valid"),
+    ('{"type":"hello","protocol":true,"hand":"right"}', "invalid_message", "protocol"),
     ('{"type":"pose","t":0,"position":[0,0,0],"orientation":[0,0,0,2]}', "non_unit_quaternion", "norm is 2"),
     ('{"type":"pose","t":0,"position":[0,0,0]}', "invalid_message", "valid pose needs both"),
     ('{"type":"hello","protocol":1,"hand":"middle"}', "invalid_message", "hand"),
@@ -86,3 +96,43 @@ def test_the_wire_encodings_round_trip_and_refuse_garbage(binary):
     with pytest.raises(ProtocolError) as err:
         decode(b"\xc1" if binary else '{"t": NaN}', binary)
     assert err.value.code == ("invalid_msgpack" if binary else "invalid_json")
+
+
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), -float("inf")])
+@pytest.mark.parametrize("width", [64, 32])
+def test_a_messagepack_non_finite_number_is_refused_in_an_unknown_field_too(value, width):
+    import msgpack
+    message = {**GOOD_IMU, "note": {"deep": [1.0, value]}}
+    data = msgpack.packb(message, use_single_float=width == 32)
+    with pytest.raises(ProtocolError) as err:
+        decode(data, True)
+    assert err.value.code == "invalid_msgpack" and "non-finite number at note.deep.1" in err.value.detail
+    # finite numbers and bytes that only look like a NaN's (inside a string) pass
+    fine = {**GOOD_IMU, "note": {"deep": [1.0, 0.5, "\xca\x7f\xff\xcb\x7f\xf8"]}}
+    packed = msgpack.packb(fine, use_single_float=width == 32)
+    assert decode(packed, True) == msgpack.unpackb(packed)
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_nesting_beyond_the_limit_is_refused_in_an_unknown_field_too(binary):
+    import msgpack
+    from service.protocol.messages import MAX_NESTING
+    from service.protocol.wire import parse_input
+
+    def nested(levels):
+        value = 1
+        for _ in range(levels):
+            value = {"a": value}
+        return value
+    at_limit = {**GOOD_IMU, "deep": nested(MAX_NESTING - 1)}         # the message is level 1
+    over = {**GOOD_IMU, "deep": nested(MAX_NESTING)}
+    pack = msgpack.packb if binary else json.dumps
+    assert isinstance(parse_input(pack(at_limit), binary)[1], Imu)
+    with pytest.raises(ProtocolError) as err:
+        parse_input(pack(over), binary)
+    assert err.value.code == ("invalid_msgpack" if binary else "invalid_json")
+    assert f"nested deeper than {MAX_NESTING} levels at deep" + ".a" * (MAX_NESTING - 1) in err.value.detail
+    # the protocol's own deepest field (a sensor's mounting, level 6) is far within it
+    cal = {"type": "calibration", "fingers": {"index": {"sensors": [{"id": "index.1", "phalanx": 1,
+                                                                      "mounting": [0.0, 0.0, 0.0, 1.0]}]}}}
+    assert parse_input(pack(cal), binary)[1].fingers["index"].sensors[0].phalanx == 1

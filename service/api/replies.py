@@ -11,13 +11,19 @@ log = logging.getLogger("fingertrack")
 
 
 DROP_REPLIES = (
-    ("late", "time_backwards", "is older than what was already processed", "older than what was already processed"),
-    ("duplicate", "duplicate", "was already received", "already received"),
-    ("unknown_sensor", "unknown_sensor", "is of a sensor id the session's calibration does not place",
-     "of a sensor id the session's calibration does not place"),
+    ("late", "time_backwards", "is older than what was already processed; dropped",
+     "older than what was already processed; dropped"),
+    ("duplicate", "duplicate", "was already received; dropped", "already received; dropped"),
+    ("unknown_sensor", "unknown_sensor", "is of a sensor id the session's calibration does not place; dropped",
+     "of a sensor id the session's calibration does not place; dropped"),
+    ("clock_step", "clock_step", ("jumps by more than the clock step (clock_step_s) from the newest sample "
+                                                "before it: processed as a new clock (the samples still waiting were "
+                                                "discarded, the estimates restart from the current ones)"),
+     None),
 )
 """Per drop reason of ``Dropped`` (overflow aside: samples of earlier messages, counted in the frame
-status): its error code, and what it says of one message and of a batch's samples."""
+status): its error code, and what it says of one message and of a batch's samples (``None``: a count
+of steps, not of samples)."""
 
 
 def drop_replies(msg, dropped: Dropped | None) -> list[tuple[str, str]]:
@@ -34,9 +40,10 @@ def drop_replies(msg, dropped: Dropped | None) -> list[tuple[str, str]]:
             continue
         if samples:
             times = [s.t for s in samples]
-            out.append((code, f"{msg.type} at t={min(times)}..{max(times)}: {n} of {len(samples)} samples {some}; dropped"))
+            counted = f"{n} of {len(samples)} samples {some}" if some else f"a sample {one}"
+            out.append((code, f"{msg.type} at t={min(times)}..{max(times)}: {counted}"))
         else:
-            out.append((code, f"{msg.type} at t={getattr(msg, 't', None)} {one}; dropped"))
+            out.append((code, f"{msg.type} at t={getattr(msg, 't', None)} {one}"))
     return out
 
 

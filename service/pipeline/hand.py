@@ -113,9 +113,10 @@ class Uninstrumented:
         pass
 
 
-DROP_REASONS = ("late", "duplicate", "unknown_sensor", "overflow")
+DROP_REASONS = ("late", "duplicate", "unknown_sensor", "overflow", "clock_step")
 """Why the pipeline drops input: older than what was processed, already received, a sensor the
-calibration does not know, pushed out of the full pending-tick table."""
+calibration does not know, pushed out of the full pending-tick table; and a clock step (the message's
+sample is kept as the new clock's first, the pending ticks before it are discarded)."""
 
 
 @dataclass(frozen=True)
@@ -126,6 +127,7 @@ class Dropped:
     duplicate: int = 0
     unknown_sensor: int = 0
     overflow: int = 0
+    clock_step: int = 0
 
     def __bool__(self) -> bool:
         return any(getattr(self, r) for r in DROP_REASONS)
@@ -464,6 +466,9 @@ class HandSession:
 
     def _clock_step(self) -> None:
         self.counters.clock_steps += 1
+        if self._dropped is None:            # the message that stepped the clock is told so (``accept``)
+            self._dropped = dict.fromkeys(DROP_REASONS, 0)
+        self._dropped["clock_step"] += 1
         self._pending.clear()
         self._last_sample.clear()
         self._processed_t = None

@@ -26,13 +26,17 @@ import json
 import math
 from typing import Annotated, Literal, Union
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator, model_validator
+from pydantic import (BaseModel, BeforeValidator, ConfigDict, Field, Strict, TypeAdapter, ValidationError, field_validator,
+                      model_validator)
 
 PROTOCOL_VERSION = 1
 QUATERNION_NORM_TOLERANCE = 1e-3
 """A quaternion is accepted as unit when ``|‖q‖ - 1| <= 1e-3``."""
 MAX_BATCH_SAMPLES = 4096
 """Largest ``imu_batch`` accepted, samples."""
+MAX_NESTING = 16
+"""Deepest nesting of objects and arrays in a message (the message itself is level 1); protocol v1's
+deepest, a calibration's sensor mounting, is at level 6. Deeper values, in unknown fields too, are refused."""
 
 SENSOR_ID_PATTERN = r"^(thumb|index|middle|ring|little)\.[0-2]$"
 IMU_ID_PATTERN = r"^((thumb|index|middle|ring|little)\.[0-2]|metacarpus)$"
@@ -47,18 +51,31 @@ MAX_PHALANX_M = 0.12
 MAX_BASE_OFFSET_M = 0.25
 
 
+def _not_bool(value):
+    if isinstance(value, bool):
+        raise ValueError(f"expected an integer, got {str(value).lower()}")
+    return value
+
+
+Num = Annotated[float, Strict()]
+"""A number: an integer or a float, never ``true``/``false`` or a string (which pydantic would otherwise
+turn into 1.0/0.0 or parse)."""
+Int = Annotated[int, BeforeValidator(_not_bool)]
+"""An integer (``1.0`` is taken as 1), never ``true``/``false``."""
+
+
 def _bounded_vec3(limit: float, unit: str):
-    return Annotated[list[Annotated[float, Field(ge=-limit, le=limit)]],
+    return Annotated[list[Annotated[Num, Field(ge=-limit, le=limit)]],
                      Field(min_length=3, max_length=3, description=f"[x, y, z], {unit}, each within +-{limit:g}")]
 
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-Time = Annotated[float, Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description="source clock, s")]
+Vec3 = Annotated[list[Num], Field(min_length=3, max_length=3)]
+Time = Annotated[Num, Field(ge=-MAX_TIME_S, le=MAX_TIME_S, description="source clock, s")]
 GyroVec = _bounded_vec3(MAX_GYRO_RAD_S, "rad/s")
 AccVec = _bounded_vec3(MAX_ACC_M_S2, "m/s^2")
 PositionVec = _bounded_vec3(MAX_POSITION_M, "m")
 BaseOffsetVec = _bounded_vec3(MAX_BASE_OFFSET_M, "m")
-Quat = Annotated[list[float], Field(min_length=4, max_length=4, description="[x, y, z, w], unit norm")]
+Quat = Annotated[list[Num], Field(min_length=4, max_length=4, description="[x, y, z, w], unit norm")]
 
 
 class ProtocolError(ValueError):
@@ -85,7 +102,7 @@ class _Message(BaseModel):
 
 class Hello(_Message):
     type: Literal["hello"]
-    protocol: int
+    protocol: Int
     hand: Literal["right", "left"]
     source: str = ""
 
@@ -102,8 +119,8 @@ class BaseFrame(_Message):
 
 class SensorCalibration(_Message):
     id: Annotated[str, Field(pattern=SENSOR_ID_PATTERN)]
-    phalanx: Annotated[int, Field(ge=0, le=2)]
-    offset: Annotated[float, Field(ge=0.0, le=0.2)] | None = None
+    phalanx: Annotated[int, Field(ge=0, le=2), BeforeValidator(_not_bool)]
+    offset: Annotated[Num, Field(ge=0.0, le=0.2)] | None = None
     mounting: Quat = [0.0, 0.0, 0.0, 1.0]
 
     @field_validator("mounting")
@@ -113,9 +130,9 @@ class SensorCalibration(_Message):
 
 
 class FingerCalibration(_Message):
-    lengths: Annotated[list[Annotated[float, Field(ge=MIN_PHALANX_M, le=MAX_PHALANX_M)]], Field(min_length=2, max_length=3)] | None = None
+    lengths: Annotated[list[Annotated[Num, Field(ge=MIN_PHALANX_M, le=MAX_PHALANX_M)]], Field(min_length=2, max_length=3)] | None = None
     base: BaseFrame | None = None
-    coupling: Annotated[float, Field(ge=0.0, le=2.0)] | None = None
+    coupling: Annotated[Num, Field(ge=0.0, le=2.0)] | None = None
     sensors: list[SensorCalibration] | None = None
 
 
@@ -148,7 +165,7 @@ class Pose(_Message):
     t: Time
     position: PositionVec | None = None
     orientation: Quat | None = None
-    valid: bool = True
+    valid: Annotated[bool, Strict()] = True
 
     @field_validator("orientation")
     @classmethod
@@ -183,7 +200,7 @@ class Sync(_Message):
     message received before it on that connection. Never recorded, never seen by the pipeline."""
 
     type: Literal["sync"]
-    id: Annotated[int, Field(ge=0, le=2**53)]
+    id: Annotated[int, Field(ge=0, le=2**53), BeforeValidator(_not_bool)]
 
 
 FINGER_JOINTS = {"thumb": ("mcp", "ip"), "index": ("mcp", "pip", "dip"), "middle": ("mcp", "pip", "dip"),
@@ -201,7 +218,7 @@ class ReferencePose(_Message):
     type: Literal["reference_pose"]
     t0: Time
     t1: Time
-    pose: Union[Literal["flat"], dict[Literal["thumb", "index", "middle", "ring", "little"], dict[str, float]]]
+    pose: Union[Literal["flat"], dict[Literal["thumb", "index", "middle", "ring", "little"], dict[str, Num]]]
 
     @model_validator(mode="after")
     def _consistent(self):
@@ -232,7 +249,7 @@ class Truth(_Message):
 
     type: Literal["truth"]
     t: Time
-    fingers: dict[str, dict[str, float]]
+    fingers: dict[str, dict[str, Num]]
     position: Vec3
     orientation: Quat
 

@@ -54,6 +54,10 @@ ERROR_CODES: dict[str, str] = {
     "invalid_samples": "some samples of an imu_batch are invalid or out of range: those (listed in 'samples') are "
                        "dropped, the batch's other samples are processed",
     "internal_error": "processing the message failed inside the service (a defect; logged); the message is dropped",
+    "clock_step": "a notice, the message is processed: its time jumps by more than the clock step (the pipeline's "
+                  "clock_step_s, 0.5 s) forward or back from the newest sample, so it starts a new clock (the samples "
+                  "still waiting are discarded, the estimates restart from the current ones; counted in the frame "
+                  "status as clock_steps)",
 }
 """Every error code the service sends, with its meaning."""
 

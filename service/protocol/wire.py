@@ -18,7 +18,7 @@ import msgpack
 import orjson
 
 from . import fast as _fast
-from .messages import Imu, ImuBatch, ImuSample, Pose, ProtocolError, parse_message
+from .messages import MAX_NESTING, Imu, ImuBatch, ImuSample, Pose, ProtocolError, parse_message
 
 MSGPACK_SUBPROTOCOL = "fingertrack.msgpack"
 """WebSocket subprotocol name of the MessagePack encoding."""
@@ -117,21 +117,91 @@ def encode(message: Mapping[str, Any], binary: bool) -> str | bytes:
         return json.dumps(finite_copy(message), separators=(",", ":"), allow_nan=False)
 
 
+_NON_FINITE_FLOAT32 = re.compile(rb"\xca[\x7f\xff][\x80-\xff]")
+"""A MessagePack float32 (``0xca`` and 4 bytes) whose 8 exponent bits are all set: NaN or an infinity."""
+
+_OVERFLOW_LITERAL = (re.compile(r"[eE]\+?0*[1-9][0-9]{2}|[0-9]{309}"), re.compile(rb"[eE]\+?0*[1-9][0-9]{2}|[0-9]{309}"))
+"""What a JSON number that overflows a float64 to infinity needs (a positive exponent of three digits
+or 309 digits in a row; str and bytes): text without it holds no such number (no walk needed)."""
+
+
+def _non_finite_path(value, path: str = "") -> str | None:
+    """The path of the first NaN or infinity in a decoded value (``None``: every number is finite)."""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else (path or "message")
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, list):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _non_finite_path(item, f"{path}.{key}" if path else str(key))
+        if found is not None:
+            return found
+    return None
+
+
+def _too_deep_path(value, limit: int = MAX_NESTING, path: str = "") -> str | None:
+    """The path of the first object or array nested deeper than ``limit`` levels (``None``: none is)."""
+    if isinstance(value, dict):
+        items = value.items()
+    elif isinstance(value, list):
+        items = enumerate(value)
+    else:
+        return None
+    if limit <= 0:
+        return path or "message"
+    for key, item in items:
+        if isinstance(item, (dict, list)):
+            found = _too_deep_path(item, limit - 1, f"{path}.{key}" if path else str(key))
+            if found is not None:
+                return found
+    return None
+
+
+def _refuse_too_deep(value, code: str) -> None:
+    """Nesting deeper than ``MAX_NESTING`` is an error anywhere in a message: protocol v1 needs six
+    levels. Only a message with fields beyond the per-sample ones (``fast_fields_only``) can hold
+    such a value that validation would not refuse anyway, so only such a message is walked."""
+    if type(value) is dict and not fast_fields_only(value):
+        path = _too_deep_path(value)
+        if path is not None:
+            raise ProtocolError(code, f"nested deeper than {MAX_NESTING} levels at {path}")
+
+
+def _refuse_non_finite(value, code: str) -> None:
+    """Non-finite numbers are an error anywhere in a message (DESIGN.md), in unknown fields too: the
+    same rule for a MessagePack NaN and a JSON ``1e400`` as for the JSON ``NaN`` literal."""
+    path = _non_finite_path(value)
+    if path is not None:
+        raise ProtocolError(code, f"non-finite number at {path} (NaN and infinity are not allowed anywhere in a message)")
+
+
 def decode(data: str | bytes, binary: bool = False) -> object:
     """One message's Python value from JSON text (``str`` or UTF-8 ``bytes``), or from MessagePack
-    bytes when ``binary``; raises ``ProtocolError`` naming the encoding and the problem."""
+    bytes when ``binary``; raises ``ProtocolError`` naming the encoding and the problem (a NaN or an
+    infinity anywhere in it included)."""
     if binary:
         try:
             # protocol v1 has no bin or ext values (they could not be recorded as JSON)
-            return msgpack.unpackb(data, max_bin_len=0, max_ext_len=0)
+            value = msgpack.unpackb(data, max_bin_len=0, max_ext_len=0)
         except (ValueError, TypeError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError) as err:
             raise ProtocolError("invalid_msgpack", f"not valid MessagePack: {err or type(err).__name__}") from None
+        if _NON_FINITE_DOUBLE.search(data) is not None or _NON_FINITE_FLOAT32.search(data) is not None:
+            _refuse_non_finite(value, "invalid_msgpack")
+        _refuse_too_deep(value, "invalid_msgpack")
+        return value
     try:
-        return json.loads(data, parse_constant=_reject_constant)
+        value = json.loads(data, parse_constant=_reject_constant)
     except RecursionError:
         raise ProtocolError("invalid_json", "not valid JSON: nested too deeply") from None
     except (ValueError, UnicodeDecodeError) as err:
         raise ProtocolError("invalid_json", f"not valid JSON: {err}") from None
+    if _OVERFLOW_LITERAL[isinstance(data, bytes)].search(data) is not None:
+        _refuse_non_finite(value, "invalid_json")
+    _refuse_too_deep(value, "invalid_json")
+    return value
 
 
 _SAMPLE_KEYS = frozenset(ImuSample.model_fields) | {"type"}
