@@ -28,11 +28,15 @@ def _strict_json(text):
     return json.loads(text, parse_constant=reject)
 
 
+def _payload(made):
+    return made[0] if isinstance(made, tuple) else made
+
+
 @pytest.mark.parametrize("category", sorted(rb.JSON_CATEGORIES))
 def test_json_messages_are_deterministic_and_hostile(category):
     for i in range(40):
-        payload = rb._json_message(category, 0.01 * i, random.Random(i), 1 << 20)
-        assert payload == rb._json_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        payload = _payload(rb._json_message(category, 0.01 * i, random.Random(i), 1 << 20))
+        assert payload == _payload(rb._json_message(category, 0.01 * i, random.Random(i), 1 << 20))
         if category in ("truncated_json", "nan_infinity", "random_text", "wrong_shapes", "missing_fields",
                         "non_unit_quaternion"):
             # by the protocol's own definition none of these is a valid source message
@@ -53,14 +57,37 @@ def test_json_messages_are_deterministic_and_hostile(category):
 @pytest.mark.parametrize("category", sorted(rb.MSGPACK_CATEGORIES))
 def test_msgpack_messages_are_deterministic_and_hostile(category):
     for i in range(40):
-        payload = rb._msgpack_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        payload = _payload(rb._msgpack_message(category, 0.01 * i, random.Random(i), 1 << 20))
         assert isinstance(payload, bytes)
-        assert payload == rb._msgpack_message(category, 0.01 * i, random.Random(i), 1 << 20)
+        assert payload == _payload(rb._msgpack_message(category, 0.01 * i, random.Random(i), 1 << 20))
         if category in ("mp_truncated", "mp_extra_data", "mp_huge_container"):
             with pytest.raises((ValueError, msgpack.ExtraData, msgpack.FormatError, msgpack.StackError)):
                 msgpack.unpackb(payload)
         if category == "mp_non_map":
             assert not isinstance(msgpack.unpackb(payload), dict)
+
+
+def test_a_message_labelled_valid_is_one_the_protocol_accepts_and_the_others_are_refused():
+    """The labels come from the generator (what each message was made to be); checked here against the
+    protocol's rules for every kind whose answer does not depend on the session (time does: a clock
+    step is answered by the pipeline, ``test_pipeline``)."""
+    from service.protocol.wire import parse_input
+    valid_kinds, hostile_kinds = set(), set()
+    for binary in (False, True):
+        for i in range(4000):
+            category, kind, payload = rb.hostile_message(5, i, binary)
+            if category in ("backwards_time", "huge_time", "unknown_sensors", "hello_variants", "oversized",
+                            "mp_oversized") or "calibration" in category:
+                continue          # answered by the session (time, placement, protocol) or at the door (size)
+            if kind.startswith(rb.VALID):
+                valid_kinds.add(kind)
+                parse_input(payload, binary)
+            else:
+                hostile_kinds.add(kind)
+                with pytest.raises(ProtocolError):
+                    parse_input(payload, binary)
+    assert any("unknown field" in k for k in valid_kinds) and any("5e-324" in k for k in valid_kinds)
+    assert "1e400 in an unknown field" in hostile_kinds and "100 levels in an unknown field" in hostile_kinds
 
 
 def test_campaign_messages_cover_every_category():
@@ -148,6 +175,10 @@ def test_quick_campaign_runs_end_to_end_and_accounts_for_every_message(tmp_path)
         assert closes == int(c["closed_by_design"]) + int(c["closed_abnormally"]), c
     results = json.loads((out / "results.json").read_text())
     assert sum(int(c["sent"]) for c in categories) == results["fuzz"]["sent"] == 240
+    kinds = list(csv.DictReader((out / "fuzz_kinds.csv").open()))
+    for c in kinds:
+        assert int(c["sent"]) == sum(int(c[k]) for k in outcomes), c
+    assert sum(int(c["sent"]) for c in kinds) == 240 and {c["valid"] for c in kinds} <= {"True", "False"}
     good = results["fuzz"]["good"]
     assert good and good[0]["produced"] > 0 and good[0]["received"] <= good[0]["produced"]
     assert len(results["extremes"]) == len(rb.QUICK["probes"])

@@ -680,7 +680,8 @@ def test_a_source_faster_than_the_service_is_refused_overloaded_and_nothing_is_l
         errors = _flood(srv, "flood", msgs, max_unconfirmed=None)
         summary = _sessions(srv)["flood"]
         refused = [e for e in errors if e["code"] == "overloaded"]
-        assert refused and len(refused) == len(errors), [e["code"] for e in errors][:20]
+        # the refusals leave gaps in the data: one longer than the clock step starts a new clock, told as such
+        assert refused and {e["code"] for e in errors} <= {"overloaded", "clock_step"}, [e["code"] for e in errors][:20]
         assert all("cannot keep up with this source" in e["detail"] for e in refused)
         assert summary["overloaded"] == len(refused) == _metric(srv, "fingertrack_overloaded_messages_total", "flood")
         assert 0 < summary["status"]["dropped"]["overloaded"] <= len(refused)

@@ -60,6 +60,11 @@ FRAME_TOLERANCE = 10
 """Frames a stream may legitimately miss at its ends: the pipeline's alignment wait (optical
 latency 20 ms + reorder window 20 ms) holds back the last ticks, and the first needs a pose."""
 MAX_RESTARTS = 5
+QUATERNION_TOLERANCE = 1e-3
+"""DESIGN.md: a quaternion is unit when its norm is within 1e-3 of 1."""
+CLOCK_STEP_S = 0.5
+"""The pipeline's default ``clock_step_s``: a sample further back than this from the newest is a clock
+step (answered), a sample less far back is a reordered one (in order while its tick waits)."""
 
 
 # -- hostile messages ------------------------------------------------------------------------------
@@ -120,53 +125,74 @@ def _nested(depth: int, r: random.Random) -> str:
     return "[" * depth + "]" * depth if r.random() < 0.5 else '{"a":' * depth + "1" + "}" * depth
 
 
-def _absurd_calibration(r: random.Random) -> dict:
+VALID = "valid: "
+"""The start of the kind of a message the protocol accepts as it is (by the rules of DESIGN.md and the
+documented ranges, known when it is generated): any reply, or none, is right for it."""
+
+
+def _absurd_calibration(r: random.Random) -> tuple[dict, str]:
+    """An absurd calibration and its kind."""
     cal = _calibration(r)
     index = cal["fingers"]["index"]
     kind = r.randrange(12)
     if kind == 0:
         index["lengths"] = [1e-300, 1e-300, 1e-300]
+        what = "lengths 1e-300 m"
     elif kind == 1:
         index["lengths"] = [5e-324, 5e-324, 5e-324]
+        what = "lengths 5e-324 m"
     elif kind == 2:
         index["lengths"] = [r.choice((0.0, -0.03, 1e9)), 0.027, 0.02]
+        what = "a length 0, -0.03 or 1e9 m"
     elif kind == 3:
         index["base"]["position"] = [1e300, 0.0, 0.0]
+        what = "base 1e300 m"
     elif kind == 4:
         index["base"]["position"] = [r.choice((1e10, -1e15)), 0.0, 0.0]
+        what = "base 1e10 or -1e15 m"
     elif kind == 5:
         index["coupling"] = r.choice((-1.0, 2.5, 1e9))
+        what = "coupling -1, 2.5 or 1e9"
     elif kind == 6:
         index["sensors"] = [{"id": "index.1", "phalanx": r.choice((-1, 3, 5)), "offset": 0.01}]
+        what = "phalanx -1, 3 or 5"
     elif kind == 7:
         cal["fingers"]["sixth"] = {"lengths": [0.04, 0.03]}
+        what = "an unknown finger"
     elif kind == 8:
         index["sensors"] = []
+        what = VALID + "a finger without sensors (a partly instrumented glove)"
     elif kind == 9:
         index["sensors"] = [{"id": "index.1", "phalanx": 0, "offset": 0.01}] * 2
+        what = "a sensor placed twice"
     elif kind == 10:
-        index["sensors"] = [{"id": "index.1", "phalanx": 0, "offset": r.choice((1e300, 1e-300, -0.01))}]
+        offset = r.choice((1e300, 1e-300, -0.01))
+        index["sensors"] = [{"id": "index.1", "phalanx": 0, "offset": offset}]
+        what = VALID + "sensor offset 1e-300 m (0 within the range 0-0.2 m)" if offset == 1e-300 \
+            else "sensor offset 1e300 or -0.01 m"
     else:
         index["sensors"] = [{"id": "index.1", "phalanx": 0, "offset": 0.01, "mounting": [0, 0, 0, 3.0]}]
-    return cal
+        what = "a mounting of norm 3"
+    return cal, what
 
 
-def _extreme(t: float, r: random.Random) -> dict:
-    """Schema-valid but physically absurd values."""
+def _extreme(t: float, r: random.Random) -> tuple[dict, str]:
+    """Schema-valid but physically absurd values, and their kind."""
     kind = r.randrange(5)
     if kind == 0:
-        return _set(_imu(t, r), ("gyr", 0), r.choice((1e300, 1e100, -1e50, 1e10)))
+        return _set(_imu(t, r), ("gyr", 0), r.choice((1e300, 1e100, -1e50, 1e10))), "gyro 1e10-1e300 rad/s"
     if kind == 1:
-        return _set(_imu(t, r), ("acc", 1), r.choice((1e300, -1e100, 1e10)))
+        return _set(_imu(t, r), ("acc", 1), r.choice((1e300, -1e100, 1e10))), "acceleration 1e10-1e300 m/s2"
     if kind == 2:
-        return _set(_pose(t, r), ("position", 0), r.choice((1e300, 1e100, 1e10, -1e6)))
+        return _set(_pose(t, r), ("position", 0), r.choice((1e300, 1e100, 1e10, -1e6))), "position 1e6-1e300 m"
     if kind == 3:
-        return _set(_batch(t, r), ("samples", 0, "gyr", 2), 1e300)
-    return _set(_pose(t, r), ("position", 2), 5e-324)
+        return _set(_batch(t, r), ("samples", 0, "gyr", 2), 1e300), "a batch sample's gyro 1e300 rad/s"
+    return _set(_pose(t, r), ("position", 2), 5e-324), VALID + "position 5e-324 m (0 m within the range)"
 
 
-def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> str | bytes:
-    """One hostile message of ``category`` for a JSON connection (``bytes``: a binary frame)."""
+def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> str | bytes | tuple:
+    """One hostile message of ``category`` for a JSON connection (``bytes``: a binary frame), or
+    ``(message, kind)`` where the category holds kinds apart (``VALID``: a message the protocol accepts)."""
     base = _valid(t, r)
     if category == "random_bytes":
         return r.randbytes(r.randrange(1, 300))
@@ -180,13 +206,22 @@ def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> 
     if category == "depth_bomb":
         depth = r.choice((10, 100, 500, 960, 970, 1000, 5000, 100_000))
         if r.random() < 0.5:
-            return _nested(depth, r)
-        return json.dumps(base)[:-1] + ',"deep":' + _nested(depth, r) + "}"
+            return _nested(depth, r), f"{depth} levels alone"
+        return (json.dumps(base)[:-1] + ',"deep":' + _nested(depth, r) + "}",
+                VALID + "10 levels in an unknown field (ignored)" if depth == 10 else f"{depth} levels in an unknown field")
     if category == "huge_numbers":
         literal = r.choice(("1e308", "1e400", "-1e400", "1e-400", "9" * 400, "-" + "9" * 5000, "1" + "0" * 130))
+        shown = literal if len(literal) < 10 else f"{len(literal.lstrip('-'))} digits"
         if r.random() < 0.3:
-            return json.dumps(base)[:-1] + ',"note":' + literal + "}"
-        return _with_literal(base, r.choice(_numeric_paths(base)), literal)
+            kind = f"{shown} in an unknown field"
+            if literal in ("1e308", "1e-400", "9" * 400, "1" + "0" * 130):
+                kind = VALID + kind + " (a finite number, ignored)"
+            return json.dumps(base)[:-1] + ',"note":' + literal + "}", kind
+        path = r.choice(_numeric_paths(base))
+        kind = f"{shown} in a field"
+        if literal == "1e-400":       # 0: within every range, but a quaternion with a component 0 is no longer unit
+            kind = "1e-400 (0) in a quaternion" if path[0] == "orientation" else VALID + "1e-400 in a field (0 within the range)"
+        return _with_literal(base, path, literal), kind
     if category == "wrong_types":
         return json.dumps(_set(base, r.choice(_numeric_paths(base)),
                                r.choice(("x", None, {}, [], True, [[1, 2, 3]], {"a": 1}))))
@@ -205,25 +240,43 @@ def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> 
         return json.dumps(base)
     if category == "extra_fields":
         extra = r.choice(("x" * r.randrange(1, 50_000), {"nested": [1, 2, {"a": None}]}, [None] * 100, -1.5))
-        return json.dumps(base | {"note": extra})
+        return json.dumps(base | {"note": extra}), VALID + "an unknown field (ignored)"
     if category == "non_unit_quaternion":
         q = [x * r.choice((0.0, 0.5, 2.0, 1e6, 1e-12)) for x in _unit_quat(r)]
-        return json.dumps(_set(_pose(t, r), ("orientation",), q))
+        # the components are scaled one by one: by chance the norm may still be 1 within the tolerance
+        unit = abs(math.sqrt(sum(x * x for x in q)) - 1.0) <= QUATERNION_TOLERANCE
+        return json.dumps(_set(_pose(t, r), ("orientation",), q)), \
+            (VALID + "a unit quaternion after all (within 1e-3)") if unit else "norm 0 to 2e6"
     if category == "backwards_time":
-        return json.dumps(_set(_imu(t, r), ("t",), r.choice((t - 1.0, t - 100.0, -1.0, -1e9, 0.0, t))))
+        value = r.choice((t - 1.0, t - 100.0, -1.0, -1e9, 0.0, t))
+        if value == t:
+            kind = VALID + "the current time (not back at all)"
+        elif t - value <= CLOCK_STEP_S:
+            kind = VALID + "back less than the clock step (a reordered sample)"
+        else:
+            kind = "back more than the clock step"
+        return json.dumps(_set(_imu(t, r), ("t",), value)), kind
     if category == "huge_time":
-        return json.dumps(_set(base, ("samples", 0, "t") if base["type"] == "imu_batch" else ("t",),
-                               r.choice((2.0**47, 2.0**47 + 0.0625, 2.0**52, 1e15, 1e300, 5e-324))))
+        value = r.choice((2.0**47, 2.0**47 + 0.0625, 2.0**52, 1e15, 1e300, 5e-324))
+        if value == 5e-324:
+            kind = (VALID + "5e-324 s, back less than the clock step") if t <= CLOCK_STEP_S \
+                else "5e-324 s, back more than the clock step"
+        else:
+            kind = "beyond 1e10 s"
+        return json.dumps(_set(base, ("samples", 0, "t") if base["type"] == "imu_batch" else ("t",), value)), kind
     if category == "unknown_sensors":
         return json.dumps(_set(_imu(t, r), ("id",), r.choice(("ring.7", "index.0", "thumb.2", "foo", "",
                                                               "index.1 ", "INDEX.1", "pinky.1"))))
     if category == "absurd_calibration":
-        return json.dumps(_absurd_calibration(r))
+        cal, kind = _absurd_calibration(r)
+        return json.dumps(cal), kind
     if category == "extreme_values":
-        return json.dumps(_extreme(t, r))
+        msg, kind = _extreme(t, r)
+        return json.dumps(msg), kind
     if category == "hello_variants":
-        return json.dumps({"type": "hello", "protocol": r.choice((1, 2, 0, -1, 10**130)),
-                           "hand": r.choice(("right", "left", "middle"))})
+        protocol, hand = r.choice((1, 2, 0, -1, 10**130)), r.choice(("right", "left", "middle"))
+        kind = VALID + "hello" if protocol == 1 and hand != "middle" else "another protocol or hand"
+        return json.dumps({"type": "hello", "protocol": protocol, "hand": hand}), kind
     if category == "oversized":
         kind = r.randrange(3)
         if kind == 0:
@@ -234,8 +287,8 @@ def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> 
     raise ValueError(f"unknown category {category!r}")
 
 
-def _msgpack_message(category: str, t: float, r: random.Random, max_bytes: int) -> bytes:
-    """One hostile message of ``category`` for a MessagePack connection."""
+def _msgpack_message(category: str, t: float, r: random.Random, max_bytes: int) -> bytes | tuple:
+    """One hostile message of ``category`` for a MessagePack connection, or ``(message, kind)``."""
     base = _valid(t, r)
     if category == "mp_random_bytes":
         return r.randbytes(r.randrange(1, 300))
@@ -264,9 +317,11 @@ def _msgpack_message(category: str, t: float, r: random.Random, max_bytes: int) 
     if category == "mp_wrong_types":
         return msgpack.packb(_set(base, r.choice(_numeric_paths(base)), r.choice(("x", None, {}, [], True))))
     if category == "mp_extreme_values":
-        return msgpack.packb(_extreme(t, r))
+        msg, kind = _extreme(t, r)
+        return msgpack.packb(msg), kind
     if category == "mp_absurd_calibration":
-        return msgpack.packb(_absurd_calibration(r))
+        cal, kind = _absurd_calibration(r)
+        return msgpack.packb(cal), kind
     if category == "mp_oversized":
         return msgpack.packb(base | {"pad": b"\x00" * (max_bytes + 1)})
     raise ValueError(f"unknown category {category!r}")
@@ -286,16 +341,18 @@ MSGPACK_CATEGORIES = {
 }
 
 
-def hostile_message(seed: int, index: int, binary: bool, max_bytes: int = 1 << 20) -> tuple[str, str | bytes]:
-    """``(category, payload)`` of fuzz message ``index``: deterministic in ``(seed, index)``, so a
-    campaign that restarts a hung service continues with the same messages."""
+def hostile_message(seed: int, index: int, binary: bool, max_bytes: int = 1 << 20) -> tuple[str, str, str | bytes]:
+    """``(category, kind, payload)`` of fuzz message ``index``: deterministic in ``(seed, index)``, so a
+    campaign that restarts a hung service continues with the same messages. ``kind`` says what the
+    message is within its category (the category itself where it has one kind); a kind that starts
+    with ``VALID`` is a message the protocol accepts (any reply or none is right for it)."""
     r = random.Random(seed * 1_000_003 + index)
     cats = MSGPACK_CATEGORIES if binary else JSON_CATEGORIES
     category = r.choices(list(cats), weights=list(cats.values()))[0]
     t = 0.001 * index                                        # time moves forward with the campaign
-    if binary:
-        return category, _msgpack_message(category, t, r, max_bytes)
-    return category, _json_message(category, t, r, max_bytes)
+    made = (_msgpack_message if binary else _json_message)(category, t, r, max_bytes)
+    payload, kind = made if isinstance(made, tuple) else (made, category)
+    return category, kind, payload
 
 
 # -- a lockstep attacker ---------------------------------------------------------------------------
@@ -316,6 +373,29 @@ class CategoryStats:
     hangs: int = 0
     crashes: int = 0
     codes: Counter = field(default_factory=Counter)
+
+    def count(self, outcome: str, replies: list[dict]) -> None:
+        """One message: what ``Attacker.probe`` saw of it."""
+        self.sent += 1
+        errors = [m for m in replies if m.get("type") == "error"]
+        for m in errors:
+            self.codes[m.get("code")] += 1
+        for m in replies:
+            if m.get("type") == "close":
+                self.closes[f"{m['code']} {m['reason'][:60]}"] += 1
+        if outcome == "replied":
+            if errors:
+                self.error_reply += 1
+            elif replies:
+                self.other_reply += 1
+            else:
+                self.silent += 1
+        elif outcome == "closed_by_design":
+            self.closed_by_design += 1
+        elif outcome == "stalled":
+            self.stalls += 1
+        else:
+            self.closed_abnormally += 1
 
 
 class ServiceDown(Exception):
@@ -562,7 +642,7 @@ async def _recovery(svc: ServiceProcess, session: str, seconds: float, messages:
 
 
 async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int], workers: int, seed: int,
-                     stats: dict, good_speed: float, reply_timeout_s: float, deadline: float, recovery: dict,
+                     stats: dict, kind_stats: dict, good_speed: float, reply_timeout_s: float, deadline: float, recovery: dict,
                      recovery_seconds: float, recovery_msgs: list, batch: int) -> dict:
     """Fuzz until every worker reached its limit, the deadline passed, or the service went down."""
     good = LoopingGlove(svc, "good", good_speed, seed=seed)
@@ -577,41 +657,24 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
         try:
             while positions[k] < limits[k] and not down and time.monotonic() < deadline:
                 todo = range(positions[k], min(limits[k], positions[k] + batch))
-                cats, payloads = zip(*(hostile_message(seed, j * workers + k, binary) for j in todo))
+                cats, kinds, payloads = zip(*(hostile_message(seed, j * workers + k, binary) for j in todo))
                 try:
                     results = await attacker.probe(list(payloads))
                 except ServiceDown as err:
                     if not down:                   # the first to notice owns a message of its batch
                         down.append(err.kind)
-                        st = stats.setdefault(cats[0], CategoryStats())
-                        st.sent += 1
-                        st.hangs += err.kind == "hang"
-                        st.crashes += err.kind == "crash"
+                        for st in (stats.setdefault(cats[0], CategoryStats()),
+                                   kind_stats.setdefault((cats[0], kinds[0]), CategoryStats())):
+                            st.sent += 1
+                            st.hangs += err.kind == "hang"
+                            st.crashes += err.kind == "crash"
                         positions[k] += 1
                     return
-                for category, (outcome, replies) in zip(cats, results):
-                    st = stats.setdefault(category, CategoryStats())
-                    st.sent += 1
+                for category, kind, (outcome, replies) in zip(cats, kinds, results):
                     positions[k] += 1
-                    errors = [m for m in replies if m.get("type") == "error"]
-                    for m in errors:
-                        st.codes[m.get("code")] += 1
-                    for m in replies:
-                        if m.get("type") == "close":
-                            st.closes[f"{m['code']} {m['reason'][:60]}"] += 1
-                    if outcome == "replied":
-                        if errors:
-                            st.error_reply += 1
-                        elif replies:
-                            st.other_reply += 1
-                        else:
-                            st.silent += 1
-                    elif outcome == "closed_by_design":
-                        st.closed_by_design += 1
-                    elif outcome == "stalled":
-                        st.stalls += 1
-                    else:
-                        st.closed_abnormally += 1
+                    for st in (stats.setdefault(category, CategoryStats()),
+                               kind_stats.setdefault((category, kind), CategoryStats())):
+                        st.count(outcome, replies)
         finally:
             await attacker.close()
         if positions[k] >= limits[k] and not down:
@@ -709,6 +772,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
     per = [messages // workers + (1 if k < messages % workers else 0) for k in range(workers)]
     positions = [0] * workers
     stats: dict[str, CategoryStats] = {}
+    kind_stats: dict[tuple[str, str], CategoryStats] = {}
     lives, goods, rss, fds = [], [], [], []
     recovery: dict[str, dict] = {}
     deadline = time.monotonic() + max_seconds
@@ -727,7 +791,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
                                  "load_1min": os.getloadavg()[0]}
                 break
             rss0, fd0 = svc.rss_kib(), svc.fds()
-            life = asyncio.run(_fuzz_life(svc, positions, per, workers, seed, stats, good_speed, reply_timeout_s,
+            life = asyncio.run(_fuzz_life(svc, positions, per, workers, seed, stats, kind_stats, good_speed, reply_timeout_s,
                                           deadline, recovery, recovery_seconds, recovery_msgs, batch))
             down = None
             if life["down"] is None:
@@ -749,6 +813,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
             break
     total = sum(s.sent for s in stats.values())
     return {"sent": total, "requested": messages, "wall_s": time.perf_counter() - t_start, "stats": stats,
+            "kind_stats": kind_stats,
             "stalls": sum(s.stalls for s in stats.values()),
             "hangs": sum(s.hangs for s in stats.values()), "crashes": sum(s.crashes for s in stats.values()),
             "service_restarts": restarts, "tracebacks": sum(x["tracebacks"] for x in lives),
@@ -1253,8 +1318,13 @@ def _machine_lines(fuzz: dict) -> list[str]:
 def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
     st = fuzz["stats"]
     sent = fuzz["sent"]
-    error_replies = sum(s.error_reply for s in st.values())
-    silent = sum(s.silent for s in st.values())
+    kinds = fuzz["kind_stats"]
+    hostile = [s for (_, kind), s in kinds.items() if not kind.startswith(VALID)]
+    hostile_sent = sum(s.sent for s in hostile)
+    hostile_closed = sum(s.closed_by_design for s in hostile)
+    hostile_answered = sum(s.error_reply for s in hostile) + hostile_closed
+    hostile_silent = sum(s.silent for s in hostile)
+    valid = [s for (_, kind), s in kinds.items() if kind.startswith(VALID)]
     abnormal = sum(s.closed_abnormally for s in st.values())
     good_lost = [_good_lost(g) for g in fuzz["good"]]
     good_lost_total = None if not good_lost or None in good_lost else sum(good_lost)
@@ -1278,8 +1348,10 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
          fuzz["stalls"] == 0),
         ("fuzz", "tracebacks in the service log", "0", fuzz["tracebacks"], fuzz["tracebacks"] == 0),
         ("fuzz", "connections dropped abnormally", "0", abnormal, abnormal == 0),
-        ("fuzz", "messages with an error reply", f"{sent}", error_replies, error_replies == sent),
-        ("fuzz", "messages accepted without a reply", "0", silent, silent == 0),
+        ("fuzz", "hostile messages answered with an error reply, or closed with the reason (1008 for another "
+         "protocol, 1009 for a frame over 4 MiB)", f"{hostile_sent}",
+         f"{hostile_answered} ({hostile_closed} closed)", hostile_answered == hostile_sent),
+        ("fuzz", "hostile messages accepted without a reply", "0", hostile_silent, hostile_silent == 0),
         ("fuzz", "good session: frames lost", "0", good_lost_total, good_lost_total == 0),
         ("fuzz", "attacked sessions: worst time to a frame of a fresh glove's data (source clock), s", "<= 1",
          worst_recovery, recovered_all and worst_recovery is not None and worst_recovery <= 1.0),
@@ -1338,9 +1410,18 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
         w.writerow(ext_cols)
         for r in extremes:
             w.writerow([json.dumps(r[c]) if isinstance(r[c], dict) else r[c] for c in ext_cols])
+    with open(out / "fuzz_kinds.csv", "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["category", "kind", "valid", "sent", "error_reply", "other_reply", "silent", "closed_by_design",
+                    "closed_abnormally", "stalls", "hangs", "crashes", "codes"])
+        for (name, kind), s in sorted(kinds.items()):
+            w.writerow([name, kind, kind.startswith(VALID), s.sent, s.error_reply, s.other_reply, s.silent,
+                        s.closed_by_design, s.closed_abnormally, s.stalls, s.hangs, s.crashes,
+                        " ".join(f"{c}={n}" for c, n in s.codes.most_common())])
     (out / "results.json").write_text(json.dumps({
-        "parameters": p, "wall_s": walls, "fuzz": {k: v for k, v in fuzz.items() if k != "stats"},
+        "parameters": p, "wall_s": walls, "fuzz": {k: v for k, v in fuzz.items() if k not in ("stats", "kind_stats")},
         "fuzz_categories": {k: vars(v) | {"codes": dict(v.codes)} for k, v in st.items()},
+        "fuzz_kinds": {f"{c}: {k}": vars(v) | {"codes": dict(v.codes)} for (c, k), v in kinds.items()},
         "extremes": extremes, "never_readers": never, "storm": storm, "kill9": kills,
         "soak": {k: v for k, v in soak.items()}}, indent=2, default=str))
 
@@ -1360,6 +1441,18 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
         codes = ", ".join(f"{c} {n}" for c, n in s.codes.most_common(3))
         lines.append(f"| {name} | {s.sent} | {s.error_reply} | {s.other_reply} | {s.silent} | {s.closed_by_design} | "
                      f"{s.closed_abnormally} | {s.stalls} | {s.hangs + s.crashes} | {codes} |")
+    lines += ["", "## Fuzz by kind", "",
+              f"A kind that starts with \"{VALID.strip()}\" is a message the protocol accepts as it is (an unknown field, a "
+              "number within its range such as 5e-324 m, a sample reordered within the clock step, a hello): any "
+              f"reply or none is right for it. Valid: {sum(s.sent for s in valid)} messages, "
+              f"{sum(s.silent for s in valid)} of them accepted without a reply; hostile: {hostile_sent}, "
+              f"{hostile_silent} accepted without a reply.", "",
+              "| category | kind | sent | error reply | other reply | silent | closed by design | most frequent codes |",
+              "|---|---|---|---|---|---|---|---|"]
+    for (name, kind), s in sorted(kinds.items(), key=lambda x: (x[0][1].startswith(VALID), x[0])):
+        codes = ", ".join(f"{c} {n}" for c, n in s.codes.most_common(2))
+        lines.append(f"| {name} | {kind} | {s.sent} | {s.error_reply} | {s.other_reply} | {s.silent} | "
+                     f"{s.closed_by_design} | {codes} |")
     lines += ["", "Attacked sessions, right after their last bad message a fresh glove (new connection, its clock carrying on "
               "from the fuzz's) streams good data in real time; times on the source clock:", "",
               "| session | first frame after the glove's first data, s | frames / expected | error replies |",
