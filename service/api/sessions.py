@@ -154,7 +154,7 @@ class LiveSession:
         self.source: Any = None
         """The connection feeding the session (one at a time), and its token."""
         self.source_token: str | None = None
-        self.last_status: FrameStatusDict | dict = {}
+        self._last_status: FrameStatusDict | dict = {}
         self.frames_out = 0
         self.dropped_frames = 0
         self.overloaded = 0
@@ -262,7 +262,7 @@ class LiveSession:
     def _fan_out(self, group: list[FrameDict | GestureDict], t0: float) -> None:
         for out in group:
             if out["type"] == "frame":
-                self.last_status = out["status"]
+                self._last_status = out["status"]
                 out["status"]["dropped"]["subscriber_frames"] = self.dropped_frames
                 out["status"]["dropped"]["overloaded"] = self.overloaded
             self._deliver(Outgoing(out), t0)  # serialised once, on first send, for every subscriber
@@ -282,6 +282,11 @@ class LiveSession:
             if dropped:
                 self.dropped_frames += dropped
                 self.metrics.dropped_frames.labels(self.name).inc(dropped)
+
+    @property
+    def last_status(self) -> FrameStatusDict | dict:
+        """The status of the last frame sent (``{}`` before the first)."""
+        return self._last_status
 
     def summary(self) -> dict:
         return {"session": self.name, "hand": self.hand.hand if self.hand is not None else None, "sources": self.sources,

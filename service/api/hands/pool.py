@@ -415,12 +415,9 @@ class ProcessSession(LiveSession):
 
     @property
     def last_status(self) -> dict:
+        """The last frame's, as the worker wrote it."""
         frame_ = self.last_frame
         return {} if frame_ is None else frame_["status"]
-
-    @last_status.setter
-    def last_status(self, _value) -> None:
-        pass                                        # the last frame's, as the worker wrote it
 
     def _tell_worker(self) -> None:
         """The worker writes MessagePack too while a subscriber reads it, and the session's drop counts
