@@ -940,3 +940,30 @@ def test_a_frame_too_large_is_closed_with_its_reason_while_the_peer_still_sends(
             while s.recv(65536):                        # then the service ends the connection, no reset
                 pass
     assert rest(server.url, "GET", "/health")[0] == 200
+
+
+def test_an_estimator_step_that_raises_on_its_first_sample_leaves_no_half_state():
+    """Campaign F6(b): a step raising ``ValueError`` on an estimator's first sample used to leave its
+    state set while its time was not, so the next sample raised ``TypeError`` (float - None) and
+    dropped the connection. State and time now change together, after the step."""
+    import numpy as np
+    from service.estimators.base import samples_from_session
+    from service.estimators.registry import REGISTRY
+    from service.sim.session import simulate
+
+    sess = simulate(SimConfig(motion="random", t_m_s=0.2, noise="both", hand_motion="random", seed=5))
+    smp = samples_from_session(sess, "index")
+    est = REGISTRY["integration"](sess.calibration.finger("index"))
+    step, calls = est._step, []
+
+    def failing_once(*args):
+        calls.append(1)
+        if len(calls) == 1:
+            raise ValueError("injected")
+        return step(*args)
+    est._step = failing_once
+    with pytest.raises(ValueError, match="injected"):
+        est.update(*smp.sample(0))
+    assert not est.started and est.state == {"t_last": None, "filter": None}
+    out = est.update(*smp.sample(1))                # no TypeError: it starts afresh
+    assert est.started and est.last_t == out.t and np.all(np.isfinite(out.phi))
