@@ -35,6 +35,8 @@ HOSTILE = [
     '{"type":"imu","t":0.5', "[1,2,3]", "17", '"imu"', '{"type":"nope"}', '{"type":"imu","t":0.5} trailing', "",
     '{"type":"imu","type":"pose","t":0.5,"position":[0,0,0],"orientation":[0,0,0,1],"valid":false}',
     "[" * 3000 + "]" * 3000,
+    # depth bombs: an object nested 3,000 levels, and one in an unknown field of a sample
+    '{"a":' * 3000 + "1" + "}" * 3000, IMU % (',"x":' + '{"a":' * 3000 + "1" + "}" * 3000),
     # what the compiled path must refuse or read exactly as pydantic does
     IMU.replace("index.1", "index.1\\n") % "", IMU.replace("index.1", "index.1\n") % "",
     IMU.replace("index.1", "ind\\u0065x.1") % "", IMU.replace('"t"', '"\\u0074"') % "",

@@ -113,3 +113,5 @@ def read(data: str | bytes) -> FastImu | FastImuBatch | FastPose | None:
         return _DECODER.decode(data)
     except (msgspec.DecodeError, ValueError):       # msgspec.ValidationError is a DecodeError
         return None
+    except RecursionError:      # msgspec skips an unknown field's value recursively: a depth bomb
+        return None
