@@ -543,7 +543,7 @@ def test_serve_glove_and_watch_commands(tmp_path):
         assert "'tokens': {'source': 1" in banner[0]          # counts per role, no part of a token
         admin = banner[1].rsplit(": ", 1)[1].strip()
         assert banner[1].startswith("admin token (generated, shown once") and len(admin) > 20
-        wait_healthy(url, 15.0, alive=lambda: proc.poll() is None)
+        wait_healthy(url, 300.0, alive=lambda: proc.poll() is None)
         watch_rc = []
         watcher = threading.Thread(target=lambda: watch_rc.append(
             main(["watch", "--url", url, "--token", VIEWER, "--session", "cli", "--count", "40", "--every", "0.05"])))
