@@ -125,15 +125,21 @@ _OVERFLOW_LITERAL = (re.compile(r"[eE]\+?0*[1-9][0-9]{2}|[0-9]{309}"), re.compil
 or 309 digits in a row; str and bytes): text without it holds no such number (no walk needed)."""
 
 
+def _children(value):
+    """``(key, item)`` pairs of an object or array (``None`` for any other value)."""
+    if isinstance(value, dict):
+        return value.items()
+    if isinstance(value, list):
+        return enumerate(value)
+    return None
+
+
 def _non_finite_path(value, path: str = "") -> str | None:
     """The path of the first NaN or infinity in a decoded value (``None``: every number is finite)."""
     if isinstance(value, float):
         return None if math.isfinite(value) else (path or "message")
-    if isinstance(value, dict):
-        items = value.items()
-    elif isinstance(value, list):
-        items = enumerate(value)
-    else:
+    items = _children(value)
+    if items is None:
         return None
     for key, item in items:
         found = _non_finite_path(item, f"{path}.{key}" if path else str(key))
@@ -144,11 +150,8 @@ def _non_finite_path(value, path: str = "") -> str | None:
 
 def _too_deep_path(value, limit: int = MAX_NESTING, path: str = "") -> str | None:
     """The path of the first object or array nested deeper than ``limit`` levels (``None``: none is)."""
-    if isinstance(value, dict):
-        items = value.items()
-    elif isinstance(value, list):
-        items = enumerate(value)
-    else:
+    items = _children(value)
+    if items is None:
         return None
     if limit <= 0:
         return path or "message"
