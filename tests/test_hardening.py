@@ -743,7 +743,9 @@ def test_replies_leave_in_the_order_of_the_messages_overloaded_refusals_included
     """Each message is followed by a sentinel of its own (an unknown type ``__sK__``, always answered or
     refused): with a backlog of 8 the service falls behind and refuses data messages ``overloaded``,
     and every reply still comes after the replies to all earlier messages: a reply naming message k
-    (its ``t``) or sentinel k arrives after sentinel k-1's and before sentinel k's."""
+    (its ``t``) or sentinel k arrives after sentinel k-1's and before sentinel k's. A refused stretch
+    can leave a gap longer than the clock step: the next processed message then gets its ``clock_step``
+    notice, in its place too."""
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source"}, admin_token=ADMIN, ingest_backlog_messages=8)
     data = [m for m in _messages(seed=3, motion="sequence") if m["type"] in ("pose", "imu", "imu_batch")][:600]
 
@@ -774,6 +776,9 @@ def test_replies_leave_in_the_order_of_the_messages_overloaded_refusals_included
         if r["code"] == "unknown_type" or named.startswith("__s"):   # a sentinel: answered, or refused itself
             assert named == f"__s{k}__" or f"'__s{k}__'" in r["detail"], (k, r)
             k += 1
+        elif r["code"] == "clock_step":         # a refused stretch left a gap that starts a new clock
+            head = f"{data[k]['type']} at t={t_of(data[k])}"                # message k is processed
+            assert r["detail"].startswith(head) and r["detail"][len(head)] in ".: ", (k, r)
         else:
             assert r["code"] == "overloaded" and k in owner.get(named, ()), (k, r)
             overloaded += 1
