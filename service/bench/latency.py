@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..sim.session import SimConfig
-from .process import service_process
+from .process import end_with_parent, service_process, torn_down_on_signal
 
 
 def _histogram_quantile(metrics_text: str, q: float) -> float | None:
@@ -55,13 +55,16 @@ def _gc_pauses(pauses: list) -> object:
     return callback
 
 
-def _subscriber(url: str, viewer: str, ready, stop, conn) -> None:
+def _subscriber(url: str, viewer: str, ready, stop, conn, parent: int) -> None:
     """The subscriber, in its own process (so the glove's sends never delay its reads): every frame's
     ``(receive time, frame t)`` on the machine's monotonic clock (``time.perf_counter``), sent back
     through ``conn`` once ``stop`` is set, with its own garbage collections' pauses. Its heap is frozen
     once it is connected (a full collection of its modules took 0.3 s on a busy machine, and would be
-    counted as the service's latency); the collections left are reported."""
+    counted as the service's latency); the collections left are reported. It ends with the benchmark's
+    process (``parent``), however that ends."""
     import gc
+
+    end_with_parent(parent)
 
     from clients.client import Subscription
 
@@ -126,7 +129,7 @@ def _measure(url: str, source: str, viewer: str, config: SimConfig) -> tuple[lis
     ctx = mp.get_context("spawn")
     ready, stop = ctx.Event(), ctx.Event()
     parent, child = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_subscriber, args=(url, viewer, ready, stop, child), daemon=True)
+    proc = ctx.Process(target=_subscriber, args=(url, viewer, ready, stop, child, os.getpid()), daemon=True)
     proc.start()
     try:
         if not ready.wait(120.0):
@@ -160,7 +163,8 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
     out.mkdir(parents=True, exist_ok=True)
     extra = None if hand_workers is None else {"hand_workers": hand_workers}
     load_before = _load_average()
-    with service_process(extra_settings=extra) as svc:
+    # SIGTERM stops the service and the subscriber as Ctrl-C does
+    with torn_down_on_signal(), service_process(extra_settings=extra) as svc:
         config = SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=0,
                            rate_hz=imu_rate_hz)
         cpu0 = (svc.cpu_seconds(), svc.children_cpu_seconds())

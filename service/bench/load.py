@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..sim.session import SimConfig
-from .process import service_process
+from .process import bound_to_this_process, service_process, torn_down_on_signal
 
 
 
@@ -187,22 +187,37 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
     count = processes or generator_processes(hands)
     parts = [list(range(hands))[j::count] for j in range(count)]
     parts = [p for p in parts if p]
-    procs = []
+    procs: list = []
+    try:
+        return await _stream_level(procs, parts, urls, source, viewer, admin, subscribers, seconds, binary,
+                                   service_cpu, kill, hands)
+    finally:                                        # interrupted (Ctrl-C, SIGTERM): no generator or probe left behind
+        for proc in procs:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+
+
+async def _stream_level(procs: list, parts: list, urls: list[str], source: str, viewer: str, admin: str,
+                        subscribers: int, seconds: float, binary: bool, service_cpu, kill, hands: int) -> dict:
+    """``_level``'s run; every process it starts goes into ``procs`` at once."""
+    url = urls[0]
     for part in parts:
         proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "service.bench.load",
                                                     stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
-                                                    limit=1 << 30)
+                                                    limit=1 << 30, preexec_fn=bound_to_this_process())
+        procs.append(proc)
         spec = {"urls": urls, "source": source, "viewer": viewer, "admin": admin, "indices": part,
                 "subscribers": subscribers, "seconds": seconds, "binary": binary}
         proc.stdin.write((json.dumps(spec) + "\n").encode())
         await proc.stdin.drain()
-        procs.append(proc)
-    for proc in procs:
+    generators = list(procs)
+    for proc in generators:
         line = await proc.stdout.readline()
         if line.strip() != b"ready":
             raise RuntimeError("a load-generator process did not start")
     start = time.time() + 0.5
-    for proc in procs:
+    for proc in generators:
         proc.stdin.write(f"{start!r}\n".encode())
         await proc.stdin.drain()
     await asyncio.sleep(max(0.0, start - time.time()))
@@ -217,13 +232,14 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
 
     killer = asyncio.create_task(kill_later()) if kill is not None else None
     probe = await _start_probe(url, admin, seconds)
+    procs.append(probe)
     await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - wall0)))
     service1, wall = service_cpu(), time.perf_counter() - wall0
     probed = await _probe_result(probe)
     if killer is not None:
         await killer
     results = []
-    for proc in procs:
+    for proc in generators:
         out, _ = await proc.communicate()
         if await proc.wait() != 0 or not out.strip():
             raise RuntimeError("a load-generator process failed")
@@ -294,7 +310,7 @@ async def _start_probe(url: str, token: str, seconds: float):
     """The health and metrics probe (``bench.probe``) in its own process, for the streaming window."""
     env = {**os.environ, "FINGERTRACK_PROBE_TOKEN": token}
     return await asyncio.create_subprocess_exec(sys.executable, "-m", "service.bench.probe", url, f"{seconds:g}",
-                                                stdout=asyncio.subprocess.PIPE, env=env)
+                                                stdout=asyncio.subprocess.PIPE, env=env, preexec_fn=bound_to_this_process())
 
 
 async def _probe_result(proc) -> dict | None:
@@ -473,8 +489,9 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
         raise ValueError("--kill-worker-at needs hand worker processes (--workers 0 runs the hands in the service)")
     if kill_at_s is not None and not 0 < kill_at_s < seconds:
         raise ValueError(f"--kill-worker-at must lie inside the stream (0 < S < {seconds:g} s), got {kill_at_s:g}")
-    levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways, generators)
-              for h in tqdm(hands, desc="bench load", unit="level", disable=not progress)]
+    with torn_down_on_signal():                     # SIGTERM stops the service and generators as Ctrl-C does
+        levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways, generators)
+                  for h in tqdm(hands, desc="bench load", unit="level", disable=not progress)]
     (out / "results.json").write_text(json.dumps(levels, indent=2))
     return summary(levels, out)
 

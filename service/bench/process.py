@@ -1,19 +1,85 @@
 """The service in its own process for the benchmarks: ``fingertrack serve`` on a free localhost port,
-as deployed, with tokens written to a temporary settings file."""
+as deployed, with tokens written to a temporary settings file; and what makes a benchmark's child
+processes end with it (``torn_down_on_signal``, ``bound_to_this_process``)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import os
 import secrets
+import signal
 import subprocess
 import sys
 import tempfile
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO
 
 from ..api.server import free_port
+
+
+PR_SET_PDEATHSIG = 1
+"""``prctl`` option: the signal a process gets when the thread that started it ends (Linux, ``<linux/prctl.h>``)"""
+
+
+def _prctl():
+    """libc's ``prctl`` (Linux), looked up before any fork: after it, a child only calls it."""
+    if not sys.platform.startswith("linux"):
+        return None
+    import ctypes
+    try:
+        return ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+
+
+def _end_with(prctl, parent: int) -> None:
+    prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    if os.getppid() != parent:                       # the parent ended before the request: no signal comes
+        os._exit(1)
+
+
+def bound_to_this_process():
+    """A ``preexec_fn`` for a child process (a service, a NATS server or worker, a load generator) that
+    has the kernel SIGKILL it when this process ends, however it ends (a SIGKILL included: then no
+    teardown runs here). ``None`` where that cannot be had: not Linux, or called from a thread other
+    than the main one (the signal comes when the starting *thread* ends, and a benchmark's helper
+    threads end long before it)."""
+    prctl = _prctl() if threading.current_thread() is threading.main_thread() else None
+    return None if prctl is None else functools.partial(_end_with, prctl, os.getpid())
+
+
+def end_with_parent(parent: int) -> None:
+    """In a child started without a ``preexec_fn`` (``multiprocessing``): SIGKILL this process when
+    ``parent``, the process (main thread) that started it, ends (Linux; elsewhere nothing)."""
+    if (prctl := _prctl()) is not None:
+        _end_with(prctl, parent)
+
+
+@contextlib.contextmanager
+def torn_down_on_signal():
+    """While the block runs, SIGTERM and SIGHUP end it as Ctrl-C does (``KeyboardInterrupt`` in the main
+    thread), so that every ``with`` and ``finally`` on the way out stops the child processes it started;
+    a second signal during that teardown is ignored. Without it, a SIGTERM ended the benchmark at once
+    and left its service (and that service's hand workers, or the NATS server, workers and gateways)
+    running. Only in the main thread (elsewhere the block runs as it is)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    signals = (signal.SIGTERM, signal.SIGHUP)
+
+    def stop(signum, _frame):
+        for sig in signals:
+            signal.signal(sig, signal.SIG_IGN)
+        raise KeyboardInterrupt(f"signal {signal.Signals(signum).name}")
+    before = {sig: signal.signal(sig, stop) for sig in signals}
+    try:
+        yield
+    finally:
+        for sig, handler in before.items():
+            signal.signal(sig, handler)
 
 
 def _stat(pid: int | str) -> list[str] | None:
@@ -126,7 +192,7 @@ def service_process(start_timeout_s: float = 300.0, extra_settings: dict | None 
                                    **(extra_settings or {})}))
         log = open(log_path or Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
-                                stdout=subprocess.DEVNULL, stderr=log)
+                                stdout=subprocess.DEVNULL, stderr=log, preexec_fn=bound_to_this_process())
         url = f"http://127.0.0.1:{port}"
         try:
             try:
