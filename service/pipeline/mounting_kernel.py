@@ -37,11 +37,12 @@ TILT_Y, TILT_Z, SAMPLES, STRAIGHT = 34, 35, 36, 37
 Q00, Q01, Q02, Q11, Q12, Q22, QB0, QB1, QB2 = range(38, 47)
 """The cross-axis fit's normal equations (symmetric 3 x 3, regressors ``[1, f_y, f_z]``) and right-hand side."""
 LEAK_Y, LEAK_Z, QUIET_SAMPLES = 47, 48, 49
-CLIP_N, CLIP_RISE, LAST1, LAST2, HISTORY = 50, 53, 56, 59, 62
+CLIP_N, CLIP_RISE, LAST1, LAST2, HISTORY, CLIP_ADDED = 50, 53, 56, 59, 62, 65
 """The clipped-sample reconstruction (``HingeAxisFit.reconstruct``), three columns each (one per raw gyro
 axis): the number of clipped samples in the current run, the rise of the reading over the two samples
-before it, the last two readings and how many of them there are (up to 2)."""
-WIDTH = 65
+before it, the last two readings, how many of them there are (up to 2) and the rate added to the
+current run's samples so far."""
+WIDTH = 68
 ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE, ST_CLIP_RANGE, ST_CLIP_MAX = 0, 1, 2, 3, 4
 """The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``, ``quiet_rate_rad_s`` (0: no cross-axis fit),
 ``clip_range_rad_s`` (0: no reconstruction) and ``clip_max_samples``."""
@@ -57,19 +58,27 @@ def _reconstruct(state, j, k, g, clip_range, clip_max):
             sign = 1.0 if g > 0.0 else -1.0
             state[j, CLIP_RISE + k] = sign * (state[j, LAST1 + k] - state[j, LAST2 + k]) \
                 if state[j, HISTORY + k] >= 2.0 else 0.0
+            state[j, CLIP_ADDED + k] = 0.0
         state[j, CLIP_N + k] += 1.0
+        n = state[j, CLIP_N + k]
+        rise = state[j, CLIP_RISE + k]
+        guess = min(0.5 * rise * n, clip_range) if rise > 0.0 and n <= clip_max else 0.0
+        state[j, CLIP_ADDED + k] += guess
         state[j, LAST1 + k] = g
         state[j, HISTORY + k] = 0.0
-        return g
+        return g + guess if g > 0.0 else g - guess
     out = g
     n = state[j, CLIP_N + k]
     if n > 0.0:
         rise = state[j, CLIP_RISE + k]
+        total = 0.0
         if rise > 0.0 and n <= clip_max:
             height = min(0.25 * rise * n, clip_range)
-            extra = (2.0 / 3.0) * height * n
-            out = g + extra if state[j, LAST1 + k] > 0.0 else g - extra
+            total = (2.0 / 3.0) * height * n
+        extra = total - state[j, CLIP_ADDED + k]
+        out = g + extra if state[j, LAST1 + k] > 0.0 else g - extra
         state[j, CLIP_N + k] = 0.0
+        state[j, CLIP_ADDED + k] = 0.0
     state[j, LAST2 + k] = state[j, LAST1 + k]
     state[j, LAST1 + k] = g
     state[j, HISTORY + k] = min(state[j, HISTORY + k] + 1.0, 2.0)
