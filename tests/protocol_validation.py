@@ -10,6 +10,7 @@ import copy
 import json
 from pathlib import Path
 
+import fastjsonschema
 import msgpack
 from jsonschema import Draft202012Validator
 
@@ -44,25 +45,50 @@ def closed(schema: dict) -> dict:
     return walk(copy.deepcopy(schema))
 
 
+def compiled(schema: dict):
+    """``schema`` (a closed one, its references written out) as a fastjsonschema validator: generated
+    Python code, about a hundred times faster than jsonschema on a frame. The closed schemas use only
+    keywords draft 7 shares with draft 2020-12; defaults are never written into the message."""
+    schema = {k: v for k, v in schema.items() if k != "$schema"}
+    return fastjsonschema.compile(schema, use_default=False, use_formats=False)
+
+
 class ServiceMessageCheck:
     """Validates messages as the service sent them (JSON text or MessagePack bytes): against the
     union schema, through the branch its ``type`` selects (the union's discriminator mapping; a
-    message of no known type is checked against the whole union)."""
+    message of no known type is checked against the whole union).
+
+    Every message goes through the compiled validator (``fast``); one it refuses is checked again by
+    jsonschema, the reference, whose error list is the answer (so a refusal the two disagree on
+    never fails a test, and the messages it accepts are the ones both accept: ``tests/test_schema.py``
+    checks that the compiled validator refuses what jsonschema refuses)."""
 
     def __init__(self):
         union = published("service-message.schema.json")
         self.union = Draft202012Validator(closed(union))
-        self.by_type = {}
+        self.fast_union = compiled(closed(union))
+        self.by_type, self.fast = {}, {}
         for kind, ref in union["discriminator"]["mapping"].items():
-            branch = {"$defs": union["$defs"], **union["$defs"][ref.split("/")[-1]]}
-            self.by_type[kind] = Draft202012Validator(closed(branch))
+            branch = closed({"$defs": union["$defs"], **union["$defs"][ref.split("/")[-1]]})
+            self.by_type[kind] = Draft202012Validator(branch)
+            self.fast[kind] = compiled(branch)
+
+    def fast_accepts(self, message) -> bool:
+        kind = message.get("type") if isinstance(message, dict) else None
+        try:
+            self.fast.get(kind, self.fast_union)(message)
+        except fastjsonschema.JsonSchemaException:
+            return False
+        return True
 
     def problems(self, data) -> list[str]:
         message = msgpack.unpackb(data) if isinstance(data, (bytes, bytearray)) else json.loads(data)
         kind = message.get("type") if isinstance(message, dict) else None
-        validator = self.by_type.get(kind, self.union)
-        found = [f"{'/'.join(map(str, e.absolute_path)) or 'message'}: {e.message}"
-                 for e in validator.iter_errors(message)]
+        found = []
+        if not self.fast_accepts(message):
+            validator = self.by_type.get(kind, self.union)
+            found = [f"{'/'.join(map(str, e.absolute_path)) or 'message'}: {e.message}"
+                     for e in validator.iter_errors(message)]
         if kind == "error" and message.get("code") not in ERROR_CODES:
             found.append(f"code: {message.get('code')!r} is not one of the documented error codes")
         return found

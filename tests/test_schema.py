@@ -227,6 +227,30 @@ def test_real_frames_events_and_errors_follow_the_published_schema(server):
     strict = Draft202012Validator(closed(published("service-message.schema.json")))
     for m in messages + replies:
         assert not list(strict.iter_errors(m)), m
+    # the suite's compiled check (protocol_validation.compiled) accepts these messages and refuses,
+    # as jsonschema does, frames broken deep inside
+    check = ServiceMessageCheck()
+    assert all(check.fast_accepts(m) for m in messages + replies)
+    frame = next(m for m in messages if m["type"] == "frame")
+    breaks = [
+        lambda f: f["joints"]["index_tip"].update(extra=1),                     # an undeclared field
+        lambda f: f["joints"]["palm"].update(tracked=1),                        # a number for a boolean
+        lambda f: f["joints"]["wrist"]["position"].append(0.0),                 # four coordinates
+        lambda f: f["joints"]["wrist"].update(radius=True),                     # a boolean for a number
+        lambda f: f["fingers"]["index"].update(mode="guessing"),                # not one of the modes
+        lambda f: f["joints"]["palm"].pop("orientation"),                       # a required field missing
+        lambda f: f["status"]["dropped"].update(late=-1),                       # below its minimum
+        lambda f: f["fingers"].update(sixth=f["fingers"]["index"]),             # no such finger
+        lambda f: f["status"].update(optics="maybe"),                           # not one of the states
+        lambda f: f["gesture"].update(grab_strength="0.4"),                     # a string for a number
+        lambda f: f.update(seq=1.5),                                            # not an integer
+    ]
+    for n, damage in enumerate(breaks):
+        broken = json.loads(json.dumps(frame))
+        damage(broken)
+        assert not strict.is_valid(broken), n          # the reference refuses it ...
+        assert not check.fast_accepts(broken), n       # ... and so does the compiled check
+        assert check.problems(json.dumps(broken)), n
     # the source schema accepts what the glove sent and the service rejected what it refuses
     source = Draft202012Validator(published("source-message.schema.json"))
     assert source.is_valid({"type": "hello", "protocol": 1, "hand": "left"})
