@@ -1,5 +1,18 @@
 """A hand worker: owns sessions through a lease in NATS JetStream key-value and runs their pipelines.
 
+It keeps two connections to the NATS server: one for its sessions' traffic (source messages in, frames
+out) and one for ownership (``ft.assign``, the liveness probe, the lease bucket). A worker that takes a
+dead worker's sessions over is usually behind with its own sessions: the bytes of their source messages
+wait in its data connection's socket, read one chunk per turn of its loop, and any answer on that
+connection waits behind them. Measured at 10 hands on a machine at load average 9, every round trip of
+a takeover (the ``ft.assign`` request, the lease read, the probe, the lease write) took 0.13-0.4 s on
+the one connection, and the five moved sessions' first frames reached their subscribers 1.9-2.3 s after
+the kill; the ownership connection carries only those few messages. Such a worker's loop is still
+busy: each of those round trips waited for a turn of every session (0.1-0.4 s at that load). So while a
+worker checks or takes the ownership of a session it does not own, its sessions' source messages wait
+(``HOLD_MAX_S`` at most; a check is a few round trips on an idle loop), and a session it took over
+handles its backlog without yielding until its first frame.
+
 Each owned session is an ordinary ``LiveSession`` (the embedded service's code) whose only
 "subscriber" publishes to ``ft.out.<s>``. Every ``RENEW_S`` the worker rewrites each session's lease
 with its compact state (``subjects.py``). When a worker takes a session over from one that stopped
@@ -13,6 +26,7 @@ last renewal and the takeover (those messages are lost and the frames' ``seq`` j
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import logging
 import time
@@ -36,6 +50,9 @@ from .subjects import (ASSIGN, BUCKET, LEASE_S, PROBE_TIMEOUT_S, RENEW_S, WORKER
                        connect, output_subject, pack, session_token, source_subject, unpack, worker_subject)
 
 log = logging.getLogger("fingertrack.bus")
+HOLD_MAX_S = 0.5
+"""longest a worker's source messages wait while it checks or takes sessions' ownership (a takeover
+that must first load an estimator's kernels takes longer: its sessions go on after this), s"""
 STATE_MAX_AGE_S = 3600.0
 """a session nobody has renewed for this long leaves the key-value bucket, s"""
 
@@ -74,22 +91,30 @@ class Worker:
         self.owned: dict[str, OwnedSession] = {}
         self.seen: dict[str, tuple[int, float]] = {}   # key -> (revision, when first seen): lapsed leases
         self.nc = None
+        """the sessions' traffic: ``ft.src``/``ft.cfg`` in, ``ft.out`` out"""
+        self.ctl = None
+        """ownership: ``ft.assign``, ``ft.worker.<id>`` and the lease bucket (module docstring)"""
         self.kv = None
         self._tasks: list[asyncio.Task] = []
         self._assigning: dict[str, list] = {}     # session -> [lock, requests using it]: its answers one at a time
         self._answers: set[asyncio.Task] = set()
+        self._checking = 0                          # ownership checks under way: source messages wait meanwhile
+        self._traffic = asyncio.Event()
+        self._traffic.set()
+        self._held_until = 0.0                      # ... until then at most (monotonic s)
 
     async def start(self) -> None:
         """Load (or, with a cold cache, compile in a separate process) the hand pipeline's and the
         default estimator's kernels, then connect and take sessions."""
         await warm_off_loop(self.settings.estimator)
         self.nc = await connect(self.url, self.id)
-        js = self.nc.jetstream()
+        self.ctl = await connect(self.url, f"{self.id}-ownership")
+        js = self.ctl.jetstream()
         self.kv = await js.create_key_value(KeyValueConfig(bucket=BUCKET, history=1, ttl=STATE_MAX_AGE_S,
                                                            storage=StorageType.MEMORY))
-        await self.nc.subscribe(ASSIGN, queue=WORKERS_QUEUE, cb=self._on_assign)
-        await self.nc.subscribe(worker_subject(self.id), cb=self._on_probe)
-        await self.nc.flush()
+        await self.ctl.subscribe(ASSIGN, queue=WORKERS_QUEUE, cb=self._on_assign)
+        await self.ctl.subscribe(worker_subject(self.id), cb=self._on_probe)
+        await self.ctl.flush()
         self._tasks.append(asyncio.create_task(self._renew_forever()))
 
     async def stop(self, release: bool = True) -> None:
@@ -106,12 +131,14 @@ class Worker:
                     pass
             owned.live.close()
         self.owned.clear()
-        if self.nc is not None:
-            await close(self.nc)
+        for nc in (self.ctl, self.nc):
+            if nc is not None:
+                await close(nc)
 
     # -- ownership -------------------------------------------------------------------------------
     async def _on_probe(self, msg) -> None:
-        await msg.respond(b"")
+        if self.nc.is_connected:                    # cut off from its sessions' traffic: not answering lets the lease decide
+            await msg.respond(b"")
 
     async def _on_assign(self, msg) -> None:
         """Each request answered in a task of its own: a worker taking over a dead worker's sessions claims
@@ -128,17 +155,35 @@ class Worker:
         try:
             async with entry[0]:
                 claimed_before = name in self.owned
-                owner = await self.ensure_owner(name)
+                if claimed_before:
+                    owner = self.id
+                else:
+                    with self._traffic_held():
+                        owner = await self.ensure_owner(name)
         finally:
             entry[1] -= 1
             if entry[1] == 0:
                 del self._assigning[name]           # nobody else waits for it
         await msg.respond(pack({"owner": owner, "by": self.id, "claimed": owner == self.id and not claimed_before}))
 
+    @contextlib.contextmanager
+    def _traffic_held(self):
+        """The sessions' source messages wait while the block runs (module docstring)."""
+        self._checking += 1
+        if self._checking == 1:
+            self._held_until = time.monotonic() + HOLD_MAX_S
+            self._traffic.clear()
+        try:
+            yield
+        finally:
+            self._checking -= 1
+            if not self._checking:
+                self._traffic.set()
+
     async def _gone(self, worker_id: str) -> bool:
         """True when the worker's process is certainly gone (nobody answers its liveness subject)."""
         try:
-            await self.nc.request(worker_subject(worker_id), b"", timeout=PROBE_TIMEOUT_S)
+            await self.ctl.request(worker_subject(worker_id), b"", timeout=PROBE_TIMEOUT_S)
             return False
         except NoRespondersError:
             return True
@@ -180,8 +225,11 @@ class Worker:
             return None
 
     async def _claim(self, name: str, revision: int | None, previous: dict | None) -> bool:
-        """Compare-and-set the lease; subscribed before the lease says so, so a gateway that reads the
-        lease always finds the owner listening."""
+        """Compare-and-set the lease, once subscribed to the session's subjects. The subscriptions go on
+        the data connection and the lease on the other, without waiting for the server to confirm the
+        former (a round trip behind the data connection's backlog, 0.1 s in the measurement above): a
+        source message that still found nobody listening gets "no responders" at its gateway, which asks
+        ``ft.assign`` again, hears this worker named, and sends the message again."""
         owned = OwnedSession(name, self.settings, self.metrics, revision=0)
         owned.subscriptions = [
             await self.nc.subscribe(source_subject(name), cb=functools.partial(self._on_source, owned)),
@@ -189,7 +237,6 @@ class Worker:
         ]
         if previous is not None:
             await self._restore(owned, previous)
-        await self.nc.flush()
         try:
             if revision is None:
                 owned.revision = await self.kv.create(session_token(name), owned.state(self.id))
@@ -231,6 +278,8 @@ class Worker:
             return await self._renew_now(owned)
 
     async def _renew_now(self, owned: OwnedSession) -> bool:
+        if not self.nc.is_connected:                # cut off from the session's traffic: let the lease lapse
+            return True
         try:
             owned.revision = await self.kv.update(session_token(owned.name), owned.state(self.id), last=owned.revision)
             owned.renewed_at = time.monotonic()
@@ -271,6 +320,11 @@ class Worker:
         return {"errors": errors}
 
     async def _on_source(self, owned: OwnedSession, msg) -> None:
+        if not self._traffic.is_set() and (left := self._held_until - time.monotonic()) > 0:
+            try:                                    # an ownership check first (module docstring)
+                await asyncio.wait_for(self._traffic.wait(), left)
+            except asyncio.TimeoutError:
+                pass
         raw = unpack(msg.data)["raw"]
         async with owned.lock:
             try:
@@ -293,6 +347,12 @@ class Worker:
             owned.sink.pending.clear()
         if msg.reply:
             await msg.respond(pack(reply))
+        # one message per turn of the loop: a session with a backlog would otherwise handle message after
+        # message (its subscription's next one is taken without a wait) until one yields a frame, and every
+        # round trip of an ownership check waits for such a turn of every session (module docstring); a
+        # session taken over goes on without a turn until its first frame
+        if owned.sink.resume_after is None:
+            await asyncio.sleep(0)
 
     @staticmethod
     async def _switch(owned: OwnedSession, change: dict) -> dict:
