@@ -24,7 +24,7 @@ def pytest_configure(config):
     os.environ["FINGERTRACK_TEST_SENT_DIR"] = config._sent_dir
     os.environ["PYTHONPATH"] = os.pathsep.join([str(SENT_CAPTURE), *filter(None, [os.environ.get("PYTHONPATH")])])
     count = config.getoption("busy")
-    if count:
+    if count and not hasattr(config, "workerinput"):   # with pytest-xdist, once, in the controlling process
         from busy import busy_processes
         config._busy = busy_processes(count)
         pids = config._busy.__enter__()
