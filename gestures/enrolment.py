@@ -17,8 +17,10 @@ chosen on many people; a second or two per gesture is too little to place a thre
 * enter: the default, moved only as far as needed to admit the typical hold (``m`` plus the margin)
   and to reject the negatives (``n`` less the margin), so a wide pinch widens it and a neighbouring
   rest pose tightens it; where ``m`` and ``n`` are closer than two margins, half way between them;
-* stay: the default band moved with the enter threshold, widened if needed so that the whole hold
-  (``p`` plus the margin) stays, and never closer to the negatives than half the margin;
+* stay: the default moved down with a tightened enter threshold; above a widened one, half the default
+  band (moving the whole band with it let a pinch read at 23 mm, widened to enter at 29 mm, stay on at 37 mm
+  through tips parting to a 35 mm near-pinch); widened if needed so that the whole hold (``p`` plus the
+  margin) stays, and never closer to the negatives than half the margin;
 * when the negatives reach into the hold (``n`` on the gesture's side of ``p``) the condition is
   reported not separable and keeps the default.
 
@@ -101,7 +103,7 @@ def _fit_condition(c: Condition, pos: np.ndarray, neg: np.ndarray, base: Gesture
         e = float(np.clip(e0, m + margin, n - margin))
         x = None
         if x0 is not None:
-            x = min(max(x0 + (e - e0), p + margin), n - margin / 2.0)
+            x = min(max(x0 + min(e - e0, 0.0), e + (x0 - e0) / 2.0, p + margin), n - margin / 2.0)
         if e > e0:
             how = "widened to admit the gesture"
         elif e < e0:

@@ -299,3 +299,25 @@ def test_a_small_loose_fist_closing_every_finger_together_gives_no_pinch(transit
     assert [d[0] for d in gestures._intervals(rec["runs"]["default"]["events"], rec["end_s"])] == ["grasp", "pinch"]
     score = gestures.score_trial(rec, "default")
     assert score["grasp"]["tp"] == score["pinch"]["tp"] == 1 and sum(score["false_activations"].values()) == 0
+
+
+def test_a_widened_pinch_threshold_still_ends_the_pinch_when_the_tips_part_to_a_near_pinch():
+    """A person whose held pinch reads 23 mm: enrolment widens the enter threshold (24 -> 29 mm) to admit it;
+    the stay threshold keeps the default band's width only above the widened enter threshold and the hold,
+    so that tips parting to 35 mm straight after the pinch (a near-pinch, meaning nothing) end it as without
+    enrolment; with the stay threshold moved by the whole widening (37 mm) the pinch stayed on through it."""
+    s = Subject(pinch_aperture_m=0.023)
+    steps = enrolment_steps(s, 0.5, np.random.default_rng(0))
+    t = scored_from = steps[-1].end_s
+    for kind, aperture in [("rest", None), ("pinch", None), ("near-pinch", 0.035), ("rest", None), ("pinch", None), ("rest", None)]:
+        steps.append(Step(kind, "pinch" if kind == "pinch" else "none", t, 0.3, 1.0, gesture_pose(s, kind, aperture_m=aperture)))
+        t += 1.3
+    trial = Trial(0, s, tuple(steps), "slow-rotation", scored_from)
+    rec = truth_record(trial)
+    settings, _ = fit_thresholds(gestures._enrolment_samples(trial, rec["frames"]))
+    assert settings.pinch_enter_m > 0.028 and settings.pinch_exit_m < 0.035 < GestureSettings().pinch_exit_m + (
+        settings.pinch_enter_m - GestureSettings().pinch_enter_m)
+    rec["runs"] = {"enrolled": gestures.recognise(rec["frames"], settings)}
+    score = gestures.score_trial(rec, "enrolled")
+    assert score["pinch"]["tp"] == score["pinch"]["intents"] == 2 and sum(score["false_activations"].values()) == 0
+    assert max(score["release_s"]["pinch"]) < gestures.WINDOW_S + 0.05
