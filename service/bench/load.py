@@ -183,7 +183,6 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
     ``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
     ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed).
     The gloves and subscribers run in ``processes`` load-generator processes (``generator_processes``)."""
-    url = urls[0]
     count = processes or generator_processes(hands)
     parts = [list(range(hands))[j::count] for j in range(count)]
     parts = [p for p in parts if p]

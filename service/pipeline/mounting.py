@@ -204,8 +204,7 @@ class HingeAxisFit:
     def reconstruct(self, gyr) -> list[float]:
         """A raw gyro reading (3,) with the angle a clipped run of each axis missed filled in while the
         run lasts and the rest added to the first reading after it (module docstring), the axes'
-        records updated. Call it on every raw
-        reading of the sensor, in order."""
+        records updated. Call it on every raw reading of the sensor, in order."""
         r = self.settings.clip_range_rad_s
         if r <= 0:
             return list(gyr)

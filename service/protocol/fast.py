@@ -111,7 +111,7 @@ def read(data: str | bytes) -> FastImu | FastImuBatch | FastPose | None:
     reads (see the module's text), else ``None`` (the pydantic path then gives the message or error)."""
     try:
         return _DECODER.decode(data)
-    except (msgspec.DecodeError, ValueError):       # msgspec.ValidationError is a DecodeError
-        return None
-    except RecursionError:      # msgspec skips an unknown field's value recursively: a depth bomb
+    # msgspec.ValidationError is a DecodeError; a RecursionError is a depth bomb in an unknown field
+    # (msgspec skips its value recursively)
+    except (msgspec.DecodeError, ValueError, RecursionError):
         return None
