@@ -96,6 +96,86 @@ def test_campaign_messages_cover_every_category():
     assert seen >= (set(rb.JSON_CATEGORIES) | set(rb.MSGPACK_CATEGORIES)) - rare
 
 
+def _imu(t, sid="index.1"):
+    return json.dumps({"type": "imu", "t": t, "id": sid, "gyr": [0, 0, 0], "acc": [0, 0, 9.81]})
+
+
+def _pose(t):
+    return json.dumps({"type": "pose", "t": t, "position": [0, 1, 0], "orientation": [0, 0, 0, 1]})
+
+
+def _error(code, **fields):
+    return [{"type": "error", "code": code, "detail": "", **fields}]
+
+
+def test_time_probes_are_labelled_by_the_session_clock_the_replies_reveal():
+    clock = rb.SessionClock()
+    assert clock.label(_imu(10.0), False) == rb.VALID + "the session's first sample (starts its clock)"
+    clock.update(_imu(10.0), False, "replied", [])
+    assert clock.label(_imu(9.0), False).startswith("back more than the clock step")        # owed a clock_step
+    clock.update(_imu(9.0), False, "replied", _error("clock_step"))
+    # 1 s back from the script's clock again, a moment later: in order for a session the last probe stepped
+    assert clock.label(_imu(9.001), False) == rb.VALID + "after the session's newest sample, within the clock step (in order)"
+    assert clock.label(_imu(10.002), False).startswith("forward more than the clock step")
+    assert clock.label(_imu(8.7), False).startswith(rb.VALID + "at or back less")          # reordered or late
+    # refused as a whole, or a single sample of a sensor the calibration does not place: no clock effect
+    clock.update(_imu(500.0), False, "replied", _error("invalid_message"))
+    clock.update(_imu(500.0, "ring.7"), False, "replied", _error("unknown_sensor"))
+    clock.update(_imu(500.0), False, "closed_by_design", [])
+    assert (clock.newest, clock.disagreements) == (9.0, 0)
+    # a batch's refused samples are left out; its first sample is the probe (MessagePack alike)
+    batch = {"type": "imu_batch", "samples": [{"t": 2.0**47, "id": "thumb.0", "gyr": [0, 0, 0], "acc": [0, 0, 9.8]},
+                                              {"t": 9.01, "id": "thumb.1", "gyr": [0, 0, 0], "acc": [0, 0, 9.8]}]}
+    clock.update(msgpack.packb(batch), True, "replied", _error("invalid_samples", samples=[0]))
+    assert (clock.newest, clock.disagreements) == (9.01, 0)
+    batch["samples"][0]["t"] = 5e-324
+    assert clock.label(msgpack.packb(batch), True).startswith("back more than the clock step")
+    # poses: late at or before the newest pose, in order again once a clock step restarted the optics
+    clock.update(_pose(9.0), False, "replied", [])
+    assert clock.label(_pose(5e-324), False).startswith("a pose at or before")
+    clock.update(_pose(5e-324), False, "replied", _error("time_backwards"))
+    assert clock.pose == 9.0
+    clock.update(_imu(5e-324), False, "replied", _error("clock_step"))
+    assert clock.label(_pose(5e-324), False).startswith(rb.VALID + "a pose after")
+    # the service's notice is the truth: a step the rule did not predict is counted and followed,
+    # a predicted one that did not come is counted
+    clock.update(_imu(0.2), False, "replied", _error("clock_step"))
+    assert (clock.newest, clock.disagreements) == (0.2, 1)
+    clock.update(_imu(5.0), False, "replied", [])
+    assert clock.disagreements == 2
+    with pytest.raises(ValueError):
+        clock.label(json.dumps({"type": "calibration"}), False)
+
+
+def test_the_session_clock_predicts_the_replies_of_a_real_service():
+    """A hand-made sequence of time probes against the service: every probe labelled hostile gets an
+    error reply, and every clock_step notice is one the rule predicted."""
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
+    sequence = [_imu(10.0), _pose(10.0), _imu(10.01), _imu(9.0), _imu(9.001), _imu(-1e9), _imu(-99.9),
+                _imu(10.05), _pose(10.0), _pose(5e-324), _imu(5e-324), _pose(5e-324), _imu(0.3), _imu(0.2),
+                _imu(0.9), _imu(0.0), _imu(0.0, "ring.7")]
+    with ServerThread(settings) as srv:
+        svc = ServiceProcess(srv.url, os.getpid(), SOURCE, VIEWER, ADMIN)
+
+        async def go():
+            attacker = rb.Attacker(svc, "clock", binary=False, reply_timeout_s=60)
+            try:
+                return await attacker.probe(sequence)
+            finally:
+                await attacker.close()
+
+        results = asyncio.run(go())
+    clock, hostile = rb.SessionClock(), 0
+    for payload, (outcome, replies) in zip(sequence, results, strict=True):
+        kind = clock.label(payload, False)
+        clock.update(payload, False, outcome, replies)
+        if not kind.startswith(rb.VALID):
+            hostile += 1
+            assert any(m["type"] == "error" for m in replies), (payload, kind, replies)
+    assert clock.disagreements == 0
+    assert hostile == 8
+
+
 def test_replies_are_attributed_to_the_message_that_caused_them():
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
     with ServerThread(settings) as srv:
@@ -179,6 +259,12 @@ def test_quick_campaign_runs_end_to_end_and_accounts_for_every_message(tmp_path)
     for c in kinds:
         assert int(c["sent"]) == sum(int(c[k]) for k in outcomes), c
     assert sum(int(c["sent"]) for c in kinds) == 240 and {c["valid"] for c in kinds} <= {"True", "False"}
+    assert rb.TIME_PROBE not in {c["kind"] for c in kinds}            # every time probe labelled by the clock
+    unanswered = list(csv.DictReader((out / "fuzz_unanswered.csv").open()))
+    assert all(not u["kind"].startswith(rb.VALID) for u in unanswered)
+    silent = sum(int(c["silent"]) + int(c["other_reply"]) for c in kinds if c["valid"] == "False")
+    assert len(unanswered) == silent
+    assert isinstance(results["fuzz"]["clock_disagreements"], int)
     good = results["fuzz"]["good"]
     assert good and good[0]["produced"] > 0 and good[0]["received"] <= good[0]["produced"]
     assert len(results["extremes"]) == len(rb.QUICK["probes"])

@@ -128,6 +128,13 @@ def _nested(depth: int, r: random.Random) -> str:
 VALID = "valid: "
 """The start of the kind of a message the protocol accepts as it is (by the rules of DESIGN.md and the
 documented ranges, known when it is generated): any reply, or none, is right for it."""
+TIME_PROBE = "time probe"
+"""The kind a time probe is generated with (a sample back in time, or at 5e-324 s): whether the service
+owes it a reply depends on the session's clock, so the fuzz labels it by ``SessionClock.label``."""
+
+
+def _is_unit(q: list[float]) -> bool:
+    return abs(math.sqrt(sum(x * x for x in q)) - 1.0) <= QUATERNION_TOLERANCE
 
 
 def _absurd_calibration(r: random.Random) -> tuple[dict, str]:
@@ -192,7 +199,8 @@ def _extreme(t: float, r: random.Random) -> tuple[dict, str]:
 
 def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> str | bytes | tuple:
     """One hostile message of ``category`` for a JSON connection (``bytes``: a binary frame), or
-    ``(message, kind)`` where the category holds kinds apart (``VALID``: a message the protocol accepts)."""
+    ``(message, kind)`` where the category holds kinds apart (``VALID``: a message the protocol accepts;
+    ``TIME_PROBE``: labelled by the session's clock, ``SessionClock``)."""
     base = _valid(t, r)
     if category == "random_bytes":
         return r.randbytes(r.randrange(1, 300))
@@ -219,8 +227,13 @@ def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> 
             return json.dumps(base)[:-1] + ',"note":' + literal + "}", kind
         path = r.choice(_numeric_paths(base))
         kind = f"{shown} in a field"
-        if literal == "1e-400":       # 0: within every range, but a quaternion with a component 0 is no longer unit
-            kind = "1e-400 (0) in a quaternion" if path[0] == "orientation" else VALID + "1e-400 in a field (0 within the range)"
+        if literal == "1e-400":       # 0: within every range, but a quaternion with a component 0 may no longer be unit
+            if path[0] != "orientation":
+                kind = VALID + "1e-400 in a field (0 within the range)"
+            elif _is_unit(_set(list(base["orientation"]), path[1:], 0.0)):
+                kind = VALID + "1e-400 (0) in a quaternion whose component was near 0 already (still unit within 1e-3)"
+            else:
+                kind = "1e-400 (0) in a quaternion (no longer unit)"
         return _with_literal(base, path, literal), kind
     if category == "wrong_types":
         return json.dumps(_set(base, r.choice(_numeric_paths(base)),
@@ -244,25 +257,14 @@ def _json_message(category: str, t: float, r: random.Random, max_bytes: int) -> 
     if category == "non_unit_quaternion":
         q = [x * r.choice((0.0, 0.5, 2.0, 1e6, 1e-12)) for x in _unit_quat(r)]
         # the components are scaled one by one: by chance the norm may still be 1 within the tolerance
-        unit = abs(math.sqrt(sum(x * x for x in q)) - 1.0) <= QUATERNION_TOLERANCE
         return json.dumps(_set(_pose(t, r), ("orientation",), q)), \
-            (VALID + "a unit quaternion after all (within 1e-3)") if unit else "norm 0 to 2e6"
-    if category == "backwards_time":
+            (VALID + "a unit quaternion after all (within 1e-3)") if _is_unit(q) else "norm 0 to 2e6"
+    if category == "backwards_time":     # in order or not by the session's clock: ``SessionClock.label``
         value = r.choice((t - 1.0, t - 100.0, -1.0, -1e9, 0.0, t))
-        if value == t:
-            kind = VALID + "the current time (not back at all)"
-        elif t - value <= CLOCK_STEP_S:
-            kind = VALID + "back less than the clock step (a reordered sample)"
-        else:
-            kind = "back more than the clock step"
-        return json.dumps(_set(_imu(t, r), ("t",), value)), kind
+        return json.dumps(_set(_imu(t, r), ("t",), value)), TIME_PROBE
     if category == "huge_time":
         value = r.choice((2.0**47, 2.0**47 + 0.0625, 2.0**52, 1e15, 1e300, 5e-324))
-        if value == 5e-324:
-            kind = (VALID + "5e-324 s, back less than the clock step") if t <= CLOCK_STEP_S \
-                else "5e-324 s, back more than the clock step"
-        else:
-            kind = "beyond 1e10 s"
+        kind = TIME_PROBE if value == 5e-324 else "beyond 1e10 s"
         return json.dumps(_set(base, ("samples", 0, "t") if base["type"] == "imu_batch" else ("t",), value)), kind
     if category == "unknown_sensors":
         return json.dumps(_set(_imu(t, r), ("id",), r.choice(("ring.7", "index.0", "thumb.2", "foo", "",
@@ -345,7 +347,8 @@ def hostile_message(seed: int, index: int, binary: bool, max_bytes: int = 1 << 2
     """``(category, kind, payload)`` of fuzz message ``index``: deterministic in ``(seed, index)``, so a
     campaign that restarts a hung service continues with the same messages. ``kind`` says what the
     message is within its category (the category itself where it has one kind); a kind that starts
-    with ``VALID`` is a message the protocol accepts (any reply or none is right for it)."""
+    with ``VALID`` is a message the protocol accepts (any reply or none is right for it); ``TIME_PROBE``
+    is a sample whose time is in order or not by the session's clock, which ``SessionClock`` follows."""
     r = random.Random(seed * 1_000_003 + index)
     cats = MSGPACK_CATEGORIES if binary else JSON_CATEGORIES
     category = r.choices(list(cats), weights=list(cats.values()))[0]
@@ -353,6 +356,100 @@ def hostile_message(seed: int, index: int, binary: bool, max_bytes: int = 1 << 2
     made = (_msgpack_message if binary else _json_message)(category, t, r, max_bytes)
     payload, kind = made if isinstance(made, tuple) else (made, category)
     return category, kind, payload
+
+
+class SessionClock:
+    """An attacked session's clock as the documented rule defines it (DESIGN.md; ``pipeline/hand.py``),
+    followed from the messages sent into the session and the service's replies to them, so that a time
+    probe is labelled by what it is to the service, not by the script's own clock:
+
+    - ``newest``: the newest IMU sample time the session took (``None`` before its first). A sample more
+      than the clock step (``CLOCK_STEP_S``) from it, forward or back, starts a new clock (answered with
+      ``clock_step``): ``newest`` becomes its time and the optics start afresh. A sample within the step
+      and after ``newest`` is in order; one within the step at or before it is reordered (taken in
+      silence) or late (``time_backwards``), which the reorder window decides: either is right.
+    - ``pose``: the newest pose time taken since the clock started; a pose at or before it is late
+      (``time_backwards``), a later one is in order.
+
+    ``update`` takes each message with its replies: a message refused as a whole (any error but the
+    pipeline's drop notices) leaves the clock alone; a batch's refused samples (``invalid_samples``)
+    are left out; a single sample of a sensor the calibration does not place is dropped before its time
+    is looked at. ``disagreements`` counts the messages whose ``clock_step`` notice (or its absence)
+    differs from what the rule predicts: the measure of how well this clock follows the service's."""
+
+    PIPELINE_CODES = frozenset(("clock_step", "time_backwards", "duplicate", "unknown_sensor", "invalid_samples"))
+
+    def __init__(self) -> None:
+        self.newest: float | None = None
+        self.pose: float | None = None
+        self.disagreements = 0
+
+    @staticmethod
+    def _decoded(payload, binary: bool):
+        try:
+            if binary:
+                return msgpack.unpackb(payload) if isinstance(payload, bytes) else None
+            return json.loads(payload) if isinstance(payload, str) else None
+        except Exception:                            # anything undecodable is refused: no clock effect
+            return None
+
+    def label(self, payload, binary: bool) -> str:
+        """The kind of a time probe (an ``imu``, a ``pose``, or an ``imu_batch`` whose first sample is the
+        probe) before the session takes it: hostile (``VALID`` not prefixed) when the rule owes it a reply."""
+        msg = self._decoded(payload, binary)
+        kind = msg.get("type") if isinstance(msg, dict) else None
+        if kind == "pose":
+            t = msg["t"]
+            if self.pose is not None and t <= self.pose:
+                return "a pose at or before the session's newest pose (late: answered)"
+            return VALID + "a pose after the session's newest pose since its clock started (in order)"
+        if kind not in ("imu", "imu_batch"):
+            raise ValueError(f"a time probe is an imu, imu_batch or pose message, got {kind!r}")
+        t = msg["samples"][0]["t"] if kind == "imu_batch" else msg["t"]
+        if self.newest is None:
+            return VALID + "the session's first sample (starts its clock)"
+        if abs(t - self.newest) > CLOCK_STEP_S:
+            way = "forward" if t > self.newest else "back"
+            return f"{way} more than the clock step from the session's newest sample (a new clock: answered)"
+        if t > self.newest:
+            return VALID + "after the session's newest sample, within the clock step (in order)"
+        return VALID + "at or back less than the clock step from the session's newest sample (reordered, or late)"
+
+    def update(self, payload, binary: bool, outcome: str, replies: list[dict]) -> None:
+        """The session took (or refused) this message, answered with ``replies``."""
+        if outcome != "replied":                     # a close or a stall: not known to be taken
+            return
+        msg = self._decoded(payload, binary)
+        if not isinstance(msg, dict):
+            return
+        errors = [m for m in replies if m.get("type") == "error"]
+        codes = {m.get("code") for m in errors}
+        if codes - self.PIPELINE_CODES:
+            return                                   # refused as a whole
+        kind = msg.get("type")
+        if kind == "pose":
+            if "time_backwards" not in codes and (self.pose is None or msg["t"] > self.pose):
+                self.pose = msg["t"]
+            return
+        if kind == "imu":
+            samples = [] if "unknown_sensor" in codes else [msg]
+        elif kind == "imu_batch":
+            refused = {i for m in errors if m.get("code") == "invalid_samples" for i in m.get("samples", ())}
+            samples = [x for i, x in enumerate(msg["samples"]) if i not in refused]
+        else:
+            return
+        predicted = False
+        for sample in samples:
+            t = sample["t"]
+            if self.newest is not None and abs(t - self.newest) > CLOCK_STEP_S:
+                predicted, self.newest, self.pose = True, t, None
+            elif self.newest is None or t > self.newest:
+                self.newest = t
+        stepped = "clock_step" in codes
+        if stepped != predicted:
+            self.disagreements += 1
+            if stepped and samples:                  # the service's clock is the truth: follow it
+                self.newest, self.pose = samples[-1]["t"], None
 
 
 # -- a lockstep attacker ---------------------------------------------------------------------------
@@ -643,8 +740,10 @@ async def _recovery(svc: ServiceProcess, session: str, seconds: float, messages:
 
 async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int], workers: int, seed: int,
                      stats: dict, kind_stats: dict, good_speed: float, reply_timeout_s: float, deadline: float, recovery: dict,
-                     recovery_seconds: float, recovery_msgs: list, batch: int) -> dict:
-    """Fuzz until every worker reached its limit, the deadline passed, or the service went down."""
+                     recovery_seconds: float, recovery_msgs: list, batch: int, tracked: dict) -> dict:
+    """Fuzz until every worker reached its limit, the deadline passed, or the service went down. Each
+    attacked session's clock is followed (``SessionClock``) to label its time probes; ``tracked`` gets
+    the clock's disagreements with the service and every hostile message answered without an error."""
     good = LoopingGlove(svc, "good", good_speed, seed=seed)
     good_task = asyncio.create_task(good.run())
     down: list[str] = []
@@ -654,6 +753,7 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
     async def worker(k: int):
         binary = k == workers - 1
         attacker = Attacker(svc, f"fuzz-{k}", binary, reply_timeout_s)
+        clock = SessionClock()                     # a fresh service: a fresh session
         try:
             while positions[k] < limits[k] and not down and time.monotonic() < deadline:
                 todo = range(positions[k], min(limits[k], positions[k] + batch))
@@ -663,20 +763,33 @@ async def _fuzz_life(svc: ServiceProcess, positions: list[int], limits: list[int
                 except ServiceDown as err:
                     if not down:                   # the first to notice owns a message of its batch
                         down.append(err.kind)
+                        kind = clock.label(payloads[0], binary) if kinds[0] == TIME_PROBE else kinds[0]
                         for st in (stats.setdefault(cats[0], CategoryStats()),
-                                   kind_stats.setdefault((cats[0], kinds[0]), CategoryStats())):
+                                   kind_stats.setdefault((cats[0], kind), CategoryStats())):
                             st.sent += 1
                             st.hangs += err.kind == "hang"
                             st.crashes += err.kind == "crash"
                         positions[k] += 1
                     return
-                for category, kind, (outcome, replies) in zip(cats, kinds, results):
+                for j, category, kind, payload, (outcome, replies) in zip(todo, cats, kinds, payloads, results):
                     positions[k] += 1
+                    if kind == TIME_PROBE:         # labelled before the session takes it, by its replies so far
+                        kind = clock.label(payload, binary)
+                    before = (clock.newest, clock.pose)
+                    clock.update(payload, binary, outcome, replies)
                     for st in (stats.setdefault(category, CategoryStats()),
                                kind_stats.setdefault((category, kind), CategoryStats())):
                         st.count(outcome, replies)
+                    if outcome == "replied" and not kind.startswith(VALID) and \
+                            not any(m.get("type") == "error" for m in replies) and len(tracked["unanswered"]) < 1000:
+                        shown = payload if isinstance(payload, str) else repr(payload)
+                        tracked["unanswered"].append({
+                            "session": attacker.session, "index": j * workers + k, "category": category, "kind": kind,
+                            "replies": json.dumps(replies)[:200], "clock_newest": before[0], "clock_pose": before[1],
+                            "message": shown[:300]})
         finally:
             await attacker.close()
+            tracked["clock_disagreements"] += clock.disagreements
         if positions[k] >= limits[k] and not down:
             # right after this session's last bad message: a fresh glove, does it stream again?
             # its clock carries on from the fuzz's (message i is at 1 ms x i), half a second later
@@ -781,6 +894,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
     recovery_msgs = source_messages(SimConfig(motion="sequence", noise="white", seed=seed + 7))
     machine = {"least_mem_available_mib": None, "highest_load_1min": None}
     start_failure = None
+    tracked = {"unanswered": [], "clock_disagreements": 0}
     while True:
         log = logs / f"fuzz-{len(lives)}.log"
         with contextlib.ExitStack() as stack:
@@ -792,7 +906,7 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
                 break
             rss0, fd0 = svc.rss_kib(), svc.fds()
             life = asyncio.run(_fuzz_life(svc, positions, per, workers, seed, stats, kind_stats, good_speed, reply_timeout_s,
-                                          deadline, recovery, recovery_seconds, recovery_msgs, batch))
+                                          deadline, recovery, recovery_seconds, recovery_msgs, batch, tracked))
             down = None
             if life["down"] is None:
                 rss.append((rss0, svc.rss_kib()))
@@ -812,13 +926,19 @@ def run_fuzz(out: Path, messages: int, seed: int, workers: int = 3, good_speed: 
         if restarts > MAX_RESTARTS:
             break
     total = sum(s.sent for s in stats.values())
+    with open(out / "fuzz_unanswered.csv", "w", newline="") as fh:      # hostile, taken without an error reply
+        cols = ["session", "index", "category", "kind", "replies", "clock_newest", "clock_pose", "message"]
+        w = csv.DictWriter(fh, cols)
+        w.writeheader()
+        w.writerows(tracked["unanswered"])
     return {"sent": total, "requested": messages, "wall_s": time.perf_counter() - t_start, "stats": stats,
             "kind_stats": kind_stats,
             "stalls": sum(s.stalls for s in stats.values()),
             "hangs": sum(s.hangs for s in stats.values()), "crashes": sum(s.crashes for s in stats.values()),
             "service_restarts": restarts, "tracebacks": sum(x["tracebacks"] for x in lives),
             "good": goods, "recovery": recovery, "rss_kib": rss, "fds": fds,
-            "stopped_early": total < messages, "lives": lives, "machine": machine, "start_failure": start_failure}
+            "stopped_early": total < messages, "lives": lives, "machine": machine, "start_failure": start_failure,
+            "clock_disagreements": tracked["clock_disagreements"], "unanswered": tracked["unanswered"]}
 
 
 # -- part 2: schema-valid extremes injected into a live stream -------------------------------------
@@ -1419,7 +1539,7 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
                         s.closed_by_design, s.closed_abnormally, s.stalls, s.hangs, s.crashes,
                         " ".join(f"{c}={n}" for c, n in s.codes.most_common())])
     (out / "results.json").write_text(json.dumps({
-        "parameters": p, "wall_s": walls, "fuzz": {k: v for k, v in fuzz.items() if k not in ("stats", "kind_stats")},
+        "parameters": p, "wall_s": walls, "fuzz": {k: v for k, v in fuzz.items() if k not in ("stats", "kind_stats", "unanswered")},
         "fuzz_categories": {k: vars(v) | {"codes": dict(v.codes)} for k, v in st.items()},
         "fuzz_kinds": {f"{c}: {k}": vars(v) | {"codes": dict(v.codes)} for (c, k), v in kinds.items()},
         "extremes": extremes, "never_readers": never, "storm": storm, "kill9": kills,
@@ -1446,7 +1566,11 @@ def _write(out, p, fuzz, extremes, never, storm, kills, soak, walls) -> str:
               "number within its range such as 5e-324 m, a sample reordered within the clock step, a hello): any "
               f"reply or none is right for it. Valid: {sum(s.sent for s in valid)} messages, "
               f"{sum(s.silent for s in valid)} of them accepted without a reply; hostile: {hostile_sent}, "
-              f"{hostile_silent} accepted without a reply.", "",
+              f"{hostile_silent} accepted without a reply (each in `fuzz_unanswered.csv`, the first 1,000). A time "
+              "probe is labelled by the attacked session's clock as the documented rule defines it, followed from "
+              "the messages sent and the replies (a step beyond 0.5 s from the newest IMU time starts a new clock, "
+              f"answered with `clock_step`); messages whose `clock_step` notice differed from that rule's "
+              f"prediction: {fuzz['clock_disagreements']}.", "",
               "| category | kind | sent | error reply | other reply | silent | closed by design | most frequent codes |",
               "|---|---|---|---|---|---|---|---|"]
     for (name, kind), s in sorted(kinds.items(), key=lambda x: (x[0][1].startswith(VALID), x[0])):
