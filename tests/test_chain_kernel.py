@@ -1,6 +1,6 @@
 """The compiled ``chain`` kernel (``estimators/chain_kernel.py``) equals its numpy reference
 (``implementation="reference"``) to 1e-9: on random states and inputs (every branch: saturated gyro
-and accelerometer, untracked hand, hand jerk, batch rows, every finger shape), for a whole hand in one
+and accelerometer, untracked hand, the optical fit's lag error, batch rows, every finger shape), for a whole hand in one
 call (``ChainHand``: five fingers, one of them on a single sensor, each with its own step), and on a realistic
 simulated recording through the hand pipeline with a saturated sample, a dropped sample, a sensor
 falling silent, an optical loss and a reference pose."""
@@ -45,7 +45,7 @@ def test_kernel_step_equals_the_reference_on_random_inputs(finger, batch, extra)
     geom = default_calibration("right").finger(finger)
     if extra:           # a sensor silent: one sensor left, closed by a second coupling
         geom = replace(geom, sensors=geom.sensors[1:])
-    settings = dict(hand_jerk_time_s=0.01, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
+    settings = dict(optical_fit_lag_s=0.07, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
     compiled = Chain(geom, ChainSettings(**settings), batch_shape=batch, extra_couplings=extra)
     reference = Chain(geom, ChainSettings(**settings, implementation="reference"), batch_shape=batch,
                       extra_couplings=extra)
@@ -73,7 +73,7 @@ def test_kernel_step_equals_the_reference_on_random_inputs(finger, batch, extra)
 
 def test_one_call_for_the_hand_equals_the_reference_finger_by_finger():
     rng = np.random.default_rng(11)
-    settings = dict(hand_jerk_time_s=0.01, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
+    settings = dict(optical_fit_lag_s=0.07, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
     calib = default_calibration("right")
     pairs = []
     for name, geom in calib.fingers.items():

@@ -87,7 +87,8 @@ are constant but for a small random walk, and enter only the measurement):
 ``Q = diag(σ_ω² dt, σ_bg² dt, σ_ba² dt I3)``.
 Measurement: ``f = (I + G) v + b_a``, ``v = R_x(θ)ᵀ u`` with ``u`` the reference force of the chain
 model (``observations.reference_force``); ``∂f/∂θ = (I + G) [0, -sin θ u_y + cos θ u_z, -cos θ u_y - sin θ u_z]``,
-``∂f/∂b_a = I``, ``∂f_i/∂G_ij = v_j``; noise ``σ_a² + (κ |μ̂|)²`` with ``|μ̂|`` the eq. 6 bound.
+``∂f/∂b_a = I``, ``∂f_i/∂G_ij = v_j``; noise ``σ_a² + (κ |μ̂|)²`` with ``|μ̂|`` the eq. 6 bound, plus the
+optical acceleration's predicted error ``e eᵀ`` (below).
 
 Honest accelerometer weight. The accelerometer errors the model does not carry as states (scale
 ±3 %, cross-axis ±2 %, a mounting misalignment of up to 5 deg, ±10 % phalanx lengths in the kinematic
@@ -114,6 +115,31 @@ observe ``θ_1 = φ_0 + φ_1`` and ``θ_2 = φ_0 + φ_1 + φ_2``, two numbers fo
 the orientations (only weakly, through the accelerations the unmeasured proximal phalanx adds in fast
 motion, eq. 2); a flat reference pose does not reveal it either (every joint near 0). It needs a known configuration with a bent PIP (a reference pose other than flat) or a
 sensor on phalanx 0, and is not estimated here.
+
+The optics' acceleration. The hand's linear acceleration ``a`` in the reference force comes from the
+pipeline's optical fit (``pipeline/optical.py``): the second-derivative coefficient of a quadratic
+least-squares fit to the positions of the last ``W`` = 0.15 s of poses, at the newest one. On a path
+with jerk ``j`` that fit returns the acceleration of the window's middle: expanded about the middle
+``m = -W/2``, the cubic part ``(τ - m)³`` is odd about it, so its least-squares projection on the
+quadratics is a line (no second derivative), and what is left is a quadratic whose second derivative
+is ``a(m)``. So ``â(t) ≈ a(t - λ)`` with the lag ``λ = W/2`` (0.061-0.072 s for the 14 poses of a 90
+Hz window, by where the newest pose falls), and the fit is off by ``a(t - λ) - a(t) ≈ -λ j``. On
+tuning trials (seeds 500-503) this lag is nearly all of its error where it matters: from noise-free
+poses 0.11-1.2 m/s² RMS on turning hands and 3.3 m/s² on fast reaches, against the jitter's
+0.25-0.94 m/s². The accelerometers read that error as a tilt. The jerk is not measured, but the
+fit's own change over its last lag tells how far it is off now: ``ā``, the fit's acceleration
+through a first-order filter of time constant ``λ``, lags it by ``λ`` on a ramp, so ``â - ā ≈ λ ĵ``
+(one lag late). Each accelerometer reads that error in its own frame, ``e = (I + G) R_x(θ)ᵀ R_Bᵀ
+R_Mᵀ (â - ā)``, so its noise becomes ``R = σ² I + e eᵀ``: widened along the direction the optics are
+wrong in, not across (``optical_fit_lag_s``, derived, not tuned). The jitter's share (the fit's
+acceleration weights the 14 positions with a norm of about 300 s⁻², so ``300 σ_p`` per axis:
+0.15-0.6 m/s² for the realistic 0.5-2 mm) is left out: it is small against ``σ``
+(``acc_scale_uncertainty`` · g, 2.9 m/s²). On tuning trials 500-519 (12 s, mean joint RMS): with the
+reference pose 2.224 -> 2.161 deg (14 of 20 trials better, mean difference -0.063 ± 0.018), without
+it 3.043 -> 2.998 (13 of 20, -0.044 ± 0.015). Widening all three axes by ``k |â - ā|`` instead
+gained with the reference pose only (k = 1 2.183, k = 2 2.172) and tied without it (k = 2 3.055):
+the accelerometer's other two directions still tell the angle while the hand's acceleration is
+uncertain along one.
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
@@ -167,7 +193,7 @@ class ChainSettings(EstimatorSettings):
     gyro_range_rad_s: float = Field(2000.0 * DEG, gt=0.0, description="gyro full scale (MPU-9250: ±2000 deg/s); a sample at it is saturated, rad/s")
     acc_range_m_s2: float = Field(16.0 * 9.80665, gt=0.0, description="accelerometer full scale (±16 g); a sample at it is saturated, m/s²")
     clipped_rate_std_rad_s: float = Field(200.0 * DEG, ge=0.0, description="the angle's process noise per clipped gyro sample, rad/s: the pipeline adds what a clipped run missed after it (mounting.py), to within 3.2 deg RMS on runs of about ten samples on tuning trials, about 200 deg/s per sample; without that reconstruction the unknown excess rate is up to the full scale (2000 deg/s)")
-    hand_jerk_time_s: float = Field(0.0, ge=0.0, description="added accelerometer std per m/s³ of the optical hand jerk: the optical acceleration is a windowed derivative fit that lags by about this long in fast reaches, s")
+    optical_fit_lag_s: float = Field(0.075, ge=0.0, description="lag of the optical hand acceleration, half the pipeline's fit window (PipelineSettings.pose_window_s, 0.15 s): the accelerometer's noise is widened along the fit's change over this lag, its predicted error ('The optics' acceleration' in the module docstring); 0 turns it off, s")
     untracked_acc_noise_m_s2: float = Field(3.0, gt=0.0, description="accelerometer std while the hand's acceleration is unknown (optics lost), m/s²")
     initial_acc_scale_std: float = Field(0.0, ge=0.0, description="prior std of each diagonal term of the accelerometer's linear map error (MPU-9250 scale ±3 %, uniform: 0.017); 0 (the default) keeps the map at identity (item 4 of the module docstring)")
     initial_acc_axis_std: float = Field(0.0, ge=0.0, description="prior std of each off-diagonal term of the accelerometer's linear map error (cross-axis ±2 % and a mounting of up to 5 deg: 0.031); 0 (the default) keeps them at zero")
@@ -476,17 +502,24 @@ class Chain(FingerEstimator):
             H[..., i, GA_START + 3 * i:GA_START + 3 * i + 3] = v
         mu = self.obs.acceleration_bound(self.closure, rate, rate_change)
         force_norm = np.linalg.norm(force, axis=-1)
-        prev_hand_acc = state.get("hand_acc", hand.acceleration)
-        jerk = np.linalg.norm(hand.acceleration - prev_hand_acc, axis=-1)[..., None] / dt if dt > 0 else 0.0
         sigma = np.sqrt(s.acc_noise_m_s2**2 + (s.kinematic_uncertainty * mu) ** 2 + (s.acc_scale_uncertainty * force_norm) ** 2
-                        + (s.hand_jerk_time_s * jerk) ** 2
                         + (s.untracked_acc_noise_m_s2 if getattr(self, "_hand_untracked", False) else 0.0) ** 2)
+        # the optical fit's predicted lag error (``The optics' acceleration``): its change over one lag,
+        # â - ā, read as the accelerometer reads the hand's acceleration, R = σ² I + e eᵀ
+        smoothed = np.asarray(state.get("hand_acc", hand.acceleration), dtype=float)
+        change = hand.acceleration - smoothed if s.optical_fit_lag_s > 0.0 else np.zeros_like(smoothed)
+        change = np.einsum("ji,...j->...i", self.obs.base, np.einsum("...ji,...j->...i", hand.rotation, change))
+        change = change[..., None, :]
+        e_v = np.stack(np.broadcast_arrays(change[..., 0], c * change[..., 1] + sn * change[..., 2],
+                                           -sn * change[..., 1] + c * change[..., 2]), axis=-1)
+        e = np.einsum("...ij,...j->...i", gmap, e_v)
         # a clipped accelerometer carries no usable direction, nor does any sensor of the finger
         # while one of its gyros is clipped: the chain's kinematic terms take every sensor's rate and
         # rate change, so they are unknown for all of them: no update
         acc_sat = np.any(np.abs(acc) >= s.acc_range_m_s2 * (1.0 - 1e-3), axis=-1) | np.any(gyr_sat, axis=-1, keepdims=True)
         sigma = np.where(acc_sat, 1e6, sigma)
-        R = (sigma**2)[..., None, None] * np.eye(3)
+        e = np.where(acc_sat[..., None], 0.0, e)
+        R = (sigma**2)[..., None, None] * np.eye(3) + e[..., :, None] * e[..., None, :]
         if self._settings_vector[K.ST_GS_LEARN] > 0.5:
             dx, P = kalman.update(P, H, R, y)
         else:
@@ -501,7 +534,10 @@ class Chain(FingerEstimator):
         theta = x[..., TH]
         # "fast" while the accelerometer carries little weight (eq. 6 bound above g/2), else "fused"
         mode = np.where(mu > 0.5 * np.linalg.norm(self.gravity_world), MODE_FAST, MODE_FUSED).astype(np.int8)
-        return {"x": x, "P": P, "rate": rate_meas, "hand_acc": np.array(hand.acceleration, dtype=float)}, theta, mode
+        # ā: the optical acceleration smoothed over the fit's lag (a first-order filter)
+        w_bar = dt / (s.optical_fit_lag_s + dt) if s.optical_fit_lag_s > 0.0 else 1.0
+        smoothed = smoothed + w_bar * (hand.acceleration - smoothed)
+        return {"x": x, "P": P, "rate": rate_meas, "hand_acc": smoothed}, theta, mode
 
 
 class ChainHand:

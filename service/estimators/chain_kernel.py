@@ -7,8 +7,8 @@ finger (and every batch row) by any number of samples without a numpy call:
 
 * state: ``x`` (B, S, 15) = ``[θ, b_g, b_ax, b_ay, b_az, G (9, row-major), s_g]`` per sensor, ``P``
   (B, S, 15, 15), the last
-  measured relative rate ``rate`` (B, S) and the last hand acceleration ``hand_acc`` (B, 3), updated
-  in place;
+  measured relative rate ``rate`` (B, S) and the hand's optical acceleration smoothed over the fit's
+  lag ``hand_acc`` (B, 3; the last one when that setting is 0), updated in place;
 * inputs per sample: ``dt`` (N,), ``gyr``/``acc`` (N, B, S, 3) and the hand as ``BaseMotion.flat``
   (N, B, 18: rotation row-major, acceleration, angular velocity, angular acceleration);
 * the finger's constants (``geometry_vector``) and the settings (``settings_vector``) as vectors.
@@ -42,7 +42,7 @@ HAND_SIZE = 18
 
 # --- settings vector -------------------------------------------------------------------------
 (ST_GYRO_NOISE, ST_GYRO_WALK, ST_ACC_WALK, ST_ACC_NOISE, ST_KINEMATIC, ST_GYRO_SCALE, ST_ACC_SCALE,
- ST_GYRO_RANGE, ST_ACC_RANGE, ST_JERK_TIME, ST_UNTRACKED_NOISE, ST_CAL_WALK, ST_GS_WALK, ST_CLIPPED_STD,
+ ST_GYRO_RANGE, ST_ACC_RANGE, ST_FIT_LAG, ST_UNTRACKED_NOISE, ST_CAL_WALK, ST_GS_WALK, ST_CLIPPED_STD,
  ST_GS_LEARN) = range(15)
 SETTINGS_SIZE = 15
 SATURATED_SIGMA_M_S2 = 1e6
@@ -55,7 +55,7 @@ def settings_vector(s) -> np.ndarray:
     """The ``ChainSettings`` the kernel reads, in the ``ST_*`` order."""
     return np.array([s.gyro_noise_density_rad_s_rthz, s.gyro_bias_walk_rad_s_rts, s.acc_bias_walk_m_s2_rts,
                      s.acc_noise_m_s2, s.kinematic_uncertainty, s.gyro_scale_uncertainty, s.acc_scale_uncertainty,
-                     s.gyro_range_rad_s, s.acc_range_m_s2, s.hand_jerk_time_s, s.untracked_acc_noise_m_s2,
+                     s.gyro_range_rad_s, s.acc_range_m_s2, s.optical_fit_lag_s, s.untracked_acc_noise_m_s2,
                      s.calibration_walk_rts, s.gyro_scale_walk_rts, s.clipped_rate_std_rad_s, 1.0], dtype=float)
     """The last entry (``ST_GS_LEARN``) is 1 where the gyro scale state learns; the estimator sets it."""
 
@@ -85,7 +85,7 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     and ``acc`` (S, 3), ``out_theta`` and ``out_mode`` (S); its joints entries
     ``phalanx_start[f]:phalanx_start[f + 1]`` of ``out_phi`` and ``out_phal``; its constants
     ``geo[geo_start[f]:geo_start[f + 1]]``; its own step ``dts[f]`` (0 right after it starts), last
-    hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 12) and ``untracked[f]``. The
+    smoothed hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 12) and ``untracked[f]``. The
     hand's motion ``hand`` (18) is shared."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
     for f in range(dts.shape[0]):
@@ -132,6 +132,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     clipped_std = st[ST_CLIPPED_STD]
     gyro_clip, acc_clip = gyro_range * SATURATION_MARGIN, acc_range * SATURATION_MARGIN
     untracked_var = (st[ST_UNTRACKED_NOISE] if untracked else 0.0) ** 2
+    fit_lag = st[ST_FIT_LAG]
     two_pi = 2.0 * math.pi
 
     th = np.empty(ns)           # predicted per-sensor angle
@@ -154,6 +155,8 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     vv = np.empty(3)                    # R_x(θ)ᵀ u
     hth = np.empty(3)                   # ∂f/∂θ
     yy = np.empty(3)                    # innovation
+    ee = np.empty(3)                    # (I + G) R_x(θ)ᵀ (the optical fit's lag error): R = r I + e eᵀ
+    ke = np.empty(N_STATE)              # K e
 
     for i in range(dts.shape[0]):
         dt = dts[i]
@@ -173,11 +176,17 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
             lin1 = r01 * la0 + r11 * la1 + r21 * la2
             lin2 = r02 * la0 + r12 * la1 + r22 * la2
             hand_rate = w0 * b00 + w1 * b10 + w2 * b20          # (R_Bᵀ R_Mᵀ ω_M)_x
-            jerk = 0.0
-            if dt > 0:
-                j0, j1, j2 = ha0 - hand_acc[b, 0], ha1 - hand_acc[b, 1], ha2 - hand_acc[b, 2]
-                jerk = math.sqrt(j0 * j0 + j1 * j1 + j2 * j2) / dt
-            jerk_var = (st[ST_JERK_TIME] * jerk) ** 2
+            # the optical fit's predicted lag error (chain.py, "The optics' acceleration"): its change
+            # over one lag, â - ā, in the finger base frame R_Bᵀ R_Mᵀ (â - ā); none with the setting at 0
+            d0, d1, d2 = ha0 - hand_acc[b, 0], ha1 - hand_acc[b, 1], ha2 - hand_acc[b, 2]
+            if fit_lag <= 0.0:
+                d0 = d1 = d2 = 0.0
+            dm0 = r00 * d0 + r10 * d1 + r20 * d2
+            dm1 = r01 * d0 + r11 * d1 + r21 * d2
+            dm2 = r02 * d0 + r12 * d1 + r22 * d2
+            db0 = b00 * dm0 + b10 * dm1 + b20 * dm2
+            db1 = b01 * dm0 + b11 * dm1 + b21 * dm2
+            db2 = b02 * dm0 + b12 * dm1 + b22 * dm2
 
             # predicted angles (trapezoid of the bias-corrected relative rate), then the chain
             finger_sat = False
@@ -295,17 +304,25 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     yy[rr] = pred
                 hth[1] += h1
                 hth[2] += h2
+                dv1, dv2 = c * db1 + s * db2, -s * db1 + c * db2
+                for rr in range(3):
+                    g = GA_START + 3 * rr
+                    ee[rr] = x[b, k, g] * db0 + x[b, k, g + 1] * dv1 + x[b, k, g + 2] * dv2
+                ee[0] += db0
+                ee[1] += dv1
+                ee[2] += dv2
                 yy[0] = f0 - yy[0]
                 yy[1] = f1 - yy[1]
                 yy[2] = f2 - yy[2]
                 mu = geo[o_cf + k] * math.sqrt(dw_max * dw_max + w_max ** 4)     # eq. 6 bound
                 fnorm = math.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
                 sigma = math.sqrt(st[ST_ACC_NOISE] ** 2 + (st[ST_KINEMATIC] * mu) ** 2 + (st[ST_ACC_SCALE] * fnorm) ** 2
-                                  + jerk_var + untracked_var)
+                                  + untracked_var)
                 if acc_sat or finger_sat:
                     # a clipped accelerometer, or a clipped gyro anywhere on the finger (the chain's
                     # kinematic terms take every sensor's rate): no usable direction, no update
                     sigma = SATURATED_SIGMA_M_S2
+                    ee[0] = ee[1] = ee[2] = 0.0
                 r = sigma * sigma
 
                 # update (kalman.update): H rows i: ∂f_i/∂θ at 0, e at 2 + i, v at G_i.
@@ -339,9 +356,15 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     s20 += m2 * q0
                     s21 += m2 * q1
                     s22 += m2 * q2
-                s00 += r
-                s11 += r
-                s22 += r
+                s00 += r + ee[0] * ee[0]
+                s01 += ee[0] * ee[1]
+                s02 += ee[0] * ee[2]
+                s10 += ee[1] * ee[0]
+                s11 += r + ee[1] * ee[1]
+                s12 += ee[1] * ee[2]
+                s20 += ee[2] * ee[0]
+                s21 += ee[2] * ee[1]
+                s22 += r + ee[2] * ee[2]
                 # S⁻¹ by cofactors
                 i00 = s11 * s22 - s12 * s21
                 i01 = s02 * s21 - s01 * s22
@@ -362,7 +385,9 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     # the scale state is held (a finger on a fallback closure would learn its errors);
                     # the Joseph form below stays valid for any gain
                     kg[GS, 0] = kg[GS, 1] = kg[GS, 2] = 0.0
-                # A = (I - K H) P, then A (I - K H)ᵀ + r K Kᵀ = A - (A Hᵀ) Kᵀ + r K Kᵀ
+                for ii in range(N_STATE):
+                    ke[ii] = kg[ii, 0] * ee[0] + kg[ii, 1] * ee[1] + kg[ii, 2] * ee[2]
+                # A = (I - K H) P, then A (I - K H)ᵀ + K R Kᵀ = A - (A Hᵀ) Kᵀ + r K Kᵀ + (K e)(K e)ᵀ
                 for ii in range(N_STATE):
                     k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
                     for jj in range(N_STATE):
@@ -378,7 +403,8 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     c0_, c1_, c2_ = aht[ii, 0], aht[ii, 1], aht[ii, 2]
                     for jj in range(N_STATE):
                         l0, l1, l2 = kg[jj, 0], kg[jj, 1], kg[jj, 2]
-                        p[b, k, ii, jj] = (a[ii, jj] - (c0_ * l0 + c1_ * l1 + c2_ * l2)) + r * (k0 * l0 + k1 * l1 + k2 * l2)
+                        p[b, k, ii, jj] = ((a[ii, jj] - (c0_ * l0 + c1_ * l1 + c2_ * l2)) + r * (k0 * l0 + k1 * l1 + k2 * l2)
+                                           + ke[ii] * ke[jj])
                 x[b, k, 0] = th[k] + (kg[0, 0] * yy[0] + kg[0, 1] * yy[1] + kg[0, 2] * yy[2])
                 for ii in range(1, N_STATE):
                     x[b, k, ii] += kg[ii, 0] * yy[0] + kg[ii, 1] * yy[1] + kg[ii, 2] * yy[2]
@@ -386,7 +412,11 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                 out_theta[i, b, k] = x[b, k, 0]
                 out_mode[i, b, k] = 1 if mu > fast_above else 2
 
-            hand_acc[b, 0], hand_acc[b, 1], hand_acc[b, 2] = ha0, ha1, ha2
+            # ā: the optical acceleration smoothed over the fit's lag (a first-order filter)
+            w_bar = dt / (fit_lag + dt) if fit_lag > 0.0 else 1.0
+            hand_acc[b, 0] += w_bar * (ha0 - hand_acc[b, 0])
+            hand_acc[b, 1] += w_bar * (ha1 - hand_acc[b, 1])
+            hand_acc[b, 2] += w_bar * (ha2 - hand_acc[b, 2])
             # joint angles from the angles on their anatomical branch, and their phalanx angles
             phal = 0.0
             for j in range(nph):
