@@ -27,7 +27,9 @@ deployed, see ``process.py``) and every loop is bounded in count and time:
 - **soak**: one glove in real time with a subscriber; RSS and fd count sampled over time.
 
 Writes ``summary.md`` (checks against the goals), ``results.csv`` (every figure), ``fuzz.csv`` (per
-category), ``extremes.csv``, ``soak.csv`` and the service logs under ``logs/``.
+category), ``fuzz_kinds.csv`` (per kind, valid or hostile), ``fuzz_unanswered.csv`` (each hostile message
+taken without an error reply, with the session's clock before it), ``extremes.csv``, ``soak.csv`` and
+the service logs under ``logs/``.
 """
 from __future__ import annotations
 
