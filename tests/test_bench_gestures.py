@@ -210,6 +210,15 @@ def test_the_frames_cache_is_keyed_by_the_code_that_makes_the_frames(tmp_path):
     assert gestures.frames_fingerprint(copy) != first
 
 
+def test_frames_are_cached_under_the_code_loaded_and_not_when_the_files_changed_during_the_run(tmp_path, monkeypatch):
+    path = tmp_path / "cache" / "trial.pkl"
+    assert gestures.LOADED_FRAMES_FINGERPRINT == gestures.frames_fingerprint()
+    monkeypatch.setattr(gestures, "frames_fingerprint", lambda root=None: "0123456789ab")      # a commit landed
+    assert not gestures._store(path, {"frames": []}) and not path.exists()
+    monkeypatch.undo()
+    assert gestures._store(path, {"frames": [1.0]}) and path.exists()
+
+
 def test_enrolment_keeps_the_defaults_for_a_user_they_already_fit():
     """Holds well inside every default threshold and far from each other: nothing to change; the
     pinch guard's rate limit (2 /s, beyond the curls' range) keeps its value."""

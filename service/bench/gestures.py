@@ -175,6 +175,26 @@ def frames_fingerprint(root: str | Path | None = None) -> str:
     return digest.hexdigest()[:12]
 
 
+LOADED_FRAMES_FINGERPRINT = frames_fingerprint()
+"""``frames_fingerprint`` of the code this process loaded (taken when this module is imported, after its
+imports have loaded the simulator, the pipeline and the estimators): the name a cached trial's frames get.
+Taking it from the files instead when a trial ends would name the frames of the loaded code after a commit
+that landed during the run."""
+
+
+def _store(path: Path, out: dict) -> bool:
+    """Write a trial's frames to the cache at ``path`` unless the files on disk are no longer the code this
+    process loaded (``LOADED_FRAMES_FINGERPRINT``): a module imported later in the run, such as a kernel
+    compiled on first use, would have come from the new files, so the frames may be of a mixture of the two;
+    True if written."""
+    if frames_fingerprint() != LOADED_FRAMES_FINGERPRINT:
+        return False
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as fh:
+        pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
+    return True
+
+
 def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = None, idle: bool = False) -> dict:
     """The expensive part of a trial: the pipeline's frames with the default estimator and with
     ``vector``, the true hand's frames (exact and with error) and the alignment delays. With
@@ -182,7 +202,7 @@ def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = No
     code that made them (``frames_fingerprint``), so the recogniser (which only reads frames) can be
     rescored without rerunning the pipeline, and a changed estimator or simulator is rerun."""
     key = (f"{'idle' if idle else 'trial'}-{seed}-{duration_s:g}s-{NOISE}-{PipelineSettings().estimator}-"
-           f"{frames_fingerprint()}.pkl")
+           f"{LOADED_FRAMES_FINGERPRINT}.pkl")
     if cache_dir is not None and (Path(cache_dir) / key).exists():
         with open(Path(cache_dir) / key, "rb") as fh:
             return pickle.load(fh)
@@ -198,9 +218,7 @@ def trial_frames(seed: int, duration_s: float, cache_dir: str | Path | None = No
     if not idle:
         out["frames"]["vector"] = _pipeline(session, trial, "vector")[0]
     if cache_dir is not None:
-        Path(cache_dir).mkdir(parents=True, exist_ok=True)
-        with open(Path(cache_dir) / key, "wb") as fh:
-            pickle.dump(out, fh, protocol=pickle.HIGHEST_PROTOCOL)
+        _store(Path(cache_dir) / key, out)
     return out
 
 
@@ -533,7 +551,7 @@ def run(out_dir: str | Path, quick: bool = False, workers: int = 2, progress: bo
         records = list(tqdm(pool.map(_job, jobs), total=len(jobs), desc="bench gestures", unit="trial",
                             disable=not progress))
     result = score(records)
-    result["frames_fingerprint"] = frames_fingerprint()
+    result["frames_fingerprint"] = LOADED_FRAMES_FINGERPRINT
     for r in result["variants"].values():
         r.pop("starts")
     (out / "results.json").write_text(json.dumps(result, indent=2, default=str))
