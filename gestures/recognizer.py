@@ -31,7 +31,11 @@ Discrete gestures, at most one at a time, priority grasp > point > pinch > open:
 
 Separate enter and exit thresholds (hysteresis) and dwell times make the events steady: a gesture
 starts once its enter condition has held for ``start_dwell_s`` and ends once its stay condition has
-failed for ``end_dwell_s`` (or a higher-priority gesture starts). Each gesture is one ``GestureRule``
+failed for ``end_dwell_s`` (or a higher-priority gesture starts). A grasp also hands over to a pinch at
+once (``HANDOVER``): it ends, and the pinch starts, when the pinch's enter condition has held
+``start_dwell_s`` while the grasp's stay condition fails, the index's and the other fingers' curl rates are
+both at most ``handover_rate_max`` in size (the hand has settled) and the thumb and index tips are not
+parting (their distance's rate at most ``handover_tips_parting_max_m_s``). Each gesture is one ``GestureRule``
 (``RULES``): thresholded conditions on named quantities, which enrolment (``gestures.enrolment``)
 fits per user. A start's confidence is calibrated (``gestures.confidence``): the precision observed
 on the intent-labelled benchmark for starts of that gesture and raw strength; its end carries the
@@ -61,6 +65,11 @@ RATE_TAU_S = 0.03
 PINCH_LOOKAHEAD_S = 0.15
 """How far ahead the mean curl of middle, ring and little is extrapolated (at its current rate) for the
 pinch guard against a closing fist, s."""
+HANDOVER = ("grasp", "pinch")
+"""A gesture that hands over to another once the hand has settled into it (module docstring): a pinch
+straight after a fist would otherwise wait for the grasp's end dwell and then its own start dwell, one after
+the other, once the fingers have passed the grasp's stay threshold late in their movement. A fist opening
+into rest passes a pinch-like pose too, slowing as it goes; its tips are parting there, a pinch's are not."""
 HISTORY_FRAMES = 6000
 """Frames of features kept for enrolment (``gestures.enrolment``): about 66 s at 90 Hz."""
 
@@ -95,6 +104,15 @@ class GestureSettings(BaseModel):
     pinch_index_curl_max: float = Field(0.9, ge=0.0, le=1.0, description="a pinch starts only while the index curl, "
                                         "extrapolated PINCH_LOOKAHEAD_S ahead at its rate, is at most this (an index "
                                         "closing into a fist sweeps past the thumb)")
+    handover_rate_max: float = Field(2.0, gt=0.0, description="a grasp hands over to a pinch at once (no end dwell, "
+                                     "no second start dwell) when the pinch's enter condition has held its start dwell "
+                                     "while the grasp's stay condition fails and the curl rates of the index and of "
+                                     "middle, ring and little are both at most this in size, 1/s (the hand has settled "
+                                     "into the pinch)")
+    handover_tips_parting_max_m_s: float = Field(0.0, ge=0.0, description="the grasp hands over to a pinch only while "
+                                                 "the thumb-index tip distance grows no faster than this (its rate "
+                                                 "smoothed over RATE_TAU_S), m/s; 0: the tips are not parting (a fist "
+                                                 "opening into rest passes a pinch-like pose with its tips parting)")
     pinch_full_m: float = Field(0.015, gt=0.0, description="pinch strength 1 at this tip distance or closer, m")
     pinch_zero_m: float = Field(0.07, gt=0.0, description="pinch strength 0 from this tip distance on, m")
     start_dwell_s: float = Field(0.02, ge=0.0, le=1.0, description="an enter condition must hold this long, s")
@@ -215,9 +233,11 @@ class GestureRecognizer:
     _candidate_since: float | None = None
     _failing_since: float | None = None
     _confidence: float = 0.0
-    _previous: tuple[float, float, float] | None = None
+    _previous: tuple[float, float, float, float] | None = None
     _rate: float = 0.0
     _index_rate: float = 0.0
+    _tips_rate: float = 0.0
+    _handover_since: float | None = None
     _frame_ray: tuple = (None, None)
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
     """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
@@ -256,7 +276,8 @@ class GestureRecognizer:
             k = dt / (dt + RATE_TAU_S)           # first-order low-pass of the finite difference
             self._rate += k * ((others - self._previous[1]) / dt - self._rate)
             self._index_rate += k * ((x.curl["index"] - self._previous[2]) / dt - self._index_rate)
-        self._previous = (t, others, x.curl["index"])
+            self._tips_rate += k * ((x.pinch_distance_m - self._previous[3]) / dt - self._tips_rate)
+        self._previous = (t, others, x.curl["index"], x.pinch_distance_m)
         x.others_curl_rate, x.index_curl_rate = self._rate, self._index_rate
         self.history.append((t, tuple(x.curl.get(f, 0.0) for f in FINGER_ORDER), x.pinch_distance_m, self._rate,
                              self._index_rate))
@@ -270,16 +291,29 @@ class GestureRecognizer:
                 self._candidate, self._candidate_since = best[0], t
         else:
             self._candidate, self._candidate_since = None, None
-        # end the active gesture: its stay condition failed long enough, or a higher one takes over
+        # end the active gesture: its stay condition failed long enough, or a higher one takes over,
+        # or (a grasp) it hands over to a pinch the hand has settled into
         if self.active is not None:
-            if RULES[self.active].stays(x, s):
+            stays = RULES[self.active].stays(x, s)
+            if stays:
                 self._failing_since = None
             elif self._failing_since is None:
                 self._failing_since = t
+            if self.active == HANDOVER[0] and not stays and RULES[HANDOVER[1]].enters(x, s) \
+                    and abs(self._rate) <= s.handover_rate_max and abs(self._index_rate) <= s.handover_rate_max \
+                    and self._tips_rate <= s.handover_tips_parting_max_m_s:
+                if self._handover_since is None:
+                    self._handover_since = t
+            else:
+                self._handover_since = None
             takeover = higher and self._candidate_since is not None and t - self._candidate_since >= s.start_dwell_s - 1e-9
-            if takeover or (self._failing_since is not None and t - self._failing_since >= s.end_dwell_s - 1e-9):
+            handover = self._handover_since is not None and t - self._handover_since >= s.start_dwell_s - 1e-9
+            if takeover or handover or (self._failing_since is not None and t - self._failing_since >= s.end_dwell_s - 1e-9):
                 events.append(self._event(frame, self.active, "end", self._confidence))
                 self.active, self._failing_since = None, None
+                if handover:           # the pinch's start dwell has already held: it starts on this frame
+                    self._candidate, self._candidate_since = HANDOVER[1], self._handover_since
+                self._handover_since = None
         # start the candidate once it has held long enough
         if self.active is None and self._candidate is not None and self._candidate_since is not None \
                 and t - self._candidate_since >= s.start_dwell_s - 1e-9:

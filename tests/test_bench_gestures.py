@@ -330,3 +330,34 @@ def test_a_widened_pinch_threshold_still_ends_the_pinch_when_the_tips_part_to_a_
     score = gestures.score_trial(rec, "enrolled")
     assert score["pinch"]["tp"] == score["pinch"]["intents"] == 2 and sum(score["false_activations"].values()) == 0
     assert max(score["release_s"]["pinch"]) < gestures.WINDOW_S + 0.05
+
+
+def test_a_grasp_hands_over_to_a_pinch_the_hand_has_settled_into():
+    """A pinch with the other fingers half curled straight after a tight fist: without the handover the grasp's
+    end dwell and then the pinch's start dwell follow one another once the curls pass 0.5 late in the movement;
+    with it the grasp ends and the pinch starts on the frame its enter condition has held the start dwell while
+    the grasp's stay condition failed and the fingers had settled."""
+    s = Subject(pinch_others="half-curled", coupling=1.0, pinch_aperture_m=0.010)
+    trial = scripted(s, ["rest", "grasp", "pinch", "rest", "grasp", "pinch", "rest"], transition_s=0.35)
+    rec = truth_record(trial)
+    rec["runs"] = {"handover": gestures.recognise(rec["frames"]),
+                   "none": gestures.recognise(rec["frames"], GestureSettings(handover_rate_max=1e-6))}
+    events = rec["runs"]["handover"]["events"]
+    for k, (g, kind, t, _, _) in enumerate(events):
+        if (g, kind) == ("pinch", "start"):
+            assert events[k - 1][:3] == ("grasp", "end", t)          # handed over on one frame
+    after, before = gestures.score_trial(rec, "handover"), gestures.score_trial(rec, "none")
+    for s_ in (after, before):
+        assert (s_["grasp"]["tp"], s_["pinch"]["tp"]) == (2, 2) and sum(s_["false_activations"].values()) == 0
+    assert max(after["onset_s"]["pinch"]) <= 0.09 < 0.11 <= min(before["onset_s"]["pinch"])
+
+
+def test_a_fist_opening_into_rest_through_a_pinch_like_pose_is_not_handed_over_to_a_pinch():
+    """The small loose fist opening into rest passes the pinch distance with every finger slowing below the
+    handover's rate limit; its tips are parting, which keeps the grasp from handing over to a pinch."""
+    trial = scripted(LOOSE_FIST_SUBJECT, ["rest", "grasp", "rest", "pinch", "rest"], transition_s=0.45)
+    rec = truth_record(trial)
+    for settings, shown in ((GestureSettings(), ["grasp", "pinch"]),
+                            (GestureSettings(handover_tips_parting_max_m_s=1.0), ["grasp", "pinch", "pinch"])):
+        events = gestures.recognise(rec["frames"], settings)["events"]
+        assert [d[0] for d in gestures._intervals(events, rec["end_s"])] == shown
