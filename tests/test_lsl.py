@@ -188,7 +188,7 @@ def test_estimated_lsl_times_follow_the_least_delayed_frame(server):
     """The default mapping, for a source whose clock the bridge does not know: here the source stamps
     with the LSL clock, so each frame's true LSL time is its t. An estimated time is never before it
     (delays are not negative), never after the frame was in the inlet, and lags it by the smallest
-    delay seen so far, which only shrinks over the run; the frames' own spacing is kept."""
+    delay seen so far, which only shrinks over the run."""
     got = _bridged_session(server, "lsl-e", "estimate", paced=True)
     frames, stamps, held_at = got["frames"], got["stamps"], got["held_at"]
     assert len(frames) > 150 and len(got["samples"]) == len(frames)
@@ -196,8 +196,8 @@ def test_estimated_lsl_times_follow_the_least_delayed_frame(server):
     lag = stamps - t
     assert np.all(lag >= -1e-6) and np.all(stamps <= held_at + 1e-6)
     assert np.all(np.diff(lag) <= 1e-6) and lag[-1] < lag[0] + 1e-6
-    spacing_kept = np.isclose(np.diff(stamps), np.diff(t), rtol=0, atol=1e-6)
-    assert spacing_kept.mean() > 0.5                 # steps only where a less-delayed frame came
+    # where the lag steps is timing's to decide (a backlog draining after a stall of a busy machine makes
+    # every frame of it a less-delayed one): the rule itself is tested with given arrivals above
     assert "minimum-delay" in got["info"].desc().child("clock").child_value("mapping")
     # an event gets its frame's time: the frame's t moved by the frame's lag
     lag_at = dict(zip(t.tolist(), lag.tolist()))
