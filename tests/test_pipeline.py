@@ -280,3 +280,52 @@ def test_a_clock_step_is_told_to_the_message_that_made_it():
     assert dropped == Dropped(clock_step=1) and hand.counters.clock_steps == 2
     assert drop_replies(batch, dropped)[0][0] == "clock_step"
     assert not hand.accept(imu(20.0, "middle.1"))
+
+
+def test_a_batch_is_taken_in_as_its_samples_one_message_each():
+    """``imu_batch`` takes a sample of the time just taken in without checking that time again: the
+    same pending ticks, drops and frames as the same samples sent one ``imu`` message each, with a
+    duplicate, an unknown sensor, a late sample and the pending table overflowing inside a batch."""
+    def sample(t, sid, k=0.0):
+        return {"t": t, "id": sid, "gyr": [0.1 + k, -0.2, 0.3], "acc": [0.0, 0.5 + k, 9.8]}
+
+    ids = ["index.1", "index.2", "middle.1"]
+    samples = [sample(1.0 + 0.005 * i, s, 0.01 * i) for i in range(12) for s in ids]
+    samples.insert(4, sample(1.005, "index.2", 9.0))               # a duplicate of the tick just begun
+    samples.insert(7, sample(1.01, "index.0"))                       # a sensor the calibration does not place
+    samples += [sample(0.99, "index.1"), sample(0.99, "index.2")]    # older than every pending tick: pushed out
+    settings = PipelineSettings(max_pending_ticks=8)
+    batched, single = HandSession(settings=settings), HandSession(settings=settings)
+    dropped = batched.accept(parse_message({"type": "imu_batch", "samples": samples}))
+    singles = [single.accept(parse_message({"type": "imu", **s})) for s in samples]
+    assert dropped == Dropped(duplicate=1, unknown_sensor=1, overflow=4 * 3 + 2)
+    assert [sum(getattr(d, r) for d in singles) for r in ("duplicate", "unknown_sensor", "overflow")] == [1, 1, 14]
+    assert batched._pending == single._pending and len(batched._pending) == 8
+    assert batched._newest_imu_t == single._newest_imu_t == max(s["t"] for s in samples)
+
+    # a whole recording, each tick in one batch, against one message per sample (a late sample in a batch too)
+    msgs = list(simulate(SimConfig(motion="pinch", noise="both", seed=4, duration_s=2.0)).messages(include_truth=False))
+    grouped, batch = [], []
+    for m in msgs:
+        if m["type"] == "imu" and (not batch or batch[-1]["t"] == m["t"]):
+            batch.append({k: m[k] for k in ("t", "id", "gyr", "acc")})
+            continue
+        if batch:
+            grouped.append({"type": "imu_batch", "samples": batch})
+            batch = []
+        if m["type"] == "imu":
+            batch.append({k: m[k] for k in ("t", "id", "gyr", "acc")})
+        else:
+            grouped.append(m)
+    if batch:
+        grouped.append({"type": "imu_batch", "samples": batch})
+    late = next(i for i, m in enumerate(grouped) if m["type"] == "imu_batch" and m["samples"][0]["t"] > 1.0)
+    earlier = next(m for m in grouped[late - 40::-1] if m["type"] == "imu_batch")
+    grouped[late]["samples"].insert(1, dict(earlier["samples"][0]))
+    ungrouped = [x for m in grouped
+                 for x in ([{"type": "imu", **s} for s in m["samples"]] if m["type"] == "imu_batch" else [m])]
+    a, b = TrackedHand(), TrackedHand()
+    out_a = [o for m in grouped for o in a.handle(parse_message(m))]
+    out_b = [o for m in ungrouped for o in b.handle(parse_message(m))]
+    assert len(_frames(out_a)) > 100 and out_a == out_b
+    assert a.counters == b.counters and a.counters.late == 1

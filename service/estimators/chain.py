@@ -154,6 +154,7 @@ A change to the filter goes into both.
 """
 from __future__ import annotations
 
+from operator import is_ as _is
 from typing import Literal
 
 import numpy as np
@@ -551,8 +552,8 @@ class ChainHand:
     ``known_configuration``, a rebuild) is stacked again before the call."""
 
     def __init__(self):
-        self._members: list[tuple[Chain, dict]] = []
-        self._sizes: tuple[np.ndarray, np.ndarray] | None = None
+        self._estimators: list[Chain] = []
+        self._states: list[dict] = []
 
     @staticmethod
     def takes(estimator, t: float) -> bool:
@@ -577,33 +578,36 @@ class ChainHand:
         self._geo = np.ascontiguousarray(np.concatenate(geo), dtype=float)
         self._geo_start = np.concatenate([[0], np.cumsum([len(g) for g in geo])]).astype(np.int64)
         self._sensor_start, self._phalanx_start = sensor_start, phalanx_start
+        self._starts = phalanx_start.tolist(), sensor_start.tolist()       # as ``advance`` returns them
         self._theta = np.empty(int(sensor_start[-1]))
         self._phal = np.empty(int(phalanx_start[-1]))
-        self._members = []
+        self._mode = np.empty(int(sensor_start[-1]), dtype=np.int8)
         for f, e in enumerate(estimators):
             s0, s1 = sensor_start[f], sensor_start[f + 1]
             e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
-            self._members.append((e, e._state))
+        self._estimators = list(estimators)
+        self._states = [e._state for e in estimators]
 
     def _stacked(self, estimators: list[Chain]) -> bool:
-        members = self._members
-        return len(members) == len(estimators) and all(
-            e is m and e._state is s for e, (m, s) in zip(estimators, members))
+        # the same estimators (a list compares its items by identity first; ``Chain`` has no ``__eq__``),
+        # each still holding the state stacked here
+        return estimators == self._estimators and all(map(_is, [e._state for e in estimators], self._states))
 
     def advance(self, t: float, estimators: list[Chain], gyr: np.ndarray, acc: np.ndarray, hand) -> tuple:
         """Every estimator (each ``takes`` it) one sample further to ``t``: ``gyr`` and ``acc`` (S, 3) are
         their sensors' samples, finger after finger in each one's sensor order. Returns the joint
         angles of all of them (one flat array, finger after finger), the mode codes (one list, sensor
-        after sensor) and the finger boundaries in both (``phalanx_start``, ``sensor_start``)."""
+        after sensor) and the finger boundaries in both (``phalanx_start``, ``sensor_start``: the same two lists
+        while the same fingers are stacked; never to be modified)."""
         if not self._stacked(estimators):
             self._stack(estimators, hand.acceleration)
         dts = np.array([t - e._t_last for e in estimators])
         untracked = np.array([e._hand_untracked for e in estimators])
         phi = np.empty(self._phal.shape[0])
-        mode = np.empty(self._theta.shape[0], dtype=np.int8)
+        mode = self._mode                   # read out below, before the next call writes it again
         K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
                    np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
                    self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode)
         for e in estimators:
             e._t_last = t
-        return phi, mode.tolist(), self._phalanx_start.tolist(), self._sensor_start.tolist()
+        return phi, mode.tolist(), *self._starts

@@ -173,12 +173,18 @@ def joint_poses_compiled(calib: HandCalibration, joint_angles: dict[str, np.ndar
     return {n: (positions[k], quats[k]) for k, n in enumerate(JOINT_NAMES)}
 
 
+_kernel: list = [None]
+"""``openxr_kernel.joint_poses`` once ``joint_pose_arrays`` has imported it."""
+
+
 def joint_pose_arrays(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
                       hand_rotation: np.ndarray, hand_position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``joint_poses_compiled`` as two arrays in ``JOINT_NAMES`` order: positions (26, 3) and
     quaternions (26, 4)."""
-    from .openxr_kernel import joint_poses as kernel
-
+    kernel = _kernel[0]
+    if kernel is None:          # imported when first needed (it brings numba), then kept
+        from .openxr_kernel import joint_poses as kernel
+        _kernel[0] = kernel
     phi = np.zeros((len(_FINGER_ORDER), 3))
     for f, name in enumerate(_FINGER_ORDER):
         a = joint_angles[name]

@@ -29,6 +29,7 @@ messages give the same frames, which is what ``fingertrack replay`` relies on.
 from __future__ import annotations
 
 import math
+from itertools import chain as chained, repeat
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from collections.abc import Mapping
@@ -184,6 +185,35 @@ class JointPoses(Mapping):
 
 _JOINT_INDEX = {n: k for k, n in enumerate(JOINT_NAMES)}
 
+_kept_names: dict[int, tuple[HandCalibration, dict[str, tuple[str, ...]]]] = {}
+_kept_constants: dict[tuple[int, int], tuple[HandCalibration, dict, tuple]] = {}
+
+
+def _joint_names(calib: HandCalibration) -> dict[str, tuple[str, ...]]:
+    """Each finger's joint names (``FingerGeometry.joint_names``), kept per calibration object."""
+    hit = _kept_names.get(id(calib))
+    if hit is not None and hit[0] is calib:
+        return hit[1]
+    names = {f: g.joint_names for f, g in calib.fingers.items()}
+    if len(_kept_names) >= 64:
+        _kept_names.clear()
+    _kept_names[id(calib)] = (calib, names)
+    return names
+
+
+def _joint_constants(calib: HandCalibration, tracked: dict[str, bool]) -> tuple:
+    """``(name, radius, tracked)`` of the 26 joints in ``JOINT_NAMES`` order, kept per calibration object and
+    ``tracked`` dict (the pipeline's are shared per combination and never modified)."""
+    key = (id(calib), id(tracked))
+    hit = _kept_constants.get(key)
+    if hit is not None and hit[0] is calib and hit[1] is tracked:
+        return hit[2]
+    out = tuple(zip(JOINT_NAMES, joint_radii_list(calib), [tracked.get(n, True) for n in JOINT_NAMES]))
+    if len(_kept_constants) >= 64:
+        _kept_constants.clear()
+    _kept_constants[key] = (calib, tracked, out)
+    return out
+
 
 @dataclass
 class HandFrame:
@@ -203,9 +233,10 @@ class HandFrame:
     def to_message(self, calib: HandCalibration) -> FrameDict:
         """The protocol's ``frame`` (``protocol.outgoing.Frame``), without the gesture layer's object."""
         fingers: dict[str, FingerAnglesDict] = {}
+        names_of = _joint_names(calib)
         for f, phi in self.joint_angles.items():
-            names = calib.finger(f).joint_names
             # the finger's joint names (mcp, pip, dip; the thumb mcp, ip) are read from the calibration
+            names = names_of.get(f) or calib.finger(f).joint_names
             angles = dict(zip(names, np.asarray(phi, dtype=float).tolist()))
             angles["mode"] = self.modes[f]
             fingers[f] = angles  # type: ignore[assignment]
@@ -213,8 +244,8 @@ class HandFrame:
         if isinstance(self.joints, JointPoses):         # the pipeline's: two ``tolist`` calls for all 26
             positions, quats = self.joints.positions.tolist(), self.joints.quats.tolist()
             joints: dict[str, JointPoseDict] = {
-                n: {"position": p, "orientation": q, "radius": r, "tracked": tracked.get(n, True)}
-                for n, p, q, r in zip(JOINT_NAMES, positions, quats, joint_radii_list(calib))}
+                n: {"position": p, "orientation": q, "radius": r, "tracked": k}
+                for (n, r, k), p, q in zip(_joint_constants(calib, tracked), positions, quats)}
         else:
             radii = joint_radii(calib)
             joints = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
@@ -236,7 +267,7 @@ class HandSession:
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
         self.counters = Counters()
         self._pending: dict[float, dict[str, list[float]]] = {}    # t -> id -> gyr + acc (six numbers)
-        self._last_sample: dict[str, tuple[float, list[float], list[float]]] = {}
+        self._last_sample: dict[str, tuple[float, np.ndarray, int]] = {}   # id -> t, its tick's readings (k, 2, 3), row
         self._processed_t: float | None = None
         self._newest_imu_t: float | None = None
         self._next_frame_t: float | None = None
@@ -439,10 +470,19 @@ class HandSession:
         known = self._known_sensor_ids()
         clock_step_s, max_pending = self.settings.clock_step_s, self.settings.max_pending_ticks
         pending, newest, processed = self._pending, self._newest_imu_t, self._processed_t
+        tick_t, tick = None, None           # the time of the last sample taken in, and its tick
         for sample in samples:
             t, sid = sample.t, sample.id
             if sid not in known:
                 self._drop("unknown_sensor")
+                continue
+            if t == tick_t:
+                # the time of the sample just taken in (a batch's samples share one): it passed the
+                # checks below, which the sample taken in cannot have changed for it
+                if sid in tick:
+                    self._drop("duplicate")
+                else:
+                    tick[sid] = sample.gyr + sample.acc
                 continue
             if newest is not None and abs(t - newest) > clock_step_s:
                 self._clock_step()                  # clears the table (the same object) and both times
@@ -457,11 +497,13 @@ class HandSession:
                 self._drop("duplicate")
                 continue
             tick[sid] = sample.gyr + sample.acc
+            tick_t = t
             if newest is None or t > newest:
                 newest = t
             if len(pending) > max_pending:
                 oldest = min(pending)
                 self._drop("overflow", len(pending.pop(oldest)))
+                tick_t = None               # the oldest may be this sample's own tick
         self._newest_imu_t = newest
 
     def _clock_step(self) -> None:
@@ -514,20 +556,18 @@ class HandSession:
         except (ValueError, np.linalg.LinAlgError):
             hand, tracking, usable = None, False, False
         fits = self._mount_fits
-        last = self._last_sample
+        ids = tuple(tick)
+        # gyro, accelerometer (numpy reads one flat run of numbers faster than a list of lists)
+        raw = np.fromiter(chained.from_iterable(tick.values()), float, 6 * len(ids)).reshape(-1, 2, 3)
         if fits:
             # the tick's raw readings turned by the flexion-axis fits so far, in one call
-            ids = tuple(tick)
             rows = fits.rows(ids)
-            raw = np.array(list(tick.values()), dtype=float).reshape(-1, 2, 3)     # gyro, accelerometer
-            corrected = fits.correct(rows, raw)
-            for sid, (g, a) in zip(ids, corrected.tolist()):
-                last[sid] = (t, g, a)
-            self._tick_ids, self._tick_readings = ids, corrected
+            readings = fits.correct(rows, raw)
         else:
-            for sid, ga in tick.items():
-                last[sid] = (t, ga[:3], ga[3:])
-            self._tick_ids, self._tick_readings = tuple(tick), None
+            readings = raw
+        # each sensor's last sample: its time and its row of the tick's readings (one loop in C)
+        self._last_sample.update(zip(ids, zip(repeat(t), repeat(readings), range(len(ids)))))
+        self._tick_ids, self._tick_readings = ids, readings
         self._processed_t = t
         if not usable:
             # the optical fit failed numerically (poses too far apart for their times): restart the
@@ -619,7 +659,7 @@ class HandSession:
             rb = fs.geom.base_matrix()
             for sp in fs.geom.sensors:
                 if sp.id in fs.active_sensors and sp.id in self._last_sample:
-                    blocks.append(rb @ rot_x(theta[sp.phalanx]) @ sp.mounting_matrix() @ self._last_sample[sp.id][1])
+                    blocks.append(rb @ rot_x(theta[sp.phalanx]) @ sp.mounting_matrix() @ self._last_reading(sp.id)[0])
                     axes.append(rb[:, 0])
         omega_m = np.zeros(3)
         if blocks:
@@ -634,6 +674,11 @@ class HandSession:
         rot = prev.rotation @ Rotation.from_rotvec(omega_m * dt).as_matrix()
         z = np.zeros(3)
         return BaseMotion(rot, prev.position.copy(), z, z.copy(), rot @ omega_m, z.copy())
+
+    def _last_reading(self, sensor_id: str) -> np.ndarray:
+        """A sensor's last readings (2, 3): gyro and accelerometer, turned by its flexion-axis fit as it was."""
+        _, readings, row = self._last_sample[sensor_id]
+        return readings[row]
 
     def _live_sensors(self, geom: FingerGeometry, t: float) -> tuple[str, ...]:
         return tuple(s.id for s in geom.sensors
@@ -653,9 +698,8 @@ class HandSession:
         return True
 
     def _update_finger(self, fs: FingerState, t: float, hand: BaseMotion) -> None:
-        last = self._last_sample
-        gyr = np.array([last[s][1] for s in fs.active_sensors])
-        acc = np.array([last[s][2] for s in fs.active_sensors])
+        readings = np.array([self._last_reading(s) for s in fs.active_sensors])
+        gyr, acc = np.ascontiguousarray(readings[:, 0]), np.ascontiguousarray(readings[:, 1])
         if fs.estimator.started and t <= fs.estimator.last_t:   # cannot happen with increasing ticks; be safe
             return
         try:
@@ -675,14 +719,12 @@ class HandSession:
         layout = self._together_layout(fingers)
         readings = self._tick_readings
         if layout.rows is not None and readings is not None:
-            # every sensor sampled in this tick: its corrected readings, gathered in one step
-            ordered = readings.take(layout.rows, axis=0)
-            gyr, acc = ordered[:, 0], ordered[:, 1]
+            # every sensor sampled in this tick: its corrected readings, each kind gathered in one step
+            flat = readings.reshape(-1, 3)          # gyro and accelerometer rows in turn
+            gyr, acc = flat.take(layout.rows_gyr, axis=0), flat.take(layout.rows_acc, axis=0)
         else:
-            last = self._last_sample
-            samples = [last[s] for s in layout.sensors]
-            gyr = np.array([x[1] for x in samples])
-            acc = np.array([x[2] for x in samples])
+            readings = np.array([self._last_reading(s) for s in layout.sensors])
+            gyr, acc = readings[:, 0], readings[:, 1]
         phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
         finite = math.isfinite(sum(phi.tolist()))
         names = layout.mode_names.get(tuple(modes))
@@ -800,6 +842,13 @@ class _TogetherLayout:
     sensors: list[str]
     rows: np.ndarray | None
     mode_names: dict[tuple, list[str]] = field(default_factory=dict)
+    rows_gyr: np.ndarray | None = field(init=False)
+    rows_acc: np.ndarray | None = field(init=False)
+    """``rows``' gyro and accelerometer rows in the tick's readings seen as (2k, 3)."""
+
+    def __post_init__(self):
+        self.rows_gyr = None if self.rows is None else 2 * self.rows
+        self.rows_acc = None if self.rows is None else 2 * self.rows + 1
 
 
 @lru_cache(maxsize=64)

@@ -69,6 +69,8 @@ def hand_kinematics_acausal(pose_t: np.ndarray, position: np.ndarray, orientatio
 
 
 
+_BASE_MOTION, _new_motion = BaseMotion, object.__new__
+
 _FLAT = np.r_[0:9, 15:24]
 """Where ``BaseMotion.flat`` (rotation, acceleration, angular velocity and acceleration) lies in the
 kernel's output (rotation, position, velocity, acceleration, angular velocity and acceleration)."""
@@ -171,8 +173,12 @@ class OpticalTrack:
                                    float(self.timeout_s), out)
         if status == optical_kernel.NONE:
             return None, False
-        motion = BaseMotion(out[:9].reshape(3, 3), out[9:12], out[12:15], out[15:18], out[18:21], out[21:24])
-        motion.__dict__["flat"] = out[_FLAT]        # ``BaseMotion.flat`` in one step (the kernels read it)
+        # the frozen dataclass's fields set as its ``__init__`` would (one ``object.__setattr__`` call each
+        # there), and ``BaseMotion.flat`` in one step (the kernels read it)
+        motion = _new_motion(_BASE_MOTION)
+        motion.__dict__.update(rotation=out[:9].reshape(3, 3), position=out[9:12], velocity=out[12:15],
+                               acceleration=out[15:18], angular_velocity=out[18:21], angular_acceleration=out[21:24],
+                               flat=out[_FLAT])
         return motion, status == optical_kernel.TRACKING
 
     def at_reference(self, t: float) -> tuple[BaseMotion | None, bool]:
