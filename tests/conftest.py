@@ -1,5 +1,6 @@
 import os
 import shutil
+import signal
 import tempfile
 import threading
 from pathlib import Path
@@ -38,6 +39,27 @@ def pytest_unconfigure(config):
     sent_dir = getattr(config, "_sent_dir", None)
     if sent_dir:
         shutil.rmtree(sent_dir, ignore_errors=True)
+
+
+_HANDLED = tuple(getattr(signal, name) for name in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+@pytest.fixture(autouse=True)
+def signal_handlers_are_left_as_found():
+    """A test that runs service code in the test process's main thread (a hand worker's ``main``, a
+    bus worker, a benchmark's teardown) may change how the process takes SIGINT, SIGTERM or SIGHUP. Left
+    so, every later child process would inherit it: a ``fingertrack serve`` started with SIGINT ignored
+    still stops on Ctrl-C (uvicorn catches it) but exits 0 instead of 130. The handlers are put back
+    after each test, with a warning naming the test that changed them."""
+    before = {sig: signal.getsignal(sig) for sig in _HANDLED}
+    yield
+    for sig, handler in before.items():
+        now = signal.getsignal(sig)
+        if now is not handler:
+            signal.signal(sig, handler)
+            import warnings
+            warnings.warn(f"the test left the {signal.Signals(sig).name} handler changed ({handler!r} -> {now!r}); "
+                          "put back", RuntimeWarning, stacklevel=1)
 
 
 @pytest.fixture

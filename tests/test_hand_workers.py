@@ -196,6 +196,7 @@ def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
     from service.api.server import free_port
 
     port = free_port()
+    inherited = signal.getsignal(signal.SIGINT)      # what the service starts with (SIG_IGN: it exits 0)
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     try:
@@ -209,7 +210,7 @@ def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    assert proc.returncode == 130, output            # the CLI's exit status after Ctrl-C (128 + SIGINT)
+    assert proc.returncode == 130, (inherited, output)   # the CLI's exit status after Ctrl-C (128 + SIGINT)
     assert "Traceback" not in output and "KeyboardInterrupt" not in output, output
     assert "ended with" not in output, output
     for pid in workers:
@@ -271,6 +272,7 @@ def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
     from service.api.server import free_port
 
     port = free_port()
+    inherited = signal.getsignal(signal.SIGINT)      # what the service starts with (SIG_IGN: it exits 0)
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     workers: list[int] = []
