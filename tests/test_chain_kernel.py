@@ -3,7 +3,8 @@
 and accelerometer, untracked hand, the optical fit's lag error, batch rows, every finger shape), for a whole hand in one
 call (``ChainHand``: five fingers, one of them on a single sensor, each with its own step), and on a realistic
 simulated recording through the hand pipeline with a saturated sample, a dropped sample, a sensor
-falling silent, an optical loss and a reference pose."""
+falling silent, an optical loss and a reference pose (without the hand's shared acceleration error, which
+only the one call for a hand has); that shared error against ``ChainHand.advance_reference``."""
 from dataclasses import replace
 
 import numpy as np
@@ -73,7 +74,9 @@ def test_kernel_step_equals_the_reference_on_random_inputs(finger, batch, extra)
 
 def test_one_call_for_the_hand_equals_the_reference_finger_by_finger():
     rng = np.random.default_rng(11)
-    settings = dict(optical_fit_lag_s=0.07, gyro_range_rad_s=30.0, acc_range_m_s2=150.0)
+    # without the hand's shared acceleration error (it couples the fingers; its own test is below)
+    settings = dict(optical_fit_lag_s=0.07, gyro_range_rad_s=30.0, acc_range_m_s2=150.0, hand_acc_error_scale=0.0,
+                    hand_acc_error_floor_m_s2=0.0)
     calib = default_calibration("right")
     pairs = []
     for name, geom in calib.fingers.items():
@@ -130,7 +133,10 @@ def test_kernel_equals_the_reference_through_the_pipeline_on_a_faulty_recording(
     assert any(m["type"] == "reference_pose" for m in messages)
     runs = {}
     for impl in ("compiled", "reference"):
-        session = HandSession("right", PipelineSettings(estimator_params={"implementation": impl}))
+        # the hand's shared acceleration error is ChainHand's (the compiled pipeline's one call per tick),
+        # which the reference pipeline does not take; it has its own reference test above
+        params = {"implementation": impl, "hand_acc_error_scale": 0.0, "hand_acc_error_floor_m_s2": 0.0}
+        session = HandSession("right", PipelineSettings(estimator_params=params))
         frames = [f for m in messages for f in session.handle(parse_message(m)).frames]
         runs[impl] = (frames, session.counters)
     compiled, reference = runs["compiled"][0], runs["reference"][0]
@@ -167,3 +173,53 @@ def test_a_clipped_gyro_stops_the_accelerometer_updates_of_the_whole_finger(impl
     clipped[0, 1] = 2001.0 * np.pi / 180.0          # the first sensor's gyro past ±2000 deg/s
     np.testing.assert_allclose(step(clipped, acc_a), step(clipped, acc_b), rtol=0, atol=1e-8)   # σ = 1e6 m/s²
     assert np.abs(step(gyr, acc_a) - step(gyr, acc_b)).max() > 1e-3
+
+
+def test_the_hands_shared_acceleration_error_equals_its_reference():
+    """``ChainHand`` with the hand's acceleration error ``δ`` as a state every sensor shares: the kernel's
+    sequential joint updates (each sensor's ``[x_k, δ]``, every other sensor moved by its correlation with
+    ``δ``) equal ``advance_reference`` on random states, cross-covariances and inputs, with a clipped gyro,
+    a clipped accelerometer, a finger on a single sensor, a restack and a tick with the optics lost."""
+    rng = np.random.default_rng(12)
+    settings = dict(optical_fit_lag_s=0.07, gyro_range_rad_s=30.0, acc_range_m_s2=150.0, hand_acc_error_scale=0.5,
+                    hand_acc_error_floor_m_s2=0.2)
+    calib = default_calibration("right")
+    runs = {"kernel": [], "reference": []}
+    for name, geom in calib.fingers.items():
+        extra = ()
+        if name == "ring":               # a sensor silent: one sensor left, closed by a second coupling
+            geom, extra = replace(geom, sensors=geom.sensors[1:]), ((0, 1.0),)
+        ests = [Chain(geom, ChainSettings(**settings), extra_couplings=extra) for _ in runs]
+        state, t0 = _random_state(rng, ests[0]), rng.uniform(0.0, 0.01)
+        for est, key in zip(ests, runs):
+            est._state, est._t_last = {k: v.copy() for k, v in state.items()}, t0
+            runs[key].append(est)
+    hands = {key: ChainHand() for key in runs}
+    for key in runs:
+        hands[key]._stack(runs[key], np.zeros(3))
+    n = hands["kernel"]._cx.shape[0]
+    cx, dl = rng.normal(0.0, 0.02, (n, N_STATE, 3)), rng.normal(0.0, 1.0, 3)
+    a = rng.normal(0.0, 0.5, (3, 3))
+    for h in hands.values():
+        h._cx[:], h._dl[:], h._pd[:] = cx, dl, a @ a.T + 0.1 * np.eye(3)
+    for tick, t in enumerate((0.02, 0.025, 0.035, 0.04, 0.05)):
+        if tick == 2:                    # a known configuration replaces one finger's state: stacked again
+            for est in (runs["kernel"][1], runs["reference"][1]):
+                est.known_configuration(np.array([0.3, 0.5, 0.4]), 0.05)
+        for f in range(len(runs["kernel"])):
+            runs["kernel"][f]._hand_untracked = runs["reference"][f]._hand_untracked = tick == 3
+        hand = _random_hand(rng, ())
+        gyr = [rng.normal(0.0, 4.0, (c.n_sensors, 3)) for c in runs["kernel"]]
+        acc = [rng.normal(0.0, 12.0, (c.n_sensors, 3)) for c in runs["kernel"]]
+        gyr[0][0, 1] = 31.0 if tick == 1 else gyr[0][0, 1]       # past the gyro's full scale
+        acc[3][-1, 2] = -160.0 if tick == 4 else acc[3][-1, 2]   # past the accelerometer's
+        hands["kernel"].advance(t, runs["kernel"], np.concatenate(gyr), np.concatenate(acc), hand)
+        hands["reference"].advance_reference(t, runs["reference"], np.concatenate(gyr), np.concatenate(acc), hand)
+        k, r = hands["kernel"], hands["reference"]
+        assert np.abs(k._dl - dl).max() > 1e-3 or tick == 3        # δ moves (it restarts while the optics are lost)
+        for got, want, what in ((k._x, r._x, "x"), (k._rate, r._rate, "rate"), (k._hand_acc, r._hand_acc, "hand_acc"),
+                                (k._dl, r._dl, "delta"), (k._cx, r._cx, "C")):
+            np.testing.assert_allclose(got, want, rtol=0, atol=TOL, err_msg=what)
+        np.testing.assert_allclose(k._p, r._p, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(k._pd, r._pd, rtol=1e-9, atol=1e-15)
+        dl = k._dl.copy()

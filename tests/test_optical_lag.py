@@ -4,6 +4,7 @@ optics' acceleration"): the pipeline's quadratic fit returns the acceleration of
 that error from the fit's own change, and widening the accelerometer along it keeps a still finger on a
 fast-reaching hand nearer its angle."""
 import numpy as np
+import pytest
 
 from service.bench.accuracy import _wrap
 from service.estimators.chain import Chain, ChainSettings
@@ -70,13 +71,16 @@ def test_chain_predicts_the_fit_error_from_the_fits_own_change():
     assert cosine > 0.999                                # along it, opposite in sign: â - ā ≈ λ j, â - a ≈ -λ j
 
 
-def _still_finger_error(lag_s: float):
+def _still_finger_error(lag_s: float, shared: bool = False):
     """Index and middle held at rest on a hand reaching fast (0.35 m in 0.5 s and back), perfect sensors
     and optics (no jitter, no latency: the fit's lag is the optics' only error), through the pipeline:
     their joint errors, degrees, over the reach and the return (0.3-2.3 s)."""
     session = simulate(SimConfig(noise="none", seed=3, hand_motion="fast-reach", fingers=("index", "middle"),
                                  finger_motion=sequence_motion(t_d=0.3, steps=(("rest", 0.3, 5.0),)), duration_s=2.5))
-    hs = HandSession(settings=PipelineSettings(estimator="chain", estimator_params={"optical_fit_lag_s": lag_s}))
+    params = {"optical_fit_lag_s": lag_s}
+    if not shared:          # the widening alone, not the hand's shared acceleration error
+        params.update(hand_acc_error_scale=0.0, hand_acc_error_floor_m_s2=0.0)
+    hs = HandSession(settings=PipelineSettings(estimator="chain", estimator_params=params))
     t, phi = [], []
     for m in session.messages(include_truth=False):
         for frame in hs.handle(parse_message(m)).frames:
@@ -89,8 +93,11 @@ def _still_finger_error(lag_s: float):
     return np.degrees(np.abs(_wrap(phi - truth)))[reach]
 
 
-def test_widening_along_the_fits_error_keeps_a_still_finger_on_a_reaching_hand():
-    without, widened = _still_finger_error(0.0), _still_finger_error(WINDOW_S / 2)
+@pytest.mark.parametrize("shared", [False, True], ids=["widened", "shared-error-state"])
+def test_widening_along_the_fits_error_keeps_a_still_finger_on_a_reaching_hand(shared):
+    """The lag error widened along its direction, or (``shared``) taken as the hand's acceleration error
+    that every sensor's update shares (the default), against neither."""
+    without, widened = _still_finger_error(0.0), _still_finger_error(WINDOW_S / 2, shared)
     rms = lambda e: float(np.sqrt(np.mean(e**2)))        # noqa: E731
     # the lag error's pull on the angles must shrink by a fifth at least, in the RMS and at its worst
     assert rms(widened) < 0.8 * rms(without)

@@ -141,6 +141,31 @@ gained with the reference pose only (k = 1 2.183, k = 2 2.172) and tied without 
 the accelerometer's other two directions still tell the angle while the hand's acceleration is
 uncertain along one.
 
+**The optics' acceleration error as a state every sensor of the hand shares** (the default where the
+fingers run together, ``ChainHand``: the pipeline's one kernel call per tick). The hand is rigid, so
+every finger's accelerometer reads the same error ``δ`` of the optical acceleration (world frame),
+turned into its own frame: ``f = h(x_k) + M_k δ``, ``M_k = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ``. ``δ`` is three
+states of a first-order Gauss-Markov process with the fit's lag as time constant and a std of
+``hand_acc_error_scale`` |â - ā| (0.22) and ``hand_acc_error_floor_m_s2`` (0.05) in quadrature; it
+replaces the widening ``e eᵀ`` there. Sensor after sensor in the tick, each accelerometer updates its
+own state and ``δ`` jointly, and every other sensor of the hand moves by its correlation with ``δ``
+(``C_l = P_{x_l δ}``, kept per sensor), so what one finger learns of ``δ`` corrects the others at once;
+the cross terms between two sensors' own states are dropped, as between separate filters, so another
+sensor's covariance is not reduced by it (that would count the same information twice).
+``chain_kernel._joint_update``, its numpy reference ``ChainHand.advance_reference``. Why ``δ``'s prior
+is far below the fit's predicted error (0.22 of it): ``δ`` is confounded with a common tilt of the
+whole hand's sensors (a turn of every sensor about its hinge axis changes what it reads of gravity as a
+hand acceleration would), which only the gyros and ``δ``'s prior tell apart. With the prior at the
+predicted error itself (scale 1, floor 0.3 m/s²) the fingers locked onto a wrong common tilt on one
+tuning trial (502: every MCP about 10 deg off after a dropout, +2.8 deg mean joint RMS), and the
+first ten lost (500-509: 2.203 -> 2.717 deg with the reference pose); with a time constant of 0.03 s,
+or a widening kept as well, or only the other sensors' angles moved, the same. Tuning trials 500-519
+(12 s, mean joint RMS, against the widening alone): with the reference pose 2.161 -> 2.035 deg (16 of
+20 better, -0.126 ± 0.040), without it 2.998 -> 2.885 (11 of 20, -0.114 ± 0.078); events back within
+1.5x in 1 s 96 -> 95 of 100 in both. A finger advanced alone (a rebuild, a batch, the reference
+implementation) keeps the widening. (A separate filter of ``δ`` fed back to the next tick was tried
+before: it found ``δ`` but the angles did not gain, since it ignored the correlation with them.)
+
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
 on all three phalanges it would be, and is left for later. The hand kinematics are taken as given
@@ -154,6 +179,7 @@ A change to the filter goes into both.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from operator import is_ as _is
 from typing import Literal
 
@@ -195,6 +221,8 @@ class ChainSettings(EstimatorSettings):
     acc_range_m_s2: float = Field(16.0 * 9.80665, gt=0.0, description="accelerometer full scale (±16 g); a sample at it is saturated, m/s²")
     clipped_rate_std_rad_s: float = Field(200.0 * DEG, ge=0.0, description="the angle's process noise per clipped gyro sample, rad/s: the pipeline adds what a clipped run missed after it (mounting.py), to within 3.2 deg RMS on runs of about ten samples on tuning trials, about 200 deg/s per sample; without that reconstruction the unknown excess rate is up to the full scale (2000 deg/s)")
     optical_fit_lag_s: float = Field(0.075, ge=0.0, description="lag of the optical hand acceleration, half the pipeline's fit window (PipelineSettings.pose_window_s, 0.15 s): the accelerometer's noise is widened along the fit's change over this lag, its predicted error ('The optics' acceleration' in the module docstring); 0 turns it off, s")
+    hand_acc_error_scale: float = Field(0.22, ge=0.0, description="the hand's optical acceleration error δ as a state shared by every sensor of the hand (with ChainHand, the pipeline's one call per tick): its std as a fraction of the fit's predicted lag error |â - ā|, time constant optical_fit_lag_s; with this and the floor at 0 the lag error widens each accelerometer's noise instead ('The optics' acceleration' in the module docstring)")
+    hand_acc_error_floor_m_s2: float = Field(0.05, ge=0.0, description="the least std of δ, m/s²")
     untracked_acc_noise_m_s2: float = Field(3.0, gt=0.0, description="accelerometer std while the hand's acceleration is unknown (optics lost), m/s²")
     initial_acc_scale_std: float = Field(0.0, ge=0.0, description="prior std of each diagonal term of the accelerometer's linear map error (MPU-9250 scale ±3 %, uniform: 0.017); 0 (the default) keeps the map at identity (item 4 of the module docstring)")
     initial_acc_axis_std: float = Field(0.0, ge=0.0, description="prior std of each off-diagonal term of the accelerometer's linear map error (cross-axis ±2 % and a mounting of up to 5 deg: 0.031); 0 (the default) keeps them at zero")
@@ -456,9 +484,61 @@ class Chain(FingerEstimator):
     def _step_reference(self, state, dt, gyr, acc, hand):
         """One sample in numpy (the reference the kernel is tested equal to)."""
         s = self.settings
+        x, P, rate_meas, rate, prev_rate, P_pred = self._predict_reference(state, dt, gyr, hand)
+        theta_pred = x[..., TH]
+        force, u, mu, sigma, acc_sat = self._measure_reference(dt, gyr, acc, hand, theta_pred, rate, prev_rate)
+        c, sn = np.cos(theta_pred), np.sin(theta_pred)
+        uy, uz = u[..., 1], u[..., 2]
+        v = np.stack([u[..., 0], c * uy + sn * uz, -sn * uy + c * uz], axis=-1)        # R_x(θ)ᵀ u
+        dv = np.stack([np.zeros_like(uy), -sn * uy + c * uz, -c * uy - sn * uz], axis=-1)
+        gmap = np.eye(3) + x[..., GA].reshape(x.shape[:-1] + (3, 3))
+        predicted = np.einsum("...ij,...j->...i", gmap, v) + x[..., BA]
+        y = force - predicted
+        H = np.zeros(rate.shape + (3, N_STATE))
+        H[..., :, TH] = np.einsum("...ij,...j->...i", gmap, dv)
+        H[..., :, BA] = np.eye(3)
+        for i in range(3):
+            H[..., i, GA_START + 3 * i:GA_START + 3 * i + 3] = v
+        # the optical fit's predicted lag error (``The optics' acceleration``): its change over one lag,
+        # â - ā, read as the accelerometer reads the hand's acceleration, R = σ² I + e eᵀ
+        smoothed = np.asarray(state.get("hand_acc", hand.acceleration), dtype=float)
+        change = hand.acceleration - smoothed if s.optical_fit_lag_s > 0.0 else np.zeros_like(smoothed)
+        change = np.einsum("ji,...j->...i", self.obs.base, np.einsum("...ji,...j->...i", hand.rotation, change))
+        change = change[..., None, :]
+        e_v = np.stack(np.broadcast_arrays(change[..., 0], c * change[..., 1] + sn * change[..., 2],
+                                           -sn * change[..., 1] + c * change[..., 2]), axis=-1)
+        e = np.einsum("...ij,...j->...i", gmap, e_v)
+        e = np.where(acc_sat[..., None], 0.0, e)
+        R = (sigma**2)[..., None, None] * np.eye(3) + e[..., :, None] * e[..., None, :]
+        P = P_pred
+        if self._settings_vector[K.ST_GS_LEARN] > 0.5:
+            dx, P = kalman.update(P, H, R, y)
+        else:
+            # the scale state held: its gain row zeroed, the Joseph form (valid for any gain)
+            pht = P @ np.swapaxes(H, -1, -2)
+            gain = pht @ np.linalg.inv(H @ pht + R)
+            gain[..., GS, :] = 0.0
+            dx = np.einsum("...ij,...j->...i", gain, y)
+            i_kh = np.eye(N_STATE) - gain @ H
+            P = i_kh @ P @ np.swapaxes(i_kh, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
+        x = x + dx
+        theta = x[..., TH]
+        # "fast" while the accelerometer carries little weight (eq. 6 bound above g/2), else "fused"
+        mode = np.where(mu > 0.5 * np.linalg.norm(self.gravity_world), MODE_FAST, MODE_FUSED).astype(np.int8)
+        return {"x": x, "P": P, "rate": rate_meas, "hand_acc": self._smoothed_reference(smoothed, dt, hand)}, theta, mode
+
+    def _smoothed_reference(self, smoothed, dt, hand):
+        """ā: the optical acceleration smoothed over the fit's lag (a first-order filter)."""
+        lag = self.settings.optical_fit_lag_s
+        w_bar = dt / (lag + dt) if lag > 0.0 else 1.0
+        return smoothed + w_bar * (hand.acceleration - smoothed)
+
+    def _predict_reference(self, state, dt, gyr, hand):
+        """The prediction of ``_step_reference``: ``(x with the predicted angle, P, measured relative
+        rate, corrected rate, corrected previous rate, predicted P)``."""
+        s = self.settings
         x, P = state["x"], state["P"]
         rate_meas = self.obs.relative_rate(gyr, hand)
-        force = self.obs.phalanx_force(acc)
 
         # predict (the offset and the scale error s_g of the hinge-axis reading g_x; the previous
         # sample's reading taken as equal)
@@ -482,63 +562,95 @@ class Chain(FingerEstimator):
         gyr_norm = np.linalg.norm(gyr, axis=-1)
         gyr_sat = np.any(np.abs(gyr) >= s.gyro_range_rad_s * (1.0 - 1e-3), axis=-1)
         Q[..., TH, TH] += (dt * (s.gyro_scale_uncertainty * gyr_norm + np.where(gyr_sat, s.clipped_rate_std_rad_s, 0.0))) ** 2
-        P = kalman.predict(P, F, Q)
+        return x, P, rate_meas, rate, prev_rate, kalman.predict(P, F, Q)
 
+    def _measure_reference(self, dt, gyr, acc, hand, theta_pred, rate, prev_rate):
+        """The accelerometer's model in ``_step_reference``: ``(force in the phalanx frame, reference
+        force u, eq. 6 bound, noise std σ, clipped)``."""
+        s = self.settings
+        force = self.obs.phalanx_force(acc)
+        gyr_sat = np.any(np.abs(gyr) >= s.gyro_range_rad_s * (1.0 - 1e-3), axis=-1)
         # accelerometer through the chain model (both sensors' angles and corrected rates), read through
         # its linear map: f = (I + G) R_x(θ)ᵀ u + b_a
         rate_change = self.obs.rate_change(rate, prev_rate, dt)
         theta_all, rate_all, rc_all = self.obs.chain(self.closure, theta_pred, rate, rate_change)
         u = self.obs.reference_force(hand, theta_all, self.gravity_world, rate_all, rc_all)
-        c, sn = np.cos(theta_pred), np.sin(theta_pred)
-        uy, uz = u[..., 1], u[..., 2]
-        v = np.stack([u[..., 0], c * uy + sn * uz, -sn * uy + c * uz], axis=-1)        # R_x(θ)ᵀ u
-        dv = np.stack([np.zeros_like(uy), -sn * uy + c * uz, -c * uy - sn * uz], axis=-1)
-        gmap = np.eye(3) + x[..., GA].reshape(x.shape[:-1] + (3, 3))
-        predicted = np.einsum("...ij,...j->...i", gmap, v) + x[..., BA]
-        y = force - predicted
-        H = np.zeros(rate.shape + (3, N_STATE))
-        H[..., :, TH] = np.einsum("...ij,...j->...i", gmap, dv)
-        H[..., :, BA] = np.eye(3)
-        for i in range(3):
-            H[..., i, GA_START + 3 * i:GA_START + 3 * i + 3] = v
         mu = self.obs.acceleration_bound(self.closure, rate, rate_change)
         force_norm = np.linalg.norm(force, axis=-1)
         sigma = np.sqrt(s.acc_noise_m_s2**2 + (s.kinematic_uncertainty * mu) ** 2 + (s.acc_scale_uncertainty * force_norm) ** 2
                         + (s.untracked_acc_noise_m_s2 if getattr(self, "_hand_untracked", False) else 0.0) ** 2)
-        # the optical fit's predicted lag error (``The optics' acceleration``): its change over one lag,
-        # â - ā, read as the accelerometer reads the hand's acceleration, R = σ² I + e eᵀ
-        smoothed = np.asarray(state.get("hand_acc", hand.acceleration), dtype=float)
-        change = hand.acceleration - smoothed if s.optical_fit_lag_s > 0.0 else np.zeros_like(smoothed)
-        change = np.einsum("ji,...j->...i", self.obs.base, np.einsum("...ji,...j->...i", hand.rotation, change))
-        change = change[..., None, :]
-        e_v = np.stack(np.broadcast_arrays(change[..., 0], c * change[..., 1] + sn * change[..., 2],
-                                           -sn * change[..., 1] + c * change[..., 2]), axis=-1)
-        e = np.einsum("...ij,...j->...i", gmap, e_v)
         # a clipped accelerometer carries no usable direction, nor does any sensor of the finger
         # while one of its gyros is clipped: the chain's kinematic terms take every sensor's rate and
         # rate change, so they are unknown for all of them: no update
         acc_sat = np.any(np.abs(acc) >= s.acc_range_m_s2 * (1.0 - 1e-3), axis=-1) | np.any(gyr_sat, axis=-1, keepdims=True)
         sigma = np.where(acc_sat, 1e6, sigma)
-        e = np.where(acc_sat[..., None], 0.0, e)
-        R = (sigma**2)[..., None, None] * np.eye(3) + e[..., :, None] * e[..., None, :]
-        if self._settings_vector[K.ST_GS_LEARN] > 0.5:
-            dx, P = kalman.update(P, H, R, y)
-        else:
-            # the scale state held: its gain row zeroed, the Joseph form (valid for any gain)
-            pht = P @ np.swapaxes(H, -1, -2)
-            gain = pht @ np.linalg.inv(H @ pht + R)
-            gain[..., GS, :] = 0.0
-            dx = np.einsum("...ij,...j->...i", gain, y)
-            i_kh = np.eye(N_STATE) - gain @ H
-            P = i_kh @ P @ np.swapaxes(i_kh, -1, -2) + gain @ R @ np.swapaxes(gain, -1, -2)
-        x = x + dx
-        theta = x[..., TH]
-        # "fast" while the accelerometer carries little weight (eq. 6 bound above g/2), else "fused"
-        mode = np.where(mu > 0.5 * np.linalg.norm(self.gravity_world), MODE_FAST, MODE_FUSED).astype(np.int8)
-        # ā: the optical acceleration smoothed over the fit's lag (a first-order filter)
-        w_bar = dt / (s.optical_fit_lag_s + dt) if s.optical_fit_lag_s > 0.0 else 1.0
-        smoothed = smoothed + w_bar * (hand.acceleration - smoothed)
-        return {"x": x, "P": P, "rate": rate_meas, "hand_acc": smoothed}, theta, mode
+        return force, u, mu, sigma, acc_sat
+
+    def _joint_step_reference(self, dt, gyr, acc, hand, together: "ChainHand", s_off: int) -> None:
+        """One sample of this finger (no batch) with the hand's shared acceleration error ``δ`` in numpy,
+        the reference ``chain_kernel._joint_update`` is tested equal to: the state (views into
+        ``together``'s stacked arrays), ``δ``, ``P_δ`` and every sensor's ``C_l = P_{x_l δ}`` updated in
+        place. Sensor after sensor, each accelerometer ``f = h(x_k) + M δ`` updates ``[x_k, δ]`` and moves
+        every other sensor of the hand by its correlation with ``δ`` (``K_l = C_l Mᵀ S⁻¹``); the cross
+        terms between two sensors' states are dropped, as between separate filters, so another
+        sensor's own covariance is not reduced (that would count the same information again). The
+        general covariance update ``P - K (PHᵀ)ᵀ - PHᵀ Kᵀ + K S Kᵀ`` holds for the held scale state's
+        zeroed gain."""
+        state = self._state
+        x, P = state["x"], state["P"]
+        dl0 = together._dl.copy()
+        hand_d = replace(hand, acceleration=hand.acceleration + dl0)
+        x_pred, _, rate_meas, rate, prev_rate, P_pred = self._predict_reference(state, dt, gyr, hand)
+        th = x_pred[:, TH].copy()
+        force, u, _, sigma, _ = self._measure_reference(dt, gyr, acc, hand_d, th, rate, prev_rate)
+        learn = self._settings_vector[K.ST_GS_LEARN] > 0.5
+        fs = dt * self.obs.hinge_rate(gyr) if learn else np.zeros(len(th))
+        to_base = self.obs.base.T @ hand.rotation.T                   # R_Bᵀ R_Mᵀ
+        cx, x_all, ns = together._cx, together._x, len(th)
+        for k in range(ns):
+            g = s_off + k
+            cx[g, TH] = cx[g, TH] - dt * cx[g, BG] - fs[k] * cx[g, GS]
+            c, sn = np.cos(th[k]), np.sin(th[k])
+            rx_t = np.array([[1.0, 0.0, 0.0], [0.0, c, sn], [0.0, -sn, c]])
+            gmap = np.eye(3) + x[k, GA].reshape(3, 3)
+            v, dv = rx_t @ u[k], np.array([0.0, -sn * u[k, 1] + c * u[k, 2], -c * u[k, 1] - sn * u[k, 2]])
+            m = gmap @ rx_t @ to_base
+            y = force[k] - (gmap @ v + x[k, BA]) - m @ (together._dl - dl0)
+            H = np.zeros((3, N_STATE))
+            H[:, TH] = gmap @ dv
+            H[:, BA] = np.eye(3)
+            for i in range(3):
+                H[i, GA_START + 3 * i:GA_START + 3 * i + 3] = v
+            pk, ck, pd = P_pred[k], cx[g].copy(), together._pd.copy()
+            pht = pk @ H.T + ck @ m.T
+            phd = ck.T @ H.T + pd @ m.T
+            S = H @ pht + m @ phd + sigma[k] ** 2 * np.eye(3)
+            s_inv = np.linalg.inv(S)
+            gain, gain_d = pht @ s_inv, phd @ s_inv
+            if not learn:
+                gain[GS] = 0.0
+            for lo in range(cx.shape[0]):
+                if lo == g:
+                    continue
+                phl = cx[lo] @ m.T
+                gain_l = phl @ s_inv
+                gain_l[GS] = 0.0
+                cx[lo] = cx[lo] - gain_l @ phd.T - phl @ gain_d.T + gain_l @ S @ gain_d.T
+                dx = gain_l @ y
+                if s_off <= lo < s_off + ns and lo - s_off > k:
+                    th[lo - s_off] += dx[TH]            # not updated yet this tick: its predicted angle moves
+                    x_all[lo, 1:] += dx[1:]
+                else:
+                    x_all[lo] += dx
+            P[k] = pk - gain @ pht.T - pht @ gain.T + gain @ S @ gain.T
+            cx[g] = ck - gain @ phd.T - pht @ gain_d.T + gain @ S @ gain_d.T
+            together._pd[:] = pd - gain_d @ phd.T - phd @ gain_d.T + gain_d @ S @ gain_d.T
+            dx = gain @ y
+            x[k, 1:] += dx[1:]
+            x[k, TH] = th[k] + dx[TH]
+            together._dl += gain_d @ y
+        state["rate"][:] = rate_meas
+        state["hand_acc"][:] = self._smoothed_reference(state["hand_acc"], dt, hand)
 
 
 class ChainHand:
@@ -554,6 +666,7 @@ class ChainHand:
     def __init__(self):
         self._estimators: list[Chain] = []
         self._states: list[dict] = []
+        self._dl: np.ndarray | None = None
 
     @staticmethod
     def takes(estimator, t: float) -> bool:
@@ -582,6 +695,15 @@ class ChainHand:
         self._theta = np.empty(int(sensor_start[-1]))
         self._phal = np.empty(int(phalanx_start[-1]))
         self._mode = np.empty(int(sensor_start[-1]), dtype=np.int8)
+        # the hand's shared acceleration error δ ("The optics' acceleration" in the module docstring):
+        # kept across a restack, its cross-covariances with the restacked states start at 0
+        s = estimators[0].settings
+        on = s.optical_fit_lag_s > 0.0 and (s.hand_acc_error_scale > 0.0 or s.hand_acc_error_floor_m_s2 > 0.0)
+        self._jp = np.array([s.optical_fit_lag_s if on else 0.0, s.hand_acc_error_scale, s.hand_acc_error_floor_m_s2])
+        self._cx = np.zeros((int(sensor_start[-1]), N_STATE, 3))
+        if self._dl is None:
+            self._dl = np.zeros(3)
+            self._pd = np.eye(3) * s.hand_acc_error_floor_m_s2**2
         for f, e in enumerate(estimators):
             s0, s1 = sensor_start[f], sensor_start[f + 1]
             e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
@@ -607,7 +729,36 @@ class ChainHand:
         mode = self._mode                   # read out below, before the next call writes it again
         K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
                    np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
-                   self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode)
+                   self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode,
+                   self._cx, self._dl, self._pd, self._jp)
         for e in estimators:
             e._t_last = t
         return phi, mode.tolist(), *self._starts
+
+    def advance_reference(self, t: float, estimators: list[Chain], gyr: np.ndarray, acc: np.ndarray, hand) -> None:
+        """``advance`` in numpy (the states only): the reference the kernel's shared hand acceleration
+        error is tested equal to (``tests/test_chain_kernel.py``). ``δ`` is a first-order Gauss-Markov
+        process of time constant ``optical_fit_lag_s`` whose std is ``hand_acc_error_scale`` |â - ā| +
+        the floor (in quadrature); while the optics are lost it restarts at 0."""
+        if not self._stacked(estimators):
+            self._stack(estimators, hand.acceleration)
+        dts = np.array([t - e._t_last for e in estimators])
+        tau, scale, floor = self._jp
+        if tau > 0.0:
+            q = scale**2 * float(np.sum((hand.acceleration - self._hand_acc[0]) ** 2)) + floor**2
+            if any(e._hand_untracked for e in estimators):
+                self._dl[:], self._pd[:], self._cx[:] = 0.0, q * np.eye(3), 0.0
+            else:
+                decay = np.exp(-dts.max() / tau)
+                self._dl *= decay
+                self._pd[:] = decay**2 * self._pd + (1.0 - decay**2) * q * np.eye(3)
+                self._cx *= decay
+        for f, e in enumerate(estimators):
+            rows = slice(self._sensor_start[f], self._sensor_start[f + 1])
+            if tau > 0.0 and not e._hand_untracked:
+                e._joint_step_reference(dts[f], gyr[rows], acc[rows], hand, self, int(self._sensor_start[f]))
+            else:
+                new, _, _ = e._step_reference(e._state, dts[f], gyr[rows], acc[rows], hand)
+                for key in ("x", "P", "rate", "hand_acc"):
+                    e._state[key][...] = new[key]
+            e._t_last = t

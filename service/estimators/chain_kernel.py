@@ -72,13 +72,16 @@ def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode):
-    """One finger: ``_finger`` (below) as a compiled entry point."""
-    _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode)
+    """One finger: ``_finger`` (below) as a compiled entry point (no shared hand acceleration error)."""
+    ns = x.shape[1]
+    _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode,
+            np.zeros((ns, N_STATE, 3)), x.reshape(-1, N_STATE), np.zeros(3),
+            np.zeros((3, 3)), 0, False)
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
-             out_theta, out_phi, out_phal, out_mode):
+             out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp):
     """One tick of several fingers (a hand) in one call: finger ``f`` is ``_finger`` on its rows of the
     stacked arrays, the same arithmetic as ``run`` on that finger alone. Its sensors are rows
     ``sensor_start[f]:sensor_start[f + 1]`` of ``x`` (S, 14), ``p`` (S, 14, 14), ``rates`` (S), ``gyr``
@@ -86,8 +89,43 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     ``phalanx_start[f]:phalanx_start[f + 1]`` of ``out_phi`` and ``out_phal``; its constants
     ``geo[geo_start[f]:geo_start[f + 1]]``; its own step ``dts[f]`` (0 right after it starts), last
     smoothed hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 12) and ``untracked[f]``. The
-    hand's motion ``hand`` (18) is shared."""
+    hand's motion ``hand`` (18) is shared, and so is the optical acceleration's error ``δ`` (``dl`` (3), its
+    covariance ``pd`` (3, 3), every sensor's cross-covariance with it ``cx`` (S, 14, 3); ``jp``: its time
+    constant, scale and floor, ``chain.py``), updated in place; with the time constant 0 there is none and
+    each finger widens its accelerometers along the fit's lag error instead."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
+    joint_tau, joint_scale, joint_floor = jp[0], jp[1], jp[2]
+    joint = joint_tau > 0.0
+    if joint:
+        # the shared error of the optical hand acceleration: first-order Gauss-Markov
+        dt = 0.0
+        for f in range(dts.shape[0]):
+            dt = max(dt, dts[f])
+        lost = False
+        for f in range(dts.shape[0]):
+            lost = lost or untracked[f]
+        q = 0.0
+        for c in range(3):
+            dd = hand[9 + c] - hand_acc[0, c]
+            q += dd * dd
+        q = joint_scale * joint_scale * q + joint_floor * joint_floor
+        if lost:
+            for c in range(3):
+                dl[c] = 0.0
+                for c2 in range(3):
+                    pd[c, c2] = q if c == c2 else 0.0
+            cx[:, :, :] = 0.0
+        else:
+            fdec = math.exp(-dt / joint_tau)
+            for c in range(3):
+                dl[c] *= fdec
+                for c2 in range(3):
+                    pd[c, c2] *= fdec * fdec
+                pd[c, c] += (1.0 - fdec * fdec) * q
+            for l in range(cx.shape[0]):
+                for ii in range(N_STATE):
+                    for c in range(3):
+                        cx[l, ii, c] *= fdec
     for f in range(dts.shape[0]):
         s0, s1 = sensor_start[f], sensor_start[f + 1]
         q0, q1 = phalanx_start[f], phalanx_start[f + 1]
@@ -95,11 +133,13 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
         _finger(x[s0:s1].reshape(1, ns, N_STATE), p[s0:s1].reshape(1, ns, N_STATE, N_STATE), rates[s0:s1].reshape(1, ns),
                 hand_acc[f:f + 1], dts[f:f + 1], gyr[s0:s1].reshape(1, 1, ns, 3), acc[s0:s1].reshape(1, 1, ns, 3), hand1,
                 st[f], geo[geo_start[f]:geo_start[f + 1]], untracked[f], out_theta[s0:s1].reshape(1, 1, ns),
-                out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns))
+                out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns),
+                cx, x, dl, pd, s0, joint and not untracked[f])
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
-def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode):
+def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode,
+            cx, x_all, dl, pd, s_off, joint):
     """Advance the state (``x``, ``p``, ``rates``, ``hand_acc``, in place) by every sample ``i`` of
     ``dts`` (``dt = 0`` is the first sample after initialisation: no prediction, no rate change).
     Outputs per sample: the filter's per-sensor angle ``out_theta`` (N, B, S), the joint angles on the
@@ -157,6 +197,17 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     yy = np.empty(3)                    # innovation
     ee = np.empty(3)                    # (I + G) R_x(θ)ᵀ (the optical fit's lag error): R = r I + e eᵀ
     ke = np.empty(N_STATE)              # K e
+    mb = np.empty((3, 3))               # R_Bᵀ R_Mᵀ
+    md = np.empty((3, 3))               # ∂f/∂δ = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ
+    phd = np.empty((3, 3))              # P_δ· Hᵀ
+    kd = np.empty((3, 3))               # δ's gain
+    sm = np.empty((3, 3))               # S
+    si = np.empty((3, 3))               # S⁻¹
+    phl = np.empty((N_STATE, 3))        # another sensor's P_lδ H_δᵀ
+    kl = np.empty((N_STATE, 3))
+    tl = np.empty((N_STATE, 3))         # K S
+    td = np.empty((3, 3))
+    dl0 = np.zeros(3)                   # δ when the finger's tick began
 
     for i in range(dts.shape[0]):
         dt = dts[i]
@@ -172,6 +223,15 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
             dw1 = r01 * h[15] + r11 * h[16] + r21 * h[17]
             dw2 = r02 * h[15] + r12 * h[16] + r22 * h[17]
             la0, la1, la2 = ha0 - grav0, ha1 - grav1, ha2 - grav2
+            if joint:
+                # the optical acceleration corrected by the shared estimate of its error
+                la0, la1, la2 = la0 + dl[0], la1 + dl[1], la2 + dl[2]
+                dl0[0], dl0[1], dl0[2] = dl[0], dl[1], dl[2]
+                # R_Bᵀ R_Mᵀ: world -> finger base
+                for cc in range(3):
+                    mb[0, cc] = b00 * h[3 * cc] + b10 * h[3 * cc + 1] + b20 * h[3 * cc + 2]
+                    mb[1, cc] = b01 * h[3 * cc] + b11 * h[3 * cc + 1] + b21 * h[3 * cc + 2]
+                    mb[2, cc] = b02 * h[3 * cc] + b12 * h[3 * cc + 1] + b22 * h[3 * cc + 2]
             lin0 = r00 * la0 + r10 * la1 + r20 * la2
             lin1 = r01 * la0 + r11 * la1 + r21 * la2
             lin2 = r02 * la0 + r12 * la1 + r22 * la2
@@ -277,6 +337,9 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     p[b, k, 0, jj] = p[b, k, 0, jj] - dt * p[b, k, 1, jj] - fs * p[b, k, GS, jj]
                 for ii in range(N_STATE):
                     p[b, k, ii, 0] = p[b, k, ii, 0] - dt * p[b, k, ii, 1] - fs * p[b, k, ii, GS]
+                if joint:
+                    for cc in range(3):
+                        cx[s_off + k, 0, cc] = cx[s_off + k, 0, cc] - dt * cx[s_off + k, 1, cc] - fs * cx[s_off + k, GS, cc]
                 p[b, k, 0, 0] += q_theta * dt + (dt * scale) ** 2
                 p[b, k, 1, 1] += q_bg * dt
                 p[b, k, 2, 2] += q_ba * dt
@@ -324,9 +387,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     sigma = SATURATED_SIGMA_M_S2
                     ee[0] = ee[1] = ee[2] = 0.0
                 r = sigma * sigma
-
-                # update (kalman.update): H rows i: ∂f_i/∂θ at 0, e at 2 + i, v at G_i.
-                # PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
+                # H rows i: ∂f_i/∂θ at 0, e at 2 + i, v at G_i
                 for rr in range(3):
                     for ll in range(N_STATE):
                         hm[rr, ll] = 0.0
@@ -334,80 +395,86 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                     hm[rr, 2 + rr] = 1.0
                     g = GA_START + 3 * rr
                     hm[rr, g], hm[rr, g + 1], hm[rr, g + 2] = vv[0], vv[1], vv[2]
-                for ii in range(N_STATE):
-                    for rr in range(3):
-                        acc_p = 0.0
-                        acc_h = 0.0
-                        for ll in range(N_STATE):
-                            acc_p += p[b, k, ii, ll] * hm[rr, ll]
-                            acc_h += hm[rr, ll] * p[b, k, ll, ii]
-                        pht[ii, rr] = acc_p
-                        hp[rr, ii] = acc_h
-                s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
-                for ll in range(N_STATE):
-                    m0, m1, m2 = hm[0, ll], hm[1, ll], hm[2, ll]
-                    q0, q1, q2 = pht[ll, 0], pht[ll, 1], pht[ll, 2]
-                    s00 += m0 * q0
-                    s01 += m0 * q1
-                    s02 += m0 * q2
-                    s10 += m1 * q0
-                    s11 += m1 * q1
-                    s12 += m1 * q2
-                    s20 += m2 * q0
-                    s21 += m2 * q1
-                    s22 += m2 * q2
-                s00 += r + ee[0] * ee[0]
-                s01 += ee[0] * ee[1]
-                s02 += ee[0] * ee[2]
-                s10 += ee[1] * ee[0]
-                s11 += r + ee[1] * ee[1]
-                s12 += ee[1] * ee[2]
-                s20 += ee[2] * ee[0]
-                s21 += ee[2] * ee[1]
-                s22 += r + ee[2] * ee[2]
-                # S⁻¹ by cofactors
-                i00 = s11 * s22 - s12 * s21
-                i01 = s02 * s21 - s01 * s22
-                i02 = s01 * s12 - s02 * s11
-                i10 = s12 * s20 - s10 * s22
-                i11 = s00 * s22 - s02 * s20
-                i12 = s02 * s10 - s00 * s12
-                i20 = s10 * s21 - s11 * s20
-                i21 = s01 * s20 - s00 * s21
-                i22 = s00 * s11 - s01 * s10
-                det = s00 * i00 + s01 * i10 + s02 * i20
-                for ii in range(N_STATE):
-                    q0, q1, q2 = pht[ii, 0], pht[ii, 1], pht[ii, 2]
-                    kg[ii, 0] = (q0 * i00 + q1 * i10 + q2 * i20) / det
-                    kg[ii, 1] = (q0 * i01 + q1 * i11 + q2 * i21) / det
-                    kg[ii, 2] = (q0 * i02 + q1 * i12 + q2 * i22) / det
-                if not gs_learn:
-                    # the scale state is held (a finger on a fallback closure would learn its errors);
-                    # the Joseph form below stays valid for any gain
-                    kg[GS, 0] = kg[GS, 1] = kg[GS, 2] = 0.0
-                for ii in range(N_STATE):
-                    ke[ii] = kg[ii, 0] * ee[0] + kg[ii, 1] * ee[1] + kg[ii, 2] * ee[2]
-                # A = (I - K H) P, then A (I - K H)ᵀ + K R Kᵀ = A - (A Hᵀ) Kᵀ + r K Kᵀ + (K e)(K e)ᵀ
-                for ii in range(N_STATE):
-                    k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
-                    for jj in range(N_STATE):
-                        a[ii, jj] = p[b, k, ii, jj] - (k0 * hp[0, jj] + k1 * hp[1, jj] + k2 * hp[2, jj])
-                for ii in range(N_STATE):
-                    for rr in range(3):
-                        acc_a = 0.0
-                        for ll in range(N_STATE):
-                            acc_a += a[ii, ll] * hm[rr, ll]
-                        aht[ii, rr] = acc_a
-                for ii in range(N_STATE):
-                    k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
-                    c0_, c1_, c2_ = aht[ii, 0], aht[ii, 1], aht[ii, 2]
-                    for jj in range(N_STATE):
-                        l0, l1, l2 = kg[jj, 0], kg[jj, 1], kg[jj, 2]
-                        p[b, k, ii, jj] = ((a[ii, jj] - (c0_ * l0 + c1_ * l1 + c2_ * l2)) + r * (k0 * l0 + k1 * l1 + k2 * l2)
-                                           + ke[ii] * ke[jj])
-                x[b, k, 0] = th[k] + (kg[0, 0] * yy[0] + kg[0, 1] * yy[1] + kg[0, 2] * yy[2])
-                for ii in range(1, N_STATE):
-                    x[b, k, ii] += kg[ii, 0] * yy[0] + kg[ii, 1] * yy[1] + kg[ii, 2] * yy[2]
+
+                if joint:
+                    _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
+                                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0)
+                else:
+                    # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
+                    for ii in range(N_STATE):
+                        for rr in range(3):
+                            acc_p = 0.0
+                            acc_h = 0.0
+                            for ll in range(N_STATE):
+                                acc_p += p[b, k, ii, ll] * hm[rr, ll]
+                                acc_h += hm[rr, ll] * p[b, k, ll, ii]
+                            pht[ii, rr] = acc_p
+                            hp[rr, ii] = acc_h
+                    s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
+                    for ll in range(N_STATE):
+                        m0, m1, m2 = hm[0, ll], hm[1, ll], hm[2, ll]
+                        q0, q1, q2 = pht[ll, 0], pht[ll, 1], pht[ll, 2]
+                        s00 += m0 * q0
+                        s01 += m0 * q1
+                        s02 += m0 * q2
+                        s10 += m1 * q0
+                        s11 += m1 * q1
+                        s12 += m1 * q2
+                        s20 += m2 * q0
+                        s21 += m2 * q1
+                        s22 += m2 * q2
+                    s00 += r + ee[0] * ee[0]
+                    s01 += ee[0] * ee[1]
+                    s02 += ee[0] * ee[2]
+                    s10 += ee[1] * ee[0]
+                    s11 += r + ee[1] * ee[1]
+                    s12 += ee[1] * ee[2]
+                    s20 += ee[2] * ee[0]
+                    s21 += ee[2] * ee[1]
+                    s22 += r + ee[2] * ee[2]
+                    # S⁻¹ by cofactors
+                    i00 = s11 * s22 - s12 * s21
+                    i01 = s02 * s21 - s01 * s22
+                    i02 = s01 * s12 - s02 * s11
+                    i10 = s12 * s20 - s10 * s22
+                    i11 = s00 * s22 - s02 * s20
+                    i12 = s02 * s10 - s00 * s12
+                    i20 = s10 * s21 - s11 * s20
+                    i21 = s01 * s20 - s00 * s21
+                    i22 = s00 * s11 - s01 * s10
+                    det = s00 * i00 + s01 * i10 + s02 * i20
+                    for ii in range(N_STATE):
+                        q0, q1, q2 = pht[ii, 0], pht[ii, 1], pht[ii, 2]
+                        kg[ii, 0] = (q0 * i00 + q1 * i10 + q2 * i20) / det
+                        kg[ii, 1] = (q0 * i01 + q1 * i11 + q2 * i21) / det
+                        kg[ii, 2] = (q0 * i02 + q1 * i12 + q2 * i22) / det
+                    if not gs_learn:
+                        # the scale state is held (a finger on a fallback closure would learn its errors);
+                        # the Joseph form below stays valid for any gain
+                        kg[GS, 0] = kg[GS, 1] = kg[GS, 2] = 0.0
+                    for ii in range(N_STATE):
+                        ke[ii] = kg[ii, 0] * ee[0] + kg[ii, 1] * ee[1] + kg[ii, 2] * ee[2]
+                    # A = (I - K H) P, then A (I - K H)ᵀ + K R Kᵀ = A - (A Hᵀ) Kᵀ + r K Kᵀ + (K e)(K e)ᵀ
+                    for ii in range(N_STATE):
+                        k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
+                        for jj in range(N_STATE):
+                            a[ii, jj] = p[b, k, ii, jj] - (k0 * hp[0, jj] + k1 * hp[1, jj] + k2 * hp[2, jj])
+                    for ii in range(N_STATE):
+                        for rr in range(3):
+                            acc_a = 0.0
+                            for ll in range(N_STATE):
+                                acc_a += a[ii, ll] * hm[rr, ll]
+                            aht[ii, rr] = acc_a
+                    for ii in range(N_STATE):
+                        k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
+                        c0_, c1_, c2_ = aht[ii, 0], aht[ii, 1], aht[ii, 2]
+                        for jj in range(N_STATE):
+                            l0, l1, l2 = kg[jj, 0], kg[jj, 1], kg[jj, 2]
+                            p[b, k, ii, jj] = ((a[ii, jj] - (c0_ * l0 + c1_ * l1 + c2_ * l2)) + r * (k0 * l0 + k1 * l1 + k2 * l2)
+                                               + ke[ii] * ke[jj])
+                    x[b, k, 0] = th[k] + (kg[0, 0] * yy[0] + kg[0, 1] * yy[1] + kg[0, 2] * yy[2])
+                    for ii in range(1, N_STATE):
+                        x[b, k, ii] += kg[ii, 0] * yy[0] + kg[ii, 1] * yy[1] + kg[ii, 2] * yy[2]
                 rates[b, k] = meas[k]
                 out_theta[i, b, k] = x[b, k, 0]
                 out_mode[i, b, k] = 1 if mu > fast_above else 2
@@ -427,3 +494,130 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                 out_phi[i, b, j] = phi
                 phal += phi
                 out_phal[i, b, j] = phal
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
+                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0):
+    """Sensor ``k``'s accelerometer update with the hand's shared acceleration error ``δ`` (world frame)
+    as three more states: the measurement ``f = h(x_k) + M δ``, ``M = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ``; the
+    augmented covariance keeps ``P_k``, ``C_l = P_{x_l δ}`` of every sensor ``l`` of the hand and ``P_δ``
+    (the cross terms between two sensors' states are dropped, as between separate filters). Every
+    other sensor moves by its correlation with ``δ``: ``K_l = C_l Mᵀ S⁻¹``. The covariance update is
+    the general form ``P - K (PHᵀ)ᵀ - PHᵀ Kᵀ + K S Kᵀ`` (valid for the held scale state's zeroed gain)."""
+    gk = s_off + k
+    ee[0] = ee[1] = ee[2] = 0.0         # the lag error is δ's now, not a widening
+    for cc in range(3):
+        m0, m1, m2 = mb[0, cc], c * mb[1, cc] + s * mb[2, cc], -s * mb[1, cc] + c * mb[2, cc]
+        for rr in range(3):
+            g = GA_START + 3 * rr
+            md[rr, cc] = x[b, k, g] * m0 + x[b, k, g + 1] * m1 + x[b, k, g + 2] * m2
+        md[0, cc] += m0
+        md[1, cc] += m1
+        md[2, cc] += m2
+    # the reference force took δ as it was when the finger's tick began
+    for rr in range(3):
+        yy[rr] -= md[rr, 0] * (dl[0] - dl0[0]) + md[rr, 1] * (dl[1] - dl0[1]) + md[rr, 2] * (dl[2] - dl0[2])
+    for ii in range(N_STATE):
+        for rr in range(3):
+            acc_p = 0.0
+            for ll in range(N_STATE):
+                acc_p += p[b, k, ii, ll] * hm[rr, ll]
+            for cc in range(3):
+                acc_p += cx[gk, ii, cc] * md[rr, cc]
+            pht[ii, rr] = acc_p
+    for c1 in range(3):
+        for rr in range(3):
+            acc_p = 0.0
+            for ll in range(N_STATE):
+                acc_p += cx[gk, ll, c1] * hm[rr, ll]
+            for cc in range(3):
+                acc_p += pd[c1, cc] * md[rr, cc]
+            phd[c1, rr] = acc_p
+    for r1 in range(3):
+        for r2 in range(3):
+            acc_s = ee[r1] * ee[r2] + (r if r1 == r2 else 0.0)
+            for ll in range(N_STATE):
+                acc_s += hm[r1, ll] * pht[ll, r2]
+            for cc in range(3):
+                acc_s += md[r1, cc] * phd[cc, r2]
+            sm[r1, r2] = acc_s
+    s00, s01, s02, s10, s11, s12, s20, s21, s22 = sm[0, 0], sm[0, 1], sm[0, 2], sm[1, 0], sm[1, 1], sm[1, 2], sm[2, 0], sm[2, 1], sm[2, 2]
+    si[0, 0] = s11 * s22 - s12 * s21
+    si[0, 1] = s02 * s21 - s01 * s22
+    si[0, 2] = s01 * s12 - s02 * s11
+    si[1, 0] = s12 * s20 - s10 * s22
+    si[1, 1] = s00 * s22 - s02 * s20
+    si[1, 2] = s02 * s10 - s00 * s12
+    si[2, 0] = s10 * s21 - s11 * s20
+    si[2, 1] = s01 * s20 - s00 * s21
+    si[2, 2] = s00 * s11 - s01 * s10
+    det = s00 * si[0, 0] + s01 * si[1, 0] + s02 * si[2, 0]
+    for r1 in range(3):
+        for r2 in range(3):
+            si[r1, r2] /= det
+    for ii in range(N_STATE):
+        for rr in range(3):
+            kg[ii, rr] = pht[ii, 0] * si[0, rr] + pht[ii, 1] * si[1, rr] + pht[ii, 2] * si[2, rr]
+    if not gs_learn:
+        kg[GS, 0] = kg[GS, 1] = kg[GS, 2] = 0.0
+    for c1 in range(3):
+        for rr in range(3):
+            kd[c1, rr] = phd[c1, 0] * si[0, rr] + phd[c1, 1] * si[1, rr] + phd[c1, 2] * si[2, rr]
+    for c1 in range(3):
+        for rr in range(3):
+            td[c1, rr] = kd[c1, 0] * sm[0, rr] + kd[c1, 1] * sm[1, rr] + kd[c1, 2] * sm[2, rr]
+    # every other sensor of the hand, through its correlation with δ
+    for l in range(cx.shape[0]):
+        if l == gk:
+            continue
+        for ii in range(N_STATE):
+            for rr in range(3):
+                phl[ii, rr] = cx[l, ii, 0] * md[rr, 0] + cx[l, ii, 1] * md[rr, 1] + cx[l, ii, 2] * md[rr, 2]
+        for ii in range(N_STATE):
+            for rr in range(3):
+                kl[ii, rr] = phl[ii, 0] * si[0, rr] + phl[ii, 1] * si[1, rr] + phl[ii, 2] * si[2, rr]
+        kl[GS, 0] = kl[GS, 1] = kl[GS, 2] = 0.0
+        _cross_update(cx, l, kl, phl, kd, phd, sm, tl)
+        same = s_off <= l < s_off + ns and l - s_off > k
+        for ii in range(N_STATE):
+            dx = kl[ii, 0] * yy[0] + kl[ii, 1] * yy[1] + kl[ii, 2] * yy[2]
+            if ii == 0 and same:
+                th[l - s_off] += dx        # not updated yet this tick: its predicted angle moves
+            else:
+                x_all[l, ii] += dx
+    # the sensor itself and δ
+    _cross_update(cx, gk, kg, pht, kd, phd, sm, tl)
+    for ii in range(N_STATE):
+        for jj in range(N_STATE):
+            acc_p = 0.0
+            for rr in range(3):
+                acc_p += kg[ii, rr] * pht[jj, rr] + pht[ii, rr] * kg[jj, rr] - tl[ii, rr] * kg[jj, rr]
+            p[b, k, ii, jj] -= acc_p
+    for c1 in range(3):
+        for c2 in range(3):
+            acc_p = 0.0
+            for rr in range(3):
+                acc_p += kd[c1, rr] * phd[c2, rr] + phd[c1, rr] * kd[c2, rr] - td[c1, rr] * kd[c2, rr]
+            pd[c1, c2] -= acc_p
+    x[b, k, 0] = th[k] + (kg[0, 0] * yy[0] + kg[0, 1] * yy[1] + kg[0, 2] * yy[2])
+    for ii in range(1, N_STATE):
+        x[b, k, ii] += kg[ii, 0] * yy[0] + kg[ii, 1] * yy[1] + kg[ii, 2] * yy[2]
+    for c1 in range(3):
+        dl[c1] += kd[c1, 0] * yy[0] + kd[c1, 1] * yy[1] + kd[c1, 2] * yy[2]
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _cross_update(cx, row, gain, ph, kd, phd, sm, tl):
+    """``C = P_{x δ}`` of sensor ``row`` after an update (gain ``gain`` for its state, ``kd`` for δ;
+    ``ph``, ``phd`` their rows of ``P Hᵀ``; ``sm`` = S): ``C - K phdᵀ - ph K_δᵀ + K S K_δᵀ``, with ``tl``
+    scratch for ``K S``."""
+    for ii in range(N_STATE):
+        for rr in range(3):
+            tl[ii, rr] = gain[ii, 0] * sm[0, rr] + gain[ii, 1] * sm[1, rr] + gain[ii, 2] * sm[2, rr]
+    for ii in range(N_STATE):
+        for c1 in range(3):
+            acc_p = 0.0
+            for rr in range(3):
+                acc_p += gain[ii, rr] * phd[c1, rr] + ph[ii, rr] * kd[c1, rr] - tl[ii, rr] * kd[c1, rr]
+            cx[row, ii, c1] -= acc_p
