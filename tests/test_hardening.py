@@ -233,6 +233,28 @@ def test_a_diverged_filter_resets_and_the_frames_stay_finite():
         json.dumps(f, allow_nan=False)          # raises on NaN or infinity anywhere
 
 
+def test_one_finger_diverging_does_not_take_the_hands_shared_acceleration_error_with_it():
+    """The fingers advanced together share one estimate of the optics' acceleration error (``chain``).
+    A finger whose filter diverges (its state made non-finite once, as a numerical failure would) may
+    carry that into the shared error in its tick: the fingers updated after it in that tick are reset
+    with it, and the shared error restarts. Kept non-finite, it reset every finger on every later tick
+    (930 resets in 170 frames here)."""
+    from service.pipeline.hand import PipelineSettings
+    from service.sim.session import simulate
+
+    msgs = list(simulate(SimConfig(motion="pinch", noise="both", seed=4, duration_s=3.0)).messages(include_truth=False))
+    session = HandSession("right", PipelineSettings())
+    frames, resets_then = [], None
+    for m in msgs:
+        frames += session.handle(parse_message(m)).frames
+        if resets_then is None and len(frames) > 100 and session._fingers["index"].estimator._state is not None:
+            session._fingers["index"].estimator._state["x"][0, 0] = math.nan
+            resets_then = session.counters.filter_resets
+    assert resets_then == 0 and len(frames) > 250
+    assert 1 <= session.counters.filter_resets <= 5          # one tick's worth: index and the fingers after it
+    assert all(math.isfinite(v) for v in session._together._dl.tolist() + session._together._pd.ravel().tolist())
+
+
 def test_nothing_sent_contains_nan():
     message = {"type": "gesture", "t": 1.0, "ray": {"origin": [0.0, 1.0, 0.0], "direction": [math.nan, math.inf, 0.0]}}
     text = encode(message, binary=False)

@@ -179,6 +179,7 @@ A change to the filter goes into both.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from operator import is_ as _is
 from typing import Literal
@@ -701,9 +702,10 @@ class ChainHand:
         on = s.optical_fit_lag_s > 0.0 and (s.hand_acc_error_scale > 0.0 or s.hand_acc_error_floor_m_s2 > 0.0)
         self._jp = np.array([s.optical_fit_lag_s if on else 0.0, s.hand_acc_error_scale, s.hand_acc_error_floor_m_s2])
         self._cx = np.zeros((int(sensor_start[-1]), N_STATE, 3))
+        self._pd0 = np.eye(3) * s.hand_acc_error_floor_m_s2**2
         if self._dl is None:
             self._dl = np.zeros(3)
-            self._pd = np.eye(3) * s.hand_acc_error_floor_m_s2**2
+            self._pd = self._pd0.copy()
         for f, e in enumerate(estimators):
             s0, s1 = sensor_start[f], sensor_start[f + 1]
             e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
@@ -733,7 +735,17 @@ class ChainHand:
                    self._cx, self._dl, self._pd, self._jp)
         for e in estimators:
             e._t_last = t
+        self._keep_shared_error_finite()
         return phi, mode.tolist(), *self._starts
+
+    def _keep_shared_error_finite(self) -> None:
+        """A finger whose filter diverged in this tick (a non-finite state; ``HandSession._reset_finger``
+        restarts it) may have carried the non-finite value into the shared error δ through its update.
+        Kept, δ would then make every finger's estimate non-finite on every later tick (each one reset
+        again and again). δ restarts from its prior instead, its cross-covariances at 0: at most the
+        fingers updated after the diverged one in this tick lose their estimate with it."""
+        if not math.isfinite(sum(self._dl.tolist()) + sum(self._pd.ravel().tolist())):
+            self._dl[:], self._pd[:], self._cx[:] = 0.0, self._pd0, 0.0
 
     def advance_reference(self, t: float, estimators: list[Chain], gyr: np.ndarray, acc: np.ndarray, hand) -> None:
         """``advance`` in numpy (the states only): the reference the kernel's shared hand acceleration
@@ -762,3 +774,4 @@ class ChainHand:
                 for key in ("x", "P", "rate", "hand_acc"):
                     e._state[key][...] = new[key]
             e._t_last = t
+        self._keep_shared_error_finite()
