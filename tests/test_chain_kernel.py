@@ -223,3 +223,74 @@ def test_the_hands_shared_acceleration_error_equals_its_reference():
         np.testing.assert_allclose(k._p, r._p, rtol=1e-9, atol=1e-15)
         np.testing.assert_allclose(k._pd, r._pd, rtol=1e-9, atol=1e-15)
         dl = k._dl.copy()
+
+
+def test_the_shared_error_update_is_the_textbook_kalman_update_of_the_augmented_state():
+    """An independent reference for the shared acceleration error δ: for a finger with one sensor, one
+    step of ``ChainHand.advance_reference`` equals the Kalman update of the augmented state [x, δ] written
+    out directly (the 17 + 3 states' covariance as one block matrix, the Joseph form), and the
+    measurement's sensitivity to δ, M, equals finite differences of the predicted specific force."""
+    from service.estimators import chain_kernel as K
+    from service.estimators.chain import BA, BG, GA, GA_START, GS, TH
+
+    rng = np.random.default_rng(3)
+    geom = default_calibration("right").fingers["little"]
+    geom = replace(geom, sensors=geom.sensors[1:])
+    st = ChainSettings(optical_fit_lag_s=0.07, hand_acc_error_scale=0.5, hand_acc_error_floor_m_s2=0.2)
+    est = Chain(geom, st, extra_couplings=((0, 1.0),))
+    state = _random_state(rng, est)
+    est._state, est._t_last = {k: v.copy() for k, v in state.items()}, 0.0
+    h = ChainHand()
+    h._stack([est], np.zeros(3))
+    cx0, dl0, a = rng.normal(0, 0.02, (1, N_STATE, 3)), rng.normal(0, 1, 3), rng.normal(0, 0.5, (3, 3))
+    pd0 = a @ a.T + 0.1 * np.eye(3)
+    h._cx[:], h._dl[:], h._pd[:] = cx0, dl0, pd0
+    hand, gyr, acc, t = _random_hand(rng, ()), rng.normal(0, 1, (1, 3)), rng.normal(0, 9, (1, 3)), 0.01
+
+    # prediction: δ a first-order Gauss-Markov process, x by the filter's own prediction
+    ref = Chain(geom, st, extra_couplings=((0, 1.0),))
+    ref._state, ref._t_last = {k: v.copy() for k, v in state.items()}, 0.0
+    tau, scale, floor = h._jp
+    q = scale**2 * np.sum((hand.acceleration - state["hand_acc"]) ** 2) + floor**2
+    d = np.exp(-t / tau)
+    dl, pd, cx = dl0 * d, d * d * pd0 + (1 - d * d) * q * np.eye(3), cx0[0] * d
+    x_pred, _, _, rate, prev, P_pred = ref._predict_reference(ref._state, t, gyr, hand)
+    fs = t * ref.obs.hinge_rate(gyr) if est._settings_vector[-1] > 0.5 else np.zeros(1)
+    cx[TH] = cx[TH] - t * cx[BG] - fs[0] * cx[GS]         # the angle's prediction moves its cross-covariance
+    with_dl = replace(hand, acceleration=hand.acceleration + dl)
+
+    def predicted(h_motion, th):
+        force, u, _, sigma, _ = ref._measure_reference(t, gyr, acc, h_motion, th, rate, prev)
+        c, s = np.cos(th[0]), np.sin(th[0])
+        rx = np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+        gm = np.eye(3) + x_pred[0, GA].reshape(3, 3)
+        return force[0], gm @ rx @ u[0] + x_pred[0, BA], sigma[0], rx, gm, u[0]
+
+    th = x_pred[:, TH].copy()
+    f, p0, sig, rx, gm, u = predicted(with_dl, th)
+    m_code = gm @ rx @ est.obs.base.T @ hand.rotation.T
+    m_diff = np.column_stack([(predicted(replace(with_dl, acceleration=with_dl.acceleration + 1e-6 * e), th)[1] - p0) / 1e-6
+                              for e in np.eye(3)])
+    assert np.allclose(m_diff, m_code, atol=1e-7)
+    H = np.zeros((3, N_STATE + 3))
+    c, s = np.cos(th[0]), np.sin(th[0])
+    H[:, TH] = gm @ np.array([0, -s * u[1] + c * u[2], -c * u[1] - s * u[2]])
+    H[:, BA] = np.eye(3)
+    for i in range(3):
+        H[i, GA_START + 3 * i:GA_START + 3 * i + 3] = rx @ u
+    H[:, N_STATE:] = m_code
+    P = np.block([[P_pred[0], cx], [cx.T, pd]])
+    R = sig**2 * np.eye(3)
+    gain = P @ H.T @ np.linalg.inv(H @ P @ H.T + R)
+    if est._settings_vector[K.ST_GS_LEARN] <= 0.5:
+        gain[GS] = 0.0
+    z = np.concatenate([x_pred[0], dl]) + gain @ (f - p0)
+    joseph = np.eye(N_STATE + 3) - gain @ H
+    P_new = joseph @ P @ joseph.T + gain @ R @ gain.T
+
+    h.advance_reference(t, [est], gyr, acc, hand)
+    assert np.allclose(est._state["x"][0], z[:N_STATE], rtol=0, atol=1e-12)
+    assert np.allclose(h._dl, z[N_STATE:], rtol=0, atol=1e-12)
+    assert np.allclose(est._state["P"][0], P_new[:N_STATE, :N_STATE], rtol=0, atol=1e-12)
+    assert np.allclose(h._cx[0], P_new[:N_STATE, N_STATE:], rtol=0, atol=1e-12)
+    assert np.allclose(h._pd, P_new[N_STATE:, N_STATE:], rtol=0, atol=1e-12)
