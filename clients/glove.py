@@ -38,15 +38,19 @@ def source_messages(config: SimConfig) -> list[tuple[float, dict]]:
 
 async def stream_glove(url: str, session: str, token: str, config: SimConfig, speed: float = 1.0,
                        on_send: Callable[[float, dict], None] | None = None,
-                       messages: list[tuple[float, dict]] | None = None, binary: bool = False) -> Publisher:
+                       messages: list[tuple[float, dict]] | None = None, binary: bool = False,
+                       stop=None) -> Publisher:
     """Stream a simulated session in real time; ``on_send(wall_time, message)`` after each send.
     ``messages``: ``source_messages(config)`` computed beforehand (several gloves that must start
-    together); ``binary``: MessagePack instead of JSON."""
+    together); ``binary``: MessagePack instead of JSON; ``stop``: an event (``threading.Event``) that
+    ends the stream early once set."""
     msgs = messages if messages is not None else await asyncio.to_thread(source_messages, config)   # off the loop
     pub = Publisher(url, session, token, hand=config.hand, source=f"fingertrack-glove {config.motion}", binary=binary)
     t0_src = msgs[0][0]
     t0_wall = time.perf_counter()
     for arrival, m in msgs:
+        if stop is not None and stop.is_set():
+            break
         due = t0_wall + (arrival - t0_src) / speed
         # always yield to the loop, even when behind schedule, so other tasks keep running
         await asyncio.sleep(max(0.0, due - time.perf_counter()))

@@ -468,6 +468,12 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                        gateways=args.gateways, generators=args.generators))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
+    if args.which == "switch":
+        from .bench import switch
+        print(switch.run(args.out, sessions=args.sessions, hand_workers=args.workers, cache=args.cache,
+                         passes=args.passes, gap_s=args.gap, seconds=args.seconds, inject_stop_ms=args.inject_stop_ms))
+        print(f"wrote {args.out}/results.json, summary.md")
+        return 0
     if args.which == "robustness":
         from .bench import robustness
         print(robustness.run(args.out, quick=args.quick, messages=args.messages, soak_seconds=args.soak_seconds))
@@ -724,6 +730,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="kill (SIGKILL) the hand worker owning most sessions S seconds into the stream (default: none)")
     b.add_argument("--generators", type=_positive_int, default=None, metavar="N",
                    help="load-generator processes for the gloves and subscribers (default: one per 8 hands)")
+
+    b = benchmark("switch", "estimator switch: how long a live session's switch stalls the other sessions",
+                  "Sessions stream in real time into a fresh service process, one subscriber each; one session is "
+                  "switched through every estimator (PUT /v1/sessions/{s}/config), with the compiled ones' kernels "
+                  "absent from the cache (cold) or in it (warm); per switch, the other sessions' frames' delay in the "
+                  "switch window against just before it; writes results.json, summary.md.")
+    b.add_argument("--sessions", type=_positive_int, default=4, help="sessions streaming at once, one switched (default 4)")
+    b.add_argument("--workers", type=_non_negative_int, default=None,
+                   help="the service's hand worker processes (default: the service's default; 0: hands on its event loop)")
+    b.add_argument("--cache", choices=("warm", "cold", "both"), default="both",
+                   help="the compiled estimators' kernels in the disk cache (warm), removed from a copy of it (cold), "
+                        "or one service each (both, the default)")
+    b.add_argument("--passes", type=_positive_int, default=2, help="times through every estimator (default 2)")
+    b.add_argument("--gap", type=_positive_float, default=2.0, metavar="S",
+                   help="undisturbed streaming before each switch, s (default 2)")
+    b.add_argument("--seconds", type=_positive_float, default=None,
+                   help="streaming time per service (default: enough for the plan, 120 s more with a cold cache)")
+    b.add_argument("--inject-stop-ms", type=_positive_float, default=None, metavar="MS",
+                   help="also stop the service's web process (SIGSTOP) this long with every switch: a known stall "
+                        "the figures must show")
 
     b = benchmark("robustness", "hostile input, extremes, slow readers, connection storms, kill -9, soak",
                   "A robustness campaign against fresh service processes: fuzzing, schema-valid extremes in a "

@@ -82,10 +82,11 @@ def _timing(rows: list, first_send: float, msgs: list[tuple[float, dict]]) -> tu
     return beyond.tolist(), align.tolist()
 
 
-async def _generate(spec: dict, ready, start_at) -> dict:
+async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     """One load-generator process's part of a level: the gloves and subscribers of sessions
     ``spec["indices"]``. ``ready()`` once everything is simulated and subscribed; ``start_at()`` gives
-    the common start (``time.time()``) of every generator process."""
+    the common start (``time.time()``) of every generator process; ``stop`` (a ``threading.Event``),
+    once set, ends the gloves' streams early."""
     from clients.client import Subscription
     from clients.glove import source_messages, stream_glove
 
@@ -126,7 +127,7 @@ async def _generate(spec: dict, ready, start_at) -> dict:
 
     cpu0, wall0 = time.process_time(), time.perf_counter()
     pubs = await asyncio.gather(*(stream_glove(urls[i % len(urls)], n, spec["source"], c, on_send=on_send_for(n),
-                                               messages=m, binary=binary)
+                                               messages=m, binary=binary, stop=stop)
                                   for i, n, c, m in zip(indices, names, configs, msgs)))
     wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     for p in pubs:
@@ -145,7 +146,7 @@ async def _generate(spec: dict, ready, start_at) -> dict:
             raise RuntimeError(f"a subscriber failed: {r!r}") from r
     # a frame's delay behind the source's schedule: its arrival minus the wall time at which the data
     # of its tick were due to be sent (the first message was sent at first_send, source time m[0][0])
-    delays, beyond, align = [], [], []
+    delays, beyond, align, beyond_by = [], [], [], []
     for n, m in zip(names, msgs):
         for k in range(subscribers):
             rows = received[(n, k)]
@@ -153,7 +154,8 @@ async def _generate(spec: dict, ready, start_at) -> dict:
             b, a = _timing(rows, first_send[n], m)
             beyond += b
             align += a
-    return {"received": [[n, k, rows] for (n, k), rows in received.items()],
+            beyond_by.append([n, k, b])
+    return {"received": [[n, k, rows] for (n, k), rows in received.items()], "beyond_by_subscriber": beyond_by,
             "hands_of": {n: c.hand for n, c in zip(names, configs)}, "accounts": accounts,
             "delays": delays, "beyond_alignment": beyond, "alignment": align,
             "subscriber_reconnects": reconnects, "glove_reconnects": glove_reconnects, "errors": errors,
@@ -162,26 +164,39 @@ async def _generate(spec: dict, ready, start_at) -> dict:
 
 def _generator_main() -> int:
     """A load-generator process: its spec (JSON) on the first line of stdin; prints ``ready``, reads the
-    common start time (a line), streams, and prints its results (JSON) on one line."""
+    common start time (a line), streams (until its data end, or a line ``stop`` comes), and prints its
+    results (JSON) on one line."""
+    import threading
+
     spec = json.loads(sys.stdin.readline())
+    stop = threading.Event()
 
     async def ready():
         print("ready", flush=True)
 
-    async def start_at():
-        return float(await asyncio.to_thread(sys.stdin.readline))
+    def until_stop():
+        while (line := sys.stdin.readline()) and line.strip() != "stop":
+            pass
+        if line:
+            stop.set()
 
-    result = asyncio.run(_generate(spec, ready, start_at))
+    async def start_at():
+        start = float(await asyncio.to_thread(sys.stdin.readline))
+        threading.Thread(target=until_stop, daemon=True).start()
+        return start
+
+    result = asyncio.run(_generate(spec, ready, start_at, stop))
     print(json.dumps(result), flush=True)
     return 0
 
 
 async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
-                 binary: bool, service_cpu, kill=None, processes: int | None = None) -> dict:
+                 binary: bool, service_cpu, kill=None, processes: int | None = None, end_with_kill: bool = False) -> dict:
     """``urls``: the service's, or its gateways' (session i's glove streams to gateway i, its subscriber
     k listens at gateway i + k, modulo their number, so that frames must reach every gateway).
     ``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
-    ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed).
+    ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed);
+    ``end_with_kill``: the stream ends when that function returns (at the latest after ``seconds``).
     The gloves and subscribers run in ``processes`` load-generator processes (``generator_processes``)."""
     count = processes or generator_processes(hands)
     parts = [list(range(hands))[j::count] for j in range(count)]
@@ -189,7 +204,7 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
     procs: list = []
     try:
         return await _stream_level(procs, parts, urls, source, viewer, admin, subscribers, seconds, binary,
-                                   service_cpu, kill, hands)
+                                   service_cpu, kill, hands, end_with_kill)
     finally:                                        # interrupted (Ctrl-C, SIGTERM): no generator or probe left behind
         for proc in procs:
             if proc.returncode is None:
@@ -198,7 +213,8 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
 
 
 async def _stream_level(procs: list, parts: list, urls: list[str], source: str, viewer: str, admin: str,
-                        subscribers: int, seconds: float, binary: bool, service_cpu, kill, hands: int) -> dict:
+                        subscribers: int, seconds: float, binary: bool, service_cpu, kill, hands: int,
+                        end_with_kill: bool = False) -> dict:
     """``_level``'s run; every process it starts goes into ``procs`` at once."""
     url = urls[0]
     for part in parts:
@@ -232,7 +248,17 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
     killer = asyncio.create_task(kill_later()) if kill is not None else None
     probe = await _start_probe(url, admin, seconds)
     procs.append(probe)
-    await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - wall0)))
+    if end_with_kill and killer is not None:
+        await asyncio.wait([killer], timeout=max(0.0, seconds - (time.perf_counter() - wall0)))
+        for proc in generators + [probe]:
+            with contextlib.suppress(ConnectionError):
+                if proc is probe:
+                    proc.terminate()                # it reports what it measured so far
+                else:
+                    proc.stdin.write(b"stop\n")
+                    await proc.stdin.drain()
+    else:
+        await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - wall0)))
     service1, wall = service_cpu(), time.perf_counter() - wall0
     probed = await _probe_result(probe)
     if killer is not None:
@@ -251,6 +277,7 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
             "hands_of": {n: h for r in results for n, h in r["hands_of"].items()}, "received": received,
             "delays": [d for r in results for d in r["delays"]],
             "beyond_alignment": [d for r in results for d in r["beyond_alignment"]],
+            "beyond_by_subscriber": {(n, k): b for r in results for n, k, b in r["beyond_by_subscriber"]},
             "alignment": [d for r in results for d in r["alignment"]],
             "killed": killed, "probe": probed,
             "subscriber_reconnects": sum(r["subscriber_reconnects"] for r in results),

@@ -175,13 +175,15 @@ class ServiceProcess:
 
 @contextlib.contextmanager
 def service_process(start_timeout_s: float = 300.0, extra_settings: dict | None = None,
-                    log_path: str | Path | None = None, credentials: tuple[str, str, str] | None = None):
+                    log_path: str | Path | None = None, credentials: tuple[str, str, str] | None = None,
+                    env: dict | None = None):
     """Start ``fingertrack serve`` with fresh source/viewer/admin tokens; yields a
     :class:`ServiceProcess`, terminates the service on exit. A service that does not become healthy
     (within ``start_timeout_s``, a bound for a failure only: a start compiles the kernels first when
     their cache is cold, which took over 20 s on a busy machine) raises ``RuntimeError`` with its log.
     ``log_path``: keep the service's stderr there (else it goes with the temporary folder).
-    ``credentials``: the (source, viewer, admin) tokens to use (e.g. the same for several gateways)."""
+    ``credentials``: the (source, viewer, admin) tokens to use (e.g. the same for several gateways).
+    ``env``: variables set for the service on top of this process's (e.g. another kernel cache)."""
     from clients.client import wait_healthy
 
     port = free_port()
@@ -192,7 +194,8 @@ def service_process(start_timeout_s: float = 300.0, extra_settings: dict | None 
                                    **(extra_settings or {})}))
         log = open(log_path or Path(tmp) / "service.log", "w+")         # a file, not a pipe: a full pipe would stall the service
         proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port), "--config", str(cfg)],
-                                stdout=subprocess.DEVNULL, stderr=log, preexec_fn=bound_to_this_process())
+                                stdout=subprocess.DEVNULL, stderr=log, preexec_fn=bound_to_this_process(),
+                                env=None if env is None else {**os.environ, **env})
         url = f"http://127.0.0.1:{port}"
         try:
             try:

@@ -1,0 +1,354 @@
+"""Estimator-switch stall benchmark: ``fingertrack bench switch [--sessions 4] [--workers N] [--cache
+warm|cold|both] [--passes 2] --out DIR``.
+
+The goal it measures: switching a live session to any estimator stalls no other session by more than
+10 ms. A fresh service process (``fingertrack serve``, as deployed, with ``--workers`` hand worker
+processes; 0 runs the hands on its event loop) receives ``sessions`` simulated hands streamed in real
+time by a load-generator process, one subscriber each (``bench.load``'s generator and accounting).
+Session ``load-0`` is switched (``PUT /v1/sessions/load-0/config``) through every estimator the service
+offers, those with compiled kernels first, then back to the default, ``passes`` times, one switch at a
+time with ``gap_s`` of undisturbed streaming before each. The first switch to an estimator with kernels
+in a service finds them either absent from the on-disk kernel cache (``cold``: the service starts with a
+copy of the cache from which those kernels' modules were removed, so they are compiled, the worst case)
+or in it (``warm``: loaded); later switches find them loaded in the process already.
+
+Per switch, for every *other* session: each frame's delay behind the source's schedule beyond the
+pipeline's alignment wait (``bench.load._timing``), over the switch window (from the request to
+``SETTLE_S`` after the reply: frames received after the request that were due by the window's end)
+against the largest of the frames received in as long just before the request (at least ``baseline_s``,
+at most back to the previous window's end). The stream ends with the last switch's window. The stall is the window's largest delay minus the
+baseline's (0 when smaller); the largest gap between consecutive frames minus the frame period is
+reported beside it. For the switched session: whether the change applied (the reply's estimator), how
+long the request took, its own largest delay in the window and how long after the reply its next frame
+arrived.
+
+``inject_stop_ms``: with every switch, the service's web process is also stopped (SIGSTOP) that long,
+a known stall every session must show: what the benchmark reports for it shows that it can fail.
+"""
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import shutil
+import signal
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SWITCHED = "load-0"
+"""the session that is switched (the generator's first)"""
+SETTLE_S = 0.5
+"""the switch window goes on this long after the reply, s (the new estimator's first ticks)"""
+LEAD_S = 3.0
+"""streaming before the first switch, s (the first baseline)"""
+MARGIN_S = 1.0
+"""no switch starts later than this before the stream's planned end (plus its window), s"""
+CACHE_STATES = ("warm", "cold")
+
+
+def plan(passes: int = 2) -> list[str]:
+    """The switched session's estimators in order: every estimator with compiled kernels but the
+    default, then the others, then the default, ``passes`` times."""
+    from ..estimators.registry import REGISTRY
+    from ..pipeline.hand import PipelineSettings
+
+    default = PipelineSettings().estimator
+    compiled = [n for n, c in REGISTRY.items() if c.jit_kernels and n != default]
+    plain = [n for n in REGISTRY if n != default and n not in compiled]
+    return (compiled + plain + [default]) * passes
+
+
+def kernel_modules(names: list[str]) -> list[tuple[str, str]]:
+    """``(cache folder, module file stem)`` of the numba kernels of the estimators ``names``, where this
+    process's numba keeps their cache (the service reads the same layout under its ``NUMBA_CACHE_DIR``)."""
+    from ..estimators.registry import REGISTRY
+
+    out = []
+    for name in names:
+        cls = REGISTRY[name]
+        for k in getattr(cls, "kernels", ()) if cls.jit_kernels else ():
+            out.append((k._cache._cache_path, k.py_func.__module__.rsplit(".", 1)[-1]))
+    return sorted(set(out))
+
+
+def cold_cache(folder: Path, names: list[str]) -> tuple[Path, int]:
+    """A copy of the kernel cache in ``folder`` without the cached code of the estimators ``names``'
+    kernel modules (every function of those modules: compiled again when first used). Returns the
+    copy's path and the number of files removed."""
+    from .. import numba_cache_dir
+
+    source = numba_cache_dir()
+    if source is None:
+        raise RuntimeError("no writable kernel cache: a cold cache cannot be made")
+    copy = folder / "numba"
+    shutil.copytree(source, copy)
+    removed = 0
+    for path, stem in kernel_modules(names):
+        here = copy / os.path.relpath(path, source)
+        for f in here.glob(f"{stem}.*") if here.is_dir() else ():
+            f.unlink()
+            removed += 1
+    return copy, removed
+
+
+async def _stop_for(pid: int, seconds: float) -> None:
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        await asyncio.sleep(seconds)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+
+
+def _switcher(url: str, admin: str, names: list[str], seconds: float, gap_s: float, stop_pid: int | None,
+              stop_s: float, lead_s: float):
+    """The coroutine function ``bench.load._level`` runs ``lead_s`` into the stream: the switches one at
+    a time, until the plan is done or the stream is about to end."""
+    from clients.client import rest
+
+    async def switch_all() -> dict:
+        end = time.perf_counter() - lead_s + seconds
+        done = []
+        for i, name in enumerate(names):
+            if i:
+                await asyncio.sleep(gap_s)
+            if time.perf_counter() + SETTLE_S + MARGIN_S > end:
+                break
+            sent = time.perf_counter()
+            stopper = asyncio.create_task(_stop_for(stop_pid, stop_s)) if stop_pid is not None else None
+            status, body = await asyncio.to_thread(rest, url, "PUT", f"/v1/sessions/{SWITCHED}/config", admin,
+                                                   {"estimator": name}, timeout_s=600.0)
+            returned = time.perf_counter()
+            if stopper is not None:
+                await stopper
+            applied = body.get("estimator") if isinstance(body, dict) else None
+            done.append({"estimator": name, "sent": sent, "returned": returned, "status": status,
+                         "applied": applied == name, "reply": None if applied == name else str(body)[:300]})
+            await asyncio.sleep(SETTLE_S)
+        return {"switches": done, "planned": len(names)}
+    return switch_all
+
+
+def _largest_gap(arrivals: np.ndarray, start: float, end: float) -> float | None:
+    """The longest time between consecutive frames received in ``[start, end]``, counting from the last
+    frame before ``start``; None without two frames."""
+    i0 = max(int(np.searchsorted(arrivals, start, side="left")) - 1, 0)
+    i1 = int(np.searchsorted(arrivals, end, side="right"))
+    part = arrivals[i0:i1]
+    return float(np.diff(part).max()) if len(part) > 1 else None
+
+
+def account(switches: list[dict], frames: dict[str, tuple[np.ndarray, np.ndarray]], switched: str,
+            period_s: float, settle_s: float = SETTLE_S, baseline_s: float = 1.0) -> list[dict]:
+    """Per switch (``{"estimator", "sent", "returned", ...}`` in order, times on the machine's monotonic
+    clock), what each session saw; ``frames``: per session, its frames' arrival times (ascending) and
+    their delays beyond the schedule (same order), s. Figures in ms (module docstring)."""
+    out = []
+    previous_end = -np.inf
+    for sw in switches:
+        start, end = sw["sent"], sw["returned"] + settle_s
+        base_len = min(max(baseline_s, end - start), start - previous_end)
+        row = {**sw, "request_s": sw["returned"] - sw["sent"], "window_s": end - start, "baseline_s": base_len,
+               "others": {}}
+        for name, (arrivals, beyond) in frames.items():
+            due = arrivals - beyond
+            inside = (arrivals >= start) & (due <= end)
+            before = (arrivals >= start - base_len) & (arrivals < start)
+            w = float(beyond[inside].max()) * 1e3 if inside.any() else None
+            b = float(beyond[before].max()) * 1e3 if before.any() else None
+            gap = _largest_gap(arrivals, start, end)
+            gap_b = _largest_gap(arrivals, start - base_len, start)
+            seen = {"frames": int(inside.sum()), "max_delay_ms": w, "baseline_max_delay_ms": b,
+                    "stall_ms": None if w is None or b is None else max(0.0, w - b),
+                    "largest_gap_minus_period_ms": None if gap is None else 1e3 * (gap - period_s),
+                    "baseline_largest_gap_minus_period_ms": None if gap_b is None else 1e3 * (gap_b - period_s)}
+            if name == switched:
+                later = arrivals[arrivals > sw["returned"]]
+                seen["next_frame_after_reply_ms"] = float(later[0] - sw["returned"]) * 1e3 if len(later) else None
+                row["switched"] = seen
+            else:
+                row["others"][name] = seen
+        stalls = [s["stall_ms"] for s in row["others"].values()]
+        row["stall_ms"] = None if not stalls or None in stalls else max(stalls)
+        out.append(row)
+        previous_end = end
+    return out
+
+
+def _kernel_state(names: list[str], cache: str) -> list[str]:
+    """What each switch in ``names`` finds of its estimator's kernels in the service (module docstring)."""
+    from ..estimators.registry import REGISTRY
+    from ..pipeline.hand import PipelineSettings
+
+    seen = {PipelineSettings().estimator}
+    out = []
+    for name in names:
+        if not REGISTRY[name].jit_kernels:
+            out.append("no kernels")
+        elif name in seen:
+            out.append("loaded")
+        else:
+            out.append("compiled (not in the cache)" if cache == "cold" else "loaded from the disk cache")
+        seen.add(name)
+    return out
+
+
+def run_condition(cache: str = "warm", sessions: int = 4, hand_workers: int | None = None, passes: int = 2,
+                  gap_s: float = 2.0, seconds: float | None = None, inject_stop_ms: float | None = None,
+                  names: list[str] | None = None, baseline_s: float = 1.0, lead_s: float = LEAD_S) -> dict:
+    """One service process, one stream, the switches of ``names`` (default: ``plan(passes)``) in it."""
+    from clients.client import rest
+
+    from ..pipeline.hand import PipelineSettings
+    from .load import _level
+    from .process import service_process
+
+    if cache not in CACHE_STATES:
+        raise ValueError(f"cache must be one of {list(CACHE_STATES)}, got {cache!r}")
+    names = list(names) if names is not None else plan(passes)
+    if seconds is None:       # the stream ends with the last switch; at the latest (a compile takes tens of s):
+        seconds = lead_s + len(names) * (gap_s + SETTLE_S + 2.0) + (240.0 if cache == "cold" else 0.0) + MARGIN_S
+    limits = {"max_sessions": max(64, sessions), "max_sessions_per_token": max(8, sessions),
+              "max_connections_per_token": max(32, 2 * sessions),
+              **({} if hand_workers is None else {"hand_workers": hand_workers})}
+    with tempfile.TemporaryDirectory() as tmp:
+        removed, env = 0, None
+        if cache == "cold":
+            copy, removed = cold_cache(Path(tmp), [n for n in dict.fromkeys(names)])
+            env = {"NUMBA_CACHE_DIR": str(copy)}
+        with service_process(extra_settings=limits, env=env) as svc:
+            def service_cpu():
+                own, workers = svc.cpu_seconds(), svc.children_cpu_seconds()
+                return None if own is None or workers is None else own + workers
+            stop_pid = svc.pid if inject_stop_ms else None
+            switcher = _switcher(svc.url, svc.admin, names, seconds, gap_s, stop_pid, (inject_stop_ms or 0) / 1e3, lead_s)
+            load_before = os.getloadavg()[0]
+            lvl = asyncio.run(_level([svc.url], svc.source, svc.viewer, svc.admin, sessions, 1, seconds, False,
+                                     service_cpu, (lead_s, switcher), end_with_kill=True))
+            load_after = os.getloadavg()[0]
+            _, summaries = rest(svc.url, "GET", "/v1/sessions", svc.admin)
+    switches = lvl["killed"].get("switches", [])
+    states = _kernel_state(names, cache)
+    for sw, state in zip(switches, states):
+        sw["kernels"] = state
+    frames = {}
+    for (name, _), rows in lvl["received"].items():
+        beyond = np.array(lvl["beyond_by_subscriber"][(name, 0)])
+        frames[name] = (np.array([r[0] for r in rows]), beyond)
+    period = 1.0 / PipelineSettings().output_rate_hz
+    rows = account(switches, frames, SWITCHED, period, baseline_s=baseline_s)
+    workers = {x["session"]: (x.get("worker") or {}).get("pid") for x in summaries}
+    for row in rows:
+        for name, seen in row["others"].items():
+            seen["same_worker"] = workers.get(name) is not None and workers.get(name) == workers.get(SWITCHED)
+    return {"cache": cache, "sessions": sessions, "hand_workers": "service default" if hand_workers is None else hand_workers,
+            "inject_stop_ms": inject_stop_ms, "seconds": seconds, "gap_s": gap_s, "cache_files_removed": removed,
+            "planned": len(names), "switches": rows, "frames_period_ms": 1e3 * period,
+            "frames_delivered": sum(len(r) for r in lvl["received"].values()),
+            "frames_unaccounted": sum(max(0, a["expected"] - a["delivered"] - a["dropped"]) for a in lvl["accounts"].values()),
+            "frames_dropped": sum(a["dropped"] for a in lvl["accounts"].values()),
+            "source_errors": lvl["errors"], "probe": lvl["probe"],
+            "service_cpu_share": None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"],
+            "generator_cpu_share": lvl["generator_cpu_share"], "load_average_1min": [load_before, load_after]}
+
+
+def _quantiles(values: list[float]) -> dict | None:
+    if not values:
+        return None
+    a = np.array(values)
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "max": float(a.max()), "n": len(a)}
+
+
+def stall_figures(condition: dict) -> dict:
+    """Every other session's stall over every switch of a condition, by what the switch found of its
+    kernels, and over all: p50 / p99 / max (ms) and how many."""
+    groups: dict[str, list[float]] = {}
+    for row in condition["switches"]:
+        for seen in row["others"].values():
+            if seen["stall_ms"] is not None:
+                groups.setdefault(row["kernels"], []).append(seen["stall_ms"])
+                groups.setdefault("all", []).append(seen["stall_ms"])
+    return {k: _quantiles(v) for k, v in groups.items()}
+
+
+def _f(v, fmt="{:.1f}") -> str:
+    return "-" if v is None else fmt.format(v)
+
+
+def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
+    """The conditions as Markdown: a table of the switches each, the stalls' quantiles, the verdict."""
+    lines = []
+    for c in conditions:
+        where = "hands on the event loop" if c["hand_workers"] == 0 else f"hand workers: {c['hand_workers']}"
+        load = " -> ".join(f"{v:.1f}" for v in c["load_average_1min"])
+        stop = f"; the web process stopped {c['inject_stop_ms']:g} ms with every switch" if c["inject_stop_ms"] else ""
+        lines += [f"## {c['sessions']} sessions, {where}, kernel cache {c['cache']}"
+                  f"{' (' + str(c['cache_files_removed']) + ' cached files removed)' if c['cache'] == 'cold' else ''}"
+                  f"{stop}; load average {load}", "",
+                  f"{len(c['switches'])} of {c['planned']} planned switches ran; frames delivered {c['frames_delivered']}, "
+                  f"dropped {c['frames_dropped']}, unaccounted {c['frames_unaccounted']}, source errors {c['source_errors']}; "
+                  f"service CPU {_f(None if c['service_cpu_share'] is None else 100 * c['service_cpu_share'], '{:.0f}')} % "
+                  f"of a core, generator {100 * c['generator_cpu_share']:.0f} %.", "",
+                  "| # | estimator | its kernels | request, s | applied | other sessions' stall, max ms (same worker) | "
+                  "their largest delay in the window / before it, ms | their largest gap minus the frame period, ms "
+                  "(before it) | switched session: largest delay in the window, ms; next frame after the reply, ms |",
+                  "|---|---|---|---|---|---|---|---|---|"]
+        for i, row in enumerate(c["switches"], 1):
+            others = row["others"].values()
+            same = [s["stall_ms"] for s in others if s.get("same_worker") and s["stall_ms"] is not None]
+            wmax = max((s["max_delay_ms"] for s in others if s["max_delay_ms"] is not None), default=None)
+            bmax = max((s["baseline_max_delay_ms"] for s in others if s["baseline_max_delay_ms"] is not None), default=None)
+            gmax = max((s["largest_gap_minus_period_ms"] for s in others
+                        if s["largest_gap_minus_period_ms"] is not None), default=None)
+            gb = max((s["baseline_largest_gap_minus_period_ms"] for s in others
+                      if s["baseline_largest_gap_minus_period_ms"] is not None), default=None)
+            sw = row.get("switched", {})
+            lines.append(f"| {i} | {row['estimator']} | {row['kernels']} | {row['request_s']:.2f} | "
+                         f"{'yes' if row['applied'] else 'NO: ' + str(row['reply'])} | {_f(row['stall_ms'])}"
+                         f" ({_f(max(same) if same else None)}) | {_f(wmax)} / {_f(bmax)} | {_f(gmax)} ({_f(gb)}) | "
+                         f"{_f(sw.get('max_delay_ms'))}; {_f(sw.get('next_frame_after_reply_ms'))} |")
+        figures = stall_figures(c)
+        lines += ["", "| what the switch found | other sessions' stall p50 / p99 / max, ms (session-switches) |",
+                  "|---|---|"]
+        for k, q in figures.items():
+            lines.append(f"| {k} | {q['p50']:.1f} / {q['p99']:.1f} / {q['max']:.1f} ({q['n']}) |")
+        every = figures.get("all")
+        verdict = ("no switch measured" if every is None else
+                   f"goal (no other session stalled more than {goal_ms:g} ms): "
+                   + ("met" if every["max"] <= goal_ms else f"MISSED (largest stall {every['max']:.1f} ms)"))
+        probe = c.get("probe") or {}
+        health = probe.get("health") or {}
+        lines += ["", verdict + (f"; /health p50 / p99 during the run {health['p50_ms']:.1f} / {health['p99_ms']:.1f} ms"
+                                 if health.get("p50_ms") is not None else "") + ".", ""]
+    lines += ["Stall: per switch and other session, the largest delay of its frames behind the source's schedule "
+              "beyond the alignment wait in the switch window (the request until 0.5 s after the reply) minus the "
+              "largest in as long just before it (at least 1 s; back to the previous window at most), 0 when smaller. "
+              "Gap: the longest time between consecutive frames of a session in the window minus the frame period."]
+    return "\n".join(lines) + "\n"
+
+
+def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None, cache: str = "both",
+        passes: int = 2, gap_s: float = 2.0, seconds: float | None = None, inject_stop_ms: float | None = None) -> str:
+    from .process import torn_down_on_signal
+
+    if sessions < 2:
+        raise ValueError(f"--sessions must be at least 2 (the switched one and another), got {sessions}")
+    if passes < 1:
+        raise ValueError(f"--passes must be at least 1, got {passes}")
+    if gap_s < 1.0:
+        raise ValueError(f"--gap must be at least 1 s (the baseline before each switch), got {gap_s:g}")
+    if inject_stop_ms is not None and not 0 < inject_stop_ms < 1e3 * gap_s:
+        raise ValueError(f"--inject-stop-ms must be positive and shorter than the gap, got {inject_stop_ms:g}")
+    caches = CACHE_STATES if cache == "both" else (cache,)
+    if any(c not in CACHE_STATES for c in caches):
+        raise ValueError(f"--cache must be warm, cold or both, got {cache!r}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with torn_down_on_signal():                 # SIGTERM stops the service and the generator as Ctrl-C does
+        conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms) for c in caches]
+    (out / "results.json").write_text(json.dumps(conditions, indent=2))
+    text = summary(conditions)
+    (out / "summary.md").write_text(text)
+    return text

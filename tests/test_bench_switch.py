@@ -1,0 +1,82 @@
+"""``fingertrack bench switch``: its accounting of the other sessions' stall on hand-made frame logs, and
+on a small real run with a known stall injected (the service's web process stopped with each switch)."""
+import numpy as np
+import pytest
+
+from service.bench.switch import account, plan, run_condition
+from service.cli import main
+
+PERIOD = 1 / 90
+
+
+def _frames(t0: float, t1: float, delay: float, stall: tuple[float, float] | None = None):
+    """Frames due every ``PERIOD`` from ``t0`` to ``t1``, each arriving ``delay`` after it was due; those
+    due inside ``stall`` = (start, end) arrive only at its end (plus ``delay``)."""
+    due = np.arange(t0, t1, PERIOD)
+    arrivals = due + delay
+    if stall is not None:
+        held = (due >= stall[0]) & (due < stall[1])
+        arrivals[held] = stall[1] + delay
+    return arrivals, arrivals - due
+
+
+def test_the_accounting_measures_a_known_stall_of_another_session_and_reports_every_switch():
+    switches = [{"estimator": "vector", "sent": 3.0, "returned": 3.2}, {"estimator": "chain", "sent": 6.0, "returned": 6.1}]
+    frames = {"load-0": _frames(0.0, 9.0, 0.004),
+              "load-1": _frames(0.0, 9.0, 0.003, stall=(6.05, 6.09)),      # 40 ms during the second switch
+              "load-2": _frames(0.0, 9.0, 0.005)}
+    rows = account(switches, frames, "load-0", PERIOD)
+    assert [r["estimator"] for r in rows] == ["vector", "chain"]
+    assert set(rows[0]["others"]) == set(rows[1]["others"]) == {"load-1", "load-2"}
+    assert rows[0]["stall_ms"] == pytest.approx(0.0, abs=1e-6)
+    stalled = rows[1]["others"]["load-1"]
+    # the frame due at the stall's start waited for all of it: 40 ms beyond the 3 ms it always had
+    assert stalled["stall_ms"] == pytest.approx(40.0, abs=PERIOD * 1e3)
+    assert stalled["stall_ms"] >= 40.0 - PERIOD * 1e3
+    assert stalled["largest_gap_minus_period_ms"] >= 40.0 - PERIOD * 1e3
+    assert rows[1]["others"]["load-2"]["stall_ms"] == pytest.approx(0.0, abs=1e-6)
+    assert rows[1]["stall_ms"] == stalled["stall_ms"]
+    # the switched session's next frame after each reply comes within a frame period
+    assert all(0.0 < r["switched"]["next_frame_after_reply_ms"] <= PERIOD * 1e3 for r in rows)
+
+
+def test_a_session_without_frames_after_the_request_has_no_stall_figure_rather_than_zero():
+    switches = [{"estimator": "vector", "sent": 3.0, "returned": 3.2}]
+    frames = {"load-0": _frames(0.0, 5.0, 0.004), "load-1": _frames(0.0, 2.9, 0.004)}
+    row, = account(switches, frames, "load-0", PERIOD)
+    assert row["others"]["load-1"]["stall_ms"] is None and row["stall_ms"] is None
+
+
+def test_the_plan_goes_through_every_estimator_and_back_to_the_default():
+    from service.estimators.registry import REGISTRY
+    from service.pipeline.hand import PipelineSettings
+
+    names = plan(passes=2)
+    one = names[:len(REGISTRY)]
+    assert sorted(one) == sorted(REGISTRY) and names == one * 2
+    assert one[-1] == PipelineSettings().estimator
+    assert REGISTRY[one[0]].jit_kernels
+
+
+def test_a_real_run_reports_every_switch_and_an_injected_stop_of_the_service_as_a_stall_at_least_that_long():
+    """Two sessions on the service's event loop; the other session's frames wait for the web process,
+    stopped 300 ms with each switch: its stall is at least that, less the time of a frame and a message
+    of the glove (the frame due first in the stop was due up to that long after the stop began)."""
+    stop_ms = 300.0
+    c = run_condition("warm", sessions=2, hand_workers=0, names=["vector", "chain"], gap_s=0.8, seconds=8.0,
+                      inject_stop_ms=stop_ms, lead_s=1.0, baseline_s=0.5)
+    assert [s["estimator"] for s in c["switches"]] == ["vector", "chain"], c["switches"]
+    assert all(s["status"] == 200 and s["applied"] for s in c["switches"])
+    assert c["frames_unaccounted"] == 0 and c["source_errors"] == 0
+    for s in c["switches"]:
+        other = s["others"]["load-1"]
+        assert other["max_delay_ms"] >= stop_ms - 1e3 * (PERIOD + 0.005), s
+        assert other["largest_gap_minus_period_ms"] >= stop_ms - 1e3 * (2 * PERIOD + 0.005), s
+        assert s["switched"]["next_frame_after_reply_ms"] is not None
+
+
+def test_bad_switch_arguments_are_refused(tmp_path, capsys):
+    assert main(["bench", "switch", "--sessions", "1", "--out", str(tmp_path)]) == 2
+    assert "--sessions must be at least 2" in capsys.readouterr().err
+    assert main(["bench", "switch", "--inject-stop-ms", "5000", "--out", str(tmp_path)]) == 2
+    assert "--inject-stop-ms" in capsys.readouterr().err
