@@ -3,7 +3,7 @@ on a small real run with a known stall injected (the service's web process stopp
 import numpy as np
 import pytest
 
-from service.bench.switch import account, plan, run_condition
+from service.bench.switch import account, plan, run_condition, summary
 from service.cli import main
 
 PERIOD = 1 / 90
@@ -34,6 +34,8 @@ def test_the_accounting_measures_a_known_stall_of_another_session_and_reports_ev
     assert stalled["stall_ms"] == pytest.approx(40.0, abs=PERIOD * 1e3)
     assert stalled["stall_ms"] >= 40.0 - PERIOD * 1e3
     assert stalled["largest_gap_minus_period_ms"] >= 40.0 - PERIOD * 1e3
+    # the stall began before the reply (6.1 s): it is the switch's own, not the new estimator's afterwards
+    assert stalled["stall_until_reply_ms"] == stalled["stall_ms"] and stalled["stall_after_reply_ms"] < 1.0
     assert rows[1]["others"]["load-2"]["stall_ms"] == pytest.approx(0.0, abs=1e-6)
     assert rows[1]["stall_ms"] == stalled["stall_ms"]
     # the switched session's next frame after each reply comes within a frame period
@@ -73,6 +75,8 @@ def test_a_real_run_reports_every_switch_and_an_injected_stop_of_the_service_as_
         assert other["max_delay_ms"] >= stop_ms - 1e3 * (PERIOD + 0.005), s
         assert other["largest_gap_minus_period_ms"] >= stop_ms - 1e3 * (2 * PERIOD + 0.005), s
         assert s["switched"]["next_frame_after_reply_ms"] is not None
+    text = summary([c])
+    assert "| 1 | vector | no kernels |" in text and "| 2 | chain | loaded |" in text and "MISSED" in text
 
 
 def test_bad_switch_arguments_are_refused(tmp_path, capsys):

@@ -160,8 +160,12 @@ def account(switches: list[dict], frames: dict[str, tuple[np.ndarray, np.ndarray
             b = float(beyond[before].max()) * 1e3 if before.any() else None
             gap = _largest_gap(arrivals, start, end)
             gap_b = _largest_gap(arrivals, start - base_len, start)
+            # the window's two parts: until the reply (the switch itself), after it (the new estimator running)
+            part = [beyond[inside & (due <= sw["returned"])], beyond[inside & (due > sw["returned"])]]
             seen = {"frames": int(inside.sum()), "max_delay_ms": w, "baseline_max_delay_ms": b,
                     "stall_ms": None if w is None or b is None else max(0.0, w - b),
+                    **{f"stall_{k}_ms": None if b is None or not len(x) else max(0.0, float(x.max()) * 1e3 - b)
+                       for k, x in zip(("until_reply", "after_reply"), part)},
                     "largest_gap_minus_period_ms": None if gap is None else 1e3 * (gap - period_s),
                     "baseline_largest_gap_minus_period_ms": None if gap_b is None else 1e3 * (gap_b - period_s)}
             if name == switched:
@@ -170,8 +174,11 @@ def account(switches: list[dict], frames: dict[str, tuple[np.ndarray, np.ndarray
                 row["switched"] = seen
             else:
                 row["others"][name] = seen
-        stalls = [s["stall_ms"] for s in row["others"].values()]
-        row["stall_ms"] = None if not stalls or None in stalls else max(stalls)
+        for key in ("stall_ms", "stall_until_reply_ms", "stall_after_reply_ms"):
+            stalls = [s[key] for s in row["others"].values() if s[key] is not None]
+            row[key] = max(stalls) if stalls else None
+        if any(s["stall_ms"] is None for s in row["others"].values()):
+            row["stall_ms"] = None
         out.append(row)
         previous_end = end
     return out
@@ -293,9 +300,10 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
                   f"service CPU {_f(None if c['service_cpu_share'] is None else 100 * c['service_cpu_share'], '{:.0f}')} % "
                   f"of a core, generator {100 * c['generator_cpu_share']:.0f} %.", "",
                   "| # | estimator | its kernels | request, s | applied | other sessions' stall, max ms (same worker) | "
+                  "until the reply / after it, ms | "
                   "their largest delay in the window / before it, ms | their largest gap minus the frame period, ms "
                   "(before it) | switched session: largest delay in the window, ms; next frame after the reply, ms |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         for i, row in enumerate(c["switches"], 1):
             others = row["others"].values()
             same = [s["stall_ms"] for s in others if s.get("same_worker") and s["stall_ms"] is not None]
@@ -308,7 +316,8 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
             sw = row.get("switched", {})
             lines.append(f"| {i} | {row['estimator']} | {row['kernels']} | {row['request_s']:.2f} | "
                          f"{'yes' if row['applied'] else 'NO: ' + str(row['reply'])} | {_f(row['stall_ms'])}"
-                         f" ({_f(max(same) if same else None)}) | {_f(wmax)} / {_f(bmax)} | {_f(gmax)} ({_f(gb)}) | "
+                         f" ({_f(max(same) if same else None)}) | {_f(row['stall_until_reply_ms'])} / "
+                         f"{_f(row['stall_after_reply_ms'])} | {_f(wmax)} / {_f(bmax)} | {_f(gmax)} ({_f(gb)}) | "
                          f"{_f(sw.get('max_delay_ms'))}; {_f(sw.get('next_frame_after_reply_ms'))} |")
         figures = stall_figures(c)
         lines += ["", "| what the switch found | other sessions' stall p50 / p99 / max, ms (session-switches) |",
