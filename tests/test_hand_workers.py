@@ -185,6 +185,23 @@ def test_switching_a_session_to_an_estimator_not_loaded_in_its_worker_does_not_s
     assert summary["a"]["worker"]["pid"] == summary["b"]["worker"]["pid"]
 
 
+def _serve_as_from_a_terminal(port: int, **kwargs):
+    """``fingertrack serve`` in a process group of its own, started as a terminal's shell starts it: with
+    SIGINT at its default. A process that inherits SIGINT ignored keeps ignoring a Ctrl-C (uvicorn
+    shuts down on it and exits 0), and this process may have it ignored: a shell without job control
+    starts background commands so, and pytest-xdist's workers inherit that. A handler set here is
+    reset to the default in the child when it executes the service."""
+    import subprocess
+    import sys
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
+                                start_new_session=True, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
     """A terminal's Ctrl-C reaches the whole process group: the web process closes its hand workers in
     order, so neither a worker's KeyboardInterrupt traceback nor a 'hand worker ... ended' warning (a
@@ -196,9 +213,7 @@ def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
     from service.api.server import free_port
 
     port = free_port()
-    inherited = signal.getsignal(signal.SIGINT)      # what the service starts with (SIG_IGN: it exits 0)
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    proc = _serve_as_from_a_terminal(port, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_healthy(f"http://127.0.0.1:{port}", 300.0, alive=lambda: proc.poll() is None)
         workers = subprocess.run(["pgrep", "-P", str(proc.pid), "-f", "service.api.hands.worker"],
@@ -210,7 +225,7 @@ def test_ctrl_c_on_serve_ends_it_and_its_workers_in_order_without_a_traceback():
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)
             proc.wait()
-    assert proc.returncode == 130, (inherited, output)   # the CLI's exit status after Ctrl-C (128 + SIGINT)
+    assert proc.returncode == 130, output            # the CLI's exit status after Ctrl-C (128 + SIGINT)
     assert "Traceback" not in output and "KeyboardInterrupt" not in output, output
     assert "ended with" not in output, output
     for pid in workers:
@@ -272,9 +287,7 @@ def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
     from service.api.server import free_port
 
     port = free_port()
-    inherited = signal.getsignal(signal.SIGINT)      # what the service starts with (SIG_IGN: it exits 0)
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    proc = _serve_as_from_a_terminal(port, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     workers: list[int] = []
     try:
         wait_healthy(f"http://127.0.0.1:{port}", 300.0, alive=lambda: proc.poll() is None)
