@@ -213,8 +213,11 @@ def test_the_hands_shared_acceleration_error_equals_its_reference():
         acc = [rng.normal(0.0, 12.0, (c.n_sensors, 3)) for c in runs["kernel"]]
         gyr[0][0, 1] = 31.0 if tick == 1 else gyr[0][0, 1]       # past the gyro's full scale
         acc[3][-1, 2] = -160.0 if tick == 4 else acc[3][-1, 2]   # past the accelerometer's
-        hands["kernel"].advance(t, runs["kernel"], np.concatenate(gyr), np.concatenate(acc), hand)
-        hands["reference"].advance_reference(t, runs["reference"], np.concatenate(gyr), np.concatenate(acc), hand)
+        out = hands["kernel"].advance(t, runs["kernel"], np.concatenate(gyr), np.concatenate(acc), hand)
+        want = hands["reference"].advance_reference(t, runs["reference"], np.concatenate(gyr), np.concatenate(acc), hand)
+        # the outputs too: every finger's joint angles and every sensor's mode
+        np.testing.assert_allclose(out[0], want[0], rtol=0, atol=TOL, err_msg="joint angles")
+        assert out[1] == want[1] and list(out[2:]) == list(want[2:])
         k, r = hands["kernel"], hands["reference"]
         assert np.abs(k._dl - dl).max() > 1e-3 or tick == 3        # δ moves (it restarts while the optics are lost)
         for got, want, what in ((k._x, r._x, "x"), (k._rate, r._rate, "rate"), (k._hand_acc, r._hand_acc, "hand_acc"),
@@ -250,7 +253,7 @@ def test_the_shared_error_update_is_the_textbook_kalman_update_of_the_augmented_
     # prediction: δ a first-order Gauss-Markov process, x by the filter's own prediction
     ref = Chain(geom, st, extra_couplings=((0, 1.0),))
     ref._state, ref._t_last = {k: v.copy() for k, v in state.items()}, 0.0
-    tau, scale, floor = h._jp
+    tau, scale, floor = h._jp[:3]
     q = scale**2 * np.sum((hand.acceleration - state["hand_acc"]) ** 2) + floor**2
     d = np.exp(-t / tau)
     dl, pd, cx = dl0 * d, d * d * pd0 + (1 - d * d) * q * np.eye(3), cx0[0] * d
@@ -294,3 +297,87 @@ def test_the_shared_error_update_is_the_textbook_kalman_update_of_the_augmented_
     assert np.allclose(est._state["P"][0], P_new[:N_STATE, :N_STATE], rtol=0, atol=1e-12)
     assert np.allclose(h._cx[0], P_new[:N_STATE, N_STATE:], rtol=0, atol=1e-12)
     assert np.allclose(h._pd, P_new[N_STATE:, N_STATE:], rtol=0, atol=1e-12)
+
+
+def _shared_error_finger(rng, implementation_settings=None):
+    """An index finger (two sensors) in a ``ChainHand`` with the shared acceleration error δ on."""
+    st = ChainSettings(optical_fit_lag_s=0.07, hand_acc_error_scale=0.5, hand_acc_error_floor_m_s2=0.2,
+                       acc_range_m_s2=150.0)
+    est = Chain(default_calibration("right").fingers["index"], st)
+    state = _random_state(rng, est)
+    state["x"][:, TH_INDEX] = [0.3, 0.8]
+    return est, state
+
+
+TH_INDEX, BG_INDEX = 0, 1
+
+
+@pytest.mark.parametrize("implementation", ["kernel", "reference"])
+def test_a_later_sensors_predicted_angle_follows_its_offset_corrected_in_the_same_tick(implementation):
+    """Within a tick the first sensor's update moves the second sensor's gyro offset b_g through its
+    correlation with δ before the second sensor's own update. That correction is of the state before
+    the prediction ``θ ← θ + dt (ω̄ - b_g - ...)``, so the angle the second sensor starts its own update
+    from must move by ``-dt Δb_g``: with the second accelerometer clipped (no update of its own), its
+    final angle with an offset-δ correlation differs from the one without it by exactly ``-dt Δb_g``."""
+    rng = np.random.default_rng(21)
+    results = []
+    est0, state = _shared_error_finger(rng)
+    hand, gyr, acc, dt = _random_hand(rng, ()), rng.normal(0.0, 1.0, (2, 3)), rng.normal(0.0, 9.0, (2, 3)), 0.01
+    acc[1] = [0.0, 160.0, 0.0]                                   # past the accelerometer's full scale
+    cx0, dl0 = rng.normal(0.0, 0.02, (2, N_STATE, 3)), rng.normal(0.0, 1.0, 3)
+    cx0[1] = 0.0
+    for correlated in (False, True):
+        est = Chain(est0.geom, est0.settings)
+        est._state, est._t_last = {k: v.copy() for k, v in state.items()}, 0.0
+        h = ChainHand()
+        h._stack([est], np.zeros(3))
+        h._cx[:], h._dl[:], h._pd[:] = cx0, dl0, 0.3 * np.eye(3)
+        if correlated:
+            h._cx[1, BG_INDEX] = [0.05, -0.04, 0.03]
+        advance = h.advance if implementation == "kernel" else h.advance_reference
+        advance(dt, [est], gyr, acc, hand)
+        results.append(est._state["x"][1].copy())
+    moved = results[1][BG_INDEX] - results[0][BG_INDEX]
+    assert abs(moved) > 1e-3
+    assert results[1][TH_INDEX] - results[0][TH_INDEX] == pytest.approx(-dt * moved, abs=1e-10)
+
+
+@pytest.mark.parametrize("implementation", ["kernel", "reference"])
+def test_the_shared_error_decays_over_the_time_since_it_was_advanced_across_a_rebuild(implementation):
+    """δ is a first-order Gauss-Markov process of the optics (time constant τ): when the fingers are
+    rebuilt (a calibration, an estimator switch, every sensor silent and back) and the new estimators
+    join after their own first step, δ must have decayed over the whole time since it was last
+    advanced, ``δ e^{-T/τ}`` and ``P_δ e^{-2T/τ} + (1 - e^{-2T/τ}) q I``, not over the new filters' one step
+    (accelerometers clipped: no measurement moves it)."""
+    rng = np.random.default_rng(22)
+    est0, state = _shared_error_finger(rng)
+    est = Chain(est0.geom, est0.settings)
+    est._state, est._t_last = {k: v.copy() for k, v in state.items()}, 0.0
+    h = ChainHand()
+    advance = h.advance if implementation == "kernel" else h.advance_reference
+    clipped = np.tile([0.0, 160.0, 0.0], (2, 1))
+    advance(0.01, [est], rng.normal(0.0, 1.0, (2, 3)), clipped, _random_hand(rng, ()))
+    a = rng.normal(0.0, 0.5, (3, 3))
+    h._dl[:], h._pd[:] = [1.5, -0.7, 0.4], a @ a.T + 0.1 * np.eye(3)
+    dl1, pd1 = h._dl.copy(), h._pd.copy()
+    rebuilt = Chain(est0.geom, est0.settings)                    # began alone at t = 0.2 (its own first step)
+    rebuilt._state, rebuilt._t_last = {k: v.copy() for k, v in est._state.items()}, 0.2
+    hand = _random_hand(rng, ())
+    advance(0.205, [rebuilt], rng.normal(0.0, 1.0, (2, 3)), clipped, hand)
+    tau, scale, floor = h._jp[:3]
+    q = scale**2 * np.sum((hand.acceleration - est._state["hand_acc"]) ** 2) + floor**2
+    d = np.exp(-(0.205 - 0.01) / tau)
+    np.testing.assert_allclose(h._dl, d * dl1, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(h._pd, d * d * pd1 + (1 - d * d) * q * np.eye(3), rtol=0, atol=1e-8)
+    # a time before the last one (the source's clock stepped back): δ restarts from its prior
+    again = Chain(est0.geom, est0.settings)
+    again._state, again._t_last = {k: v.copy() for k, v in est._state.items()}, 0.0
+    advance(0.1, [again], rng.normal(0.0, 1.0, (2, 3)), clipped, _random_hand(rng, ()))
+    np.testing.assert_allclose(h._dl, 0.0, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(h._pd, floor**2 * np.eye(3), rtol=0, atol=1e-8)
+    # estimators of other settings for δ (an estimator switch): δ restarts from their prior
+    h._dl[:] = 1.0
+    switched = Chain(est0.geom, est0.settings.model_copy(update={"hand_acc_error_floor_m_s2": 0.4}))
+    switched._state = {k: v.copy() for k, v in est._state.items()}
+    h._stack([switched], np.zeros(3))
+    assert h._dl.tolist() == [0.0] * 3 and np.allclose(h._pd, 0.4**2 * np.eye(3), rtol=0, atol=1e-15)

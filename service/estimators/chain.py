@@ -163,8 +163,14 @@ or a widening kept as well, or only the other sensors' angles moved, the same. T
 (12 s, mean joint RMS, against the widening alone): with the reference pose 2.161 -> 2.035 deg (16 of
 20 better, -0.126 ± 0.040), without it 2.998 -> 2.885 (11 of 20, -0.114 ± 0.078); events back within
 1.5x in 1 s 96 -> 95 of 100 in both. A finger advanced alone (a rebuild, a batch, the reference
-implementation) keeps the widening. (A separate filter of ``δ`` fed back to the next tick was tried
-before: it found ``δ`` but the angles did not gain, since it ignored the correlation with them.)
+implementation) keeps the widening. ``δ`` is the optics' error, not a filter's: it is kept across a
+rebuild of the fingers' filters (a sensor's fallback and return, a calibration, an estimator switch) and
+decays over the whole time since it was last advanced, not over the new filters' first step; it restarts
+from its prior when its settings change or the source's clock steps back. Within a tick, a later
+sensor of a finger moved through its correlation with ``δ`` has its predicted angle moved by ``F dx``
+(its offset's correction enters the angle's prediction, ``-dt dx_bg``). (A separate filter of ``δ`` fed
+back to the next tick was tried before: it found ``δ`` but the angles did not gain, since it ignored the
+correlation with them.)
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
@@ -221,7 +227,7 @@ class ChainSettings(EstimatorSettings):
     gyro_range_rad_s: float = Field(2000.0 * DEG, gt=0.0, description="gyro full scale (MPU-9250: ±2000 deg/s); a sample at it is saturated, rad/s")
     acc_range_m_s2: float = Field(16.0 * 9.80665, gt=0.0, description="accelerometer full scale (±16 g); a sample at it is saturated, m/s²")
     clipped_rate_std_rad_s: float = Field(200.0 * DEG, ge=0.0, description="the angle's process noise per clipped gyro sample, rad/s: the pipeline adds what a clipped run missed after it (mounting.py), to within 3.2 deg RMS on runs of about ten samples on tuning trials, about 200 deg/s per sample; without that reconstruction the unknown excess rate is up to the full scale (2000 deg/s)")
-    optical_fit_lag_s: float = Field(0.075, ge=0.0, description="lag of the optical hand acceleration, half the pipeline's fit window (PipelineSettings.pose_window_s, 0.15 s): the accelerometer's noise is widened along the fit's change over this lag, its predicted error ('The optics' acceleration' in the module docstring); 0 turns it off, s")
+    optical_fit_lag_s: float = Field(0.075, ge=0.0, description="lag of the optical hand acceleration, half the pipeline's fit window (PipelineSettings.pose_window_s, 0.15 s): the accelerometer's noise is widened along the fit's change over this lag, its predicted error ('The optics' acceleration' in the module docstring), and it is the time constant of the shared error δ (hand_acc_error_scale); 0 turns both off, s")
     hand_acc_error_scale: float = Field(0.22, ge=0.0, description="the hand's optical acceleration error δ as a state shared by every sensor of the hand (with ChainHand, the pipeline's one call per tick): its std as a fraction of the fit's predicted lag error |â - ā|, time constant optical_fit_lag_s; with this and the floor at 0 the lag error widens each accelerometer's noise instead ('The optics' acceleration' in the module docstring)")
     hand_acc_error_floor_m_s2: float = Field(0.05, ge=0.0, description="the least std of δ, m/s²")
     untracked_acc_noise_m_s2: float = Field(3.0, gt=0.0, description="accelerometer std while the hand's acceleration is unknown (optics lost), m/s²")
@@ -587,7 +593,7 @@ class Chain(FingerEstimator):
         sigma = np.where(acc_sat, 1e6, sigma)
         return force, u, mu, sigma, acc_sat
 
-    def _joint_step_reference(self, dt, gyr, acc, hand, together: "ChainHand", s_off: int) -> None:
+    def _joint_step_reference(self, dt, gyr, acc, hand, together: "ChainHand", s_off: int) -> tuple:
         """One sample of this finger (no batch) with the hand's shared acceleration error ``δ`` in numpy,
         the reference ``chain_kernel._joint_update`` is tested equal to: the state (views into
         ``together``'s stacked arrays), ``δ``, ``P_δ`` and every sensor's ``C_l = P_{x_l δ}`` updated in
@@ -596,14 +602,14 @@ class Chain(FingerEstimator):
         terms between two sensors' states are dropped, as between separate filters, so another
         sensor's own covariance is not reduced (that would count the same information again). The
         general covariance update ``P - K (PHᵀ)ᵀ - PHᵀ Kᵀ + K S Kᵀ`` holds for the held scale state's
-        zeroed gain."""
+        zeroed gain. Returns the sensors' angles and mode codes, as ``_step_reference``."""
         state = self._state
         x, P = state["x"], state["P"]
         dl0 = together._dl.copy()
         hand_d = replace(hand, acceleration=hand.acceleration + dl0)
         x_pred, _, rate_meas, rate, prev_rate, P_pred = self._predict_reference(state, dt, gyr, hand)
         th = x_pred[:, TH].copy()
-        force, u, _, sigma, _ = self._measure_reference(dt, gyr, acc, hand_d, th, rate, prev_rate)
+        force, u, mu, sigma, _ = self._measure_reference(dt, gyr, acc, hand_d, th, rate, prev_rate)
         learn = self._settings_vector[K.ST_GS_LEARN] > 0.5
         fs = dt * self.obs.hinge_rate(gyr) if learn else np.zeros(len(th))
         to_base = self.obs.base.T @ hand.rotation.T                   # R_Bᵀ R_Mᵀ
@@ -639,7 +645,9 @@ class Chain(FingerEstimator):
                 cx[lo] = cx[lo] - gain_l @ phd.T - phl @ gain_d.T + gain_l @ S @ gain_d.T
                 dx = gain_l @ y
                 if s_off <= lo < s_off + ns and lo - s_off > k:
-                    th[lo - s_off] += dx[TH]            # not updated yet this tick: its predicted angle moves
+                    # not updated yet this tick: its correction is of the state before the prediction,
+                    # so the predicted angle moves by F dx (θ ← θ - dt b_g - dt g_x s_g)
+                    th[lo - s_off] += dx[TH] - dt * dx[BG] - fs[lo - s_off] * dx[GS]
                     x_all[lo, 1:] += dx[1:]
                 else:
                     x_all[lo] += dx
@@ -652,6 +660,7 @@ class Chain(FingerEstimator):
             together._dl += gain_d @ y
         state["rate"][:] = rate_meas
         state["hand_acc"][:] = self._smoothed_reference(state["hand_acc"], dt, hand)
+        return x[:, TH].copy(), np.where(mu > 0.5 * np.linalg.norm(self.gravity_world), MODE_FAST, MODE_FUSED).astype(np.int8)
 
 
 class ChainHand:
@@ -668,6 +677,7 @@ class ChainHand:
         self._estimators: list[Chain] = []
         self._states: list[dict] = []
         self._dl: np.ndarray | None = None
+        self._t_dl: float | None = None     # the time δ was last advanced to
 
     @staticmethod
     def takes(estimator, t: float) -> bool:
@@ -697,15 +707,19 @@ class ChainHand:
         self._phal = np.empty(int(phalanx_start[-1]))
         self._mode = np.empty(int(sensor_start[-1]), dtype=np.int8)
         # the hand's shared acceleration error δ ("The optics' acceleration" in the module docstring):
-        # kept across a restack, its cross-covariances with the restacked states start at 0
+        # kept across a restack (a property of the optics, not of the filters: ``advance`` decays it
+        # over the time since it was last advanced), its cross-covariances with the restacked states
+        # start at 0; it restarts from its prior when its settings changed
         s = estimators[0].settings
         on = s.optical_fit_lag_s > 0.0 and (s.hand_acc_error_scale > 0.0 or s.hand_acc_error_floor_m_s2 > 0.0)
-        self._jp = np.array([s.optical_fit_lag_s if on else 0.0, s.hand_acc_error_scale, s.hand_acc_error_floor_m_s2])
+        # the time constant, scale and floor, and (set by each ``advance``) the time δ decays over
+        jp = np.array([s.optical_fit_lag_s if on else 0.0, s.hand_acc_error_scale, s.hand_acc_error_floor_m_s2, 0.0])
         self._cx = np.zeros((int(sensor_start[-1]), N_STATE, 3))
         self._pd0 = np.eye(3) * s.hand_acc_error_floor_m_s2**2
-        if self._dl is None:
+        if self._dl is None or not np.array_equal(jp[:3], self._jp[:3]):
             self._dl = np.zeros(3)
             self._pd = self._pd0.copy()
+        self._jp = jp
         for f, e in enumerate(estimators):
             s0, s1 = sensor_start[f], sensor_start[f + 1]
             e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
@@ -726,6 +740,7 @@ class ChainHand:
         if not self._stacked(estimators):
             self._stack(estimators, hand.acceleration)
         dts = np.array([t - e._t_last for e in estimators])
+        self._jp[3] = self._delta_step(t, dts)
         untracked = np.array([e._hand_untracked for e in estimators])
         phi = np.empty(self._phal.shape[0])
         mode = self._mode                   # read out below, before the next call writes it again
@@ -738,6 +753,17 @@ class ChainHand:
         self._keep_shared_error_finite()
         return phi, mode.tolist(), *self._starts
 
+    def _delta_step(self, t: float, dts: np.ndarray) -> float:
+        """The time δ decays over in this tick: since it was last advanced, not the fingers' own step (a
+        finger rebuilt, or every finger of the hand after a calibration or an estimator switch, starts
+        its step anew while δ was last advanced before); the fingers' step the first time. A time
+        before that (the source's clock stepped back) restarts δ from its prior."""
+        gap = float(dts.max()) if self._t_dl is None else t - self._t_dl
+        self._t_dl = t
+        if gap < 0.0:
+            self._dl[:], self._pd[:], self._cx[:], gap = 0.0, self._pd0, 0.0, 0.0
+        return gap
+
     def _keep_shared_error_finite(self) -> None:
         """A finger whose filter diverged in this tick (a non-finite state; ``HandSession._reset_finger``
         restarts it) may have carried the non-finite value into the shared error δ through its update.
@@ -747,31 +773,36 @@ class ChainHand:
         if not math.isfinite(sum(self._dl.tolist()) + sum(self._pd.ravel().tolist())):
             self._dl[:], self._pd[:], self._cx[:] = 0.0, self._pd0, 0.0
 
-    def advance_reference(self, t: float, estimators: list[Chain], gyr: np.ndarray, acc: np.ndarray, hand) -> None:
-        """``advance`` in numpy (the states only): the reference the kernel's shared hand acceleration
+    def advance_reference(self, t: float, estimators: list[Chain], gyr: np.ndarray, acc: np.ndarray, hand) -> tuple:
+        """``advance`` in numpy (the same returns): the reference the kernel's shared hand acceleration
         error is tested equal to (``tests/test_chain_kernel.py``). ``δ`` is a first-order Gauss-Markov
         process of time constant ``optical_fit_lag_s`` whose std is ``hand_acc_error_scale`` |â - ā| +
         the floor (in quadrature); while the optics are lost it restarts at 0."""
         if not self._stacked(estimators):
             self._stack(estimators, hand.acceleration)
         dts = np.array([t - e._t_last for e in estimators])
-        tau, scale, floor = self._jp
+        tau, scale, floor = self._jp[:3]
+        step = self._delta_step(t, dts)
         if tau > 0.0:
             q = scale**2 * float(np.sum((hand.acceleration - self._hand_acc[0]) ** 2)) + floor**2
             if any(e._hand_untracked for e in estimators):
                 self._dl[:], self._pd[:], self._cx[:] = 0.0, q * np.eye(3), 0.0
             else:
-                decay = np.exp(-dts.max() / tau)
+                decay = np.exp(-step / tau)
                 self._dl *= decay
                 self._pd[:] = decay**2 * self._pd + (1.0 - decay**2) * q * np.eye(3)
                 self._cx *= decay
+        phi, modes = [], []
         for f, e in enumerate(estimators):
             rows = slice(self._sensor_start[f], self._sensor_start[f + 1])
             if tau > 0.0 and not e._hand_untracked:
-                e._joint_step_reference(dts[f], gyr[rows], acc[rows], hand, self, int(self._sensor_start[f]))
+                theta, mode = e._joint_step_reference(dts[f], gyr[rows], acc[rows], hand, self, int(self._sensor_start[f]))
             else:
-                new, _, _ = e._step_reference(e._state, dts[f], gyr[rows], acc[rows], hand)
+                new, theta, mode = e._step_reference(e._state, dts[f], gyr[rows], acc[rows], hand)
                 for key in ("x", "P", "rate", "hand_acc"):
                     e._state[key][...] = new[key]
             e._t_last = t
+            phi.append(e.closure.joint_angles(e._branch(theta)))
+            modes += mode.tolist()
         self._keep_shared_error_finite()
+        return np.concatenate(phi), modes, *self._starts

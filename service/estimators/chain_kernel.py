@@ -91,16 +91,15 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     smoothed hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 12) and ``untracked[f]``. The
     hand's motion ``hand`` (18) is shared, and so is the optical acceleration's error ``δ`` (``dl`` (3), its
     covariance ``pd`` (3, 3), every sensor's cross-covariance with it ``cx`` (S, 14, 3); ``jp``: its time
-    constant, scale and floor, ``chain.py``), updated in place; with the time constant 0 there is none and
+    constant, scale, floor and the time since ``δ`` was last advanced, ``chain.py``), updated in place; with the time constant 0 there is none and
     each finger widens its accelerometers along the fit's lag error instead."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
     joint_tau, joint_scale, joint_floor = jp[0], jp[1], jp[2]
     joint = joint_tau > 0.0
     if joint:
-        # the shared error of the optical hand acceleration: first-order Gauss-Markov
-        dt = 0.0
-        for f in range(dts.shape[0]):
-            dt = max(dt, dts[f])
+        # the shared error of the optical hand acceleration: first-order Gauss-Markov over the time since
+        # it was last advanced (``jp[3]``, ``ChainHand._delta_step``)
+        dt = jp[3]
         lost = False
         for f in range(dts.shape[0]):
             lost = lost or untracked[f]
@@ -398,7 +397,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
                 if joint:
                     _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0)
+                                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0, dt)
                 else:
                     # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
                     for ii in range(N_STATE):
@@ -498,7 +497,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0):
+                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0, dt):
     """Sensor ``k``'s accelerometer update with the hand's shared acceleration error ``δ`` (world frame)
     as three more states: the measurement ``f = h(x_k) + M δ``, ``M = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ``; the
     augmented covariance keeps ``P_k``, ``C_l = P_{x_l δ}`` of every sensor ``l`` of the hand and ``P_δ``
@@ -583,9 +582,13 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
         for ii in range(N_STATE):
             dx = kl[ii, 0] * yy[0] + kl[ii, 1] * yy[1] + kl[ii, 2] * yy[2]
             if ii == 0 and same:
-                th[l - s_off] += dx        # not updated yet this tick: its predicted angle moves
+                th[l - s_off] += dx        # not updated yet this tick: its predicted angle moves (below)
             else:
                 x_all[l, ii] += dx
+            if ii == 1 and same:
+                # its correction is of the state before the prediction, so the predicted angle moves by
+                # F dx: -dt dx_bg (the scale state's term -dt g_x dx_gs is 0: K_l holds it)
+                th[l - s_off] -= dt * dx
     # the sensor itself and δ
     _cross_update(cx, gk, kg, pht, kd, phd, sm, tl)
     for ii in range(N_STATE):
