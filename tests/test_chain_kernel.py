@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.estimators.chain import Chain, ChainHand, ChainSettings
+from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings
 from service.estimators.chain_kernel import N_STATE
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
@@ -234,7 +234,7 @@ def test_the_shared_error_update_is_the_textbook_kalman_update_of_the_augmented_
     out directly (the 17 + 3 states' covariance as one block matrix, the Joseph form), and the
     measurement's sensitivity to δ, M, equals finite differences of the predicted specific force."""
     from service.estimators import chain_kernel as K
-    from service.estimators.chain import BA, BG, GA, GA_START, GS, TH
+    from service.estimators.chain import BA, GA, GA_START, GS
 
     rng = np.random.default_rng(3)
     geom = default_calibration("right").fingers["little"]
@@ -299,17 +299,14 @@ def test_the_shared_error_update_is_the_textbook_kalman_update_of_the_augmented_
     assert np.allclose(h._pd, P_new[N_STATE:, N_STATE:], rtol=0, atol=1e-12)
 
 
-def _shared_error_finger(rng, implementation_settings=None):
-    """An index finger (two sensors) in a ``ChainHand`` with the shared acceleration error δ on."""
+def _shared_error_finger(rng):
+    """An index finger (two sensors) with the shared acceleration error δ on, and a random state for it."""
     st = ChainSettings(optical_fit_lag_s=0.07, hand_acc_error_scale=0.5, hand_acc_error_floor_m_s2=0.2,
                        acc_range_m_s2=150.0)
     est = Chain(default_calibration("right").fingers["index"], st)
     state = _random_state(rng, est)
-    state["x"][:, TH_INDEX] = [0.3, 0.8]
+    state["x"][:, TH] = [0.3, 0.8]
     return est, state
-
-
-TH_INDEX, BG_INDEX = 0, 1
 
 
 @pytest.mark.parametrize("implementation", ["kernel", "reference"])
@@ -333,13 +330,13 @@ def test_a_later_sensors_predicted_angle_follows_its_offset_corrected_in_the_sam
         h._stack([est], np.zeros(3))
         h._cx[:], h._dl[:], h._pd[:] = cx0, dl0, 0.3 * np.eye(3)
         if correlated:
-            h._cx[1, BG_INDEX] = [0.05, -0.04, 0.03]
+            h._cx[1, BG] = [0.05, -0.04, 0.03]
         advance = h.advance if implementation == "kernel" else h.advance_reference
         advance(dt, [est], gyr, acc, hand)
         results.append(est._state["x"][1].copy())
-    moved = results[1][BG_INDEX] - results[0][BG_INDEX]
+    moved = results[1][BG] - results[0][BG]
     assert abs(moved) > 1e-3
-    assert results[1][TH_INDEX] - results[0][TH_INDEX] == pytest.approx(-dt * moved, abs=1e-10)
+    assert results[1][TH] - results[0][TH] == pytest.approx(-dt * moved, abs=1e-10)
 
 
 @pytest.mark.parametrize("implementation", ["kernel", "reference"])
