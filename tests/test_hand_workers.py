@@ -309,3 +309,66 @@ def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
         for pid in workers:
             if not _gone(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+def test_a_worker_serves_its_other_sessions_while_a_thread_loads_an_estimator_s_kernels(monkeypatch):
+    """The worker loads a switched-to estimator's kernels in a thread (on its main thread, loading
+    ``inertial`` from the cache stopped its other sessions for 130 ms): while the loading is held,
+    another session's source messages are answered, frames included; the change applies once it is
+    loaded, and not before."""
+    import socket
+    import threading
+
+    import msgpack
+
+    from service.api import sessions
+    from service.api.hands import worker as hands_worker
+
+    entered, release, loaded = threading.Event(), threading.Event(), set()
+
+    def held_warm(name, params=None):
+        entered.set()
+        assert release.wait(120.0), "the test never released the loading"
+        loaded.add(name)
+    monkeypatch.setattr(hands_worker, "warm", held_warm)
+    monkeypatch.setattr(hands_worker, "is_warm", lambda name: name != "vector" or name in loaded)
+    monkeypatch.setattr(hands_worker, "needs_compiling", lambda name: False)    # in the cache: no process
+    monkeypatch.setattr(sessions, "warm_ahead", lambda name, params=None: None)
+    ours, theirs = socket.socketpair()
+    worker = hands_worker.Worker(theirs, _settings(1))
+    thread = threading.Thread(target=worker.run, daemon=True)
+    thread.start()
+    received, buffer = [], bytearray()
+
+    def send(messages):
+        ours.sendall(hands_worker.frame(messages))
+
+    def until(condition, what):
+        ours.settimeout(120.0)                  # a bound for a failure only
+        while not condition():
+            try:
+                chunk = ours.recv(1 << 20)
+            except TimeoutError:
+                raise AssertionError(f"nothing from the worker for 120 s waiting for {what}") from None
+            assert chunk, f"the worker ended before {what}"
+            buffer.extend(chunk)
+            while len(buffer) >= 4 and len(buffer) >= 4 + (size := hands_worker.HEADER.unpack_from(buffer)[0]):
+                received.extend(msgpack.unpackb(bytes(buffer[4:4 + size])))
+                del buffer[:4 + size]
+
+    try:
+        msgs = [m for _, m in _messages("right", 1.0, 5)]
+        send([["open", 1, "a", None], ["open", 2, "b", None], ["cfg", 2, 1, {"estimator": "vector"}]])
+        assert entered.wait(120.0), "the kernels' loading never began"
+        send([["src", 1, n, m] for n, m in enumerate(msgs, 1)])
+        until(lambda: sum(1 for m in received if m[0] == "rep" and m[1] == 1) == len(msgs), "session a's replies")
+        assert any(m[0] == "out" and m[1] == 1 and m[3][0] == "frame" for m in received)
+        assert not any(m[0] == "cfgrep" for m in received)      # b's change waits for its kernels
+        release.set()
+        until(lambda: any(m[0] == "cfgrep" for m in received), "b's change")
+        reply, = [m for m in received if m[0] == "cfgrep"]
+        assert reply[1:3] == [2, 1] and reply[3]["estimator"] == "vector" and reply[4] is None, reply
+    finally:
+        release.set()
+        ours.close()
+        thread.join(60.0)

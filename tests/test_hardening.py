@@ -865,6 +865,26 @@ def test_switching_to_a_compiled_estimator_warms_it_off_the_loop(server):
     assert answered >= 1
 
 
+def test_kernels_compile_in_a_process_at_the_lowest_priority_and_load_with_the_interpreter_shared():
+    """The separate process that compiles kernels beside a serving process runs at niceness 19; while
+    kernels load in a thread of a serving process, the interpreter's lock changes hands every 0.5 ms
+    (nested loads too), and the interval before is restored after the last."""
+    from service.estimators import warm
+
+    command = warm.compile_command("inertial", {"a": 1})
+    assert command[1:5] == ["-m", "service.estimators.warm", "--background", "inertial"] and json.loads(command[5]) == {"a": 1}
+    done = subprocess.run([sys.executable, "-c", "import os; from service.estimators.warm import main; "
+                           "code = main(['--background']); print(code, os.nice(0))"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.stdout.splitlines()[-1] == f"2 {warm.COMPILE_NICE}", done
+    before = sys.getswitchinterval()
+    with warm.sharing_the_interpreter():
+        with warm.sharing_the_interpreter():
+            assert sys.getswitchinterval() == pytest.approx(warm.LOAD_SWITCH_INTERVAL_S)
+        assert sys.getswitchinterval() == pytest.approx(warm.LOAD_SWITCH_INTERVAL_S)
+    assert sys.getswitchinterval() == before
+
+
 # -- item 7: errors a person can act on ------------------------------------------------------------------------
 
 def _cli(*args, env=None):

@@ -11,12 +11,22 @@ The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the ge
 ``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
 cache (the usual case after the first run, and in the container image) the separate process is skipped:
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
-start-up."""
+start-up.
+
+Beside live sessions two things must not take their time: the separate process runs at the lowest
+priority (``--background``, niceness ``COMPILE_NICE``: on a machine short of cores every process serving a
+session gets a core first; a compile took tens of seconds of a core), and the samples that load the
+cached code into a serving process run in a thread with the interpreter's lock handed over every
+``LOAD_SWITCH_INTERVAL_S`` (``sharing_the_interpreter``; loading ``inertial`` held it for 130 ms, the
+default interval lets a thread keep it 5 ms at a time)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import os
 import sys
+import threading
 
 import numpy as np
 
@@ -25,6 +35,39 @@ _WARM: set[str] = set()
 
 PIPELINE = "pipeline"
 """The name under which the hand pipeline's own kernels are warmed."""
+
+COMPILE_NICE = 19
+"""niceness of the separate process that compiles kernels (``--background``): the lowest"""
+LOAD_SWITCH_INTERVAL_S = 0.0005
+"""the interpreter's switch interval while kernels load in a thread of a serving process, s (default 0.005)"""
+_sharing = [0, None]                         # threads loading now, the switch interval before the first
+_sharing_lock = threading.Lock()
+
+
+@contextlib.contextmanager
+def sharing_the_interpreter():
+    """While the block runs (kernels loading in a thread beside threads that serve sessions), the
+    interpreter's lock changes hands every ``LOAD_SWITCH_INTERVAL_S``: a serving thread that wants it
+    waits that long at most, not the default 5 ms, each time it gets it back (a frame's path takes it
+    several times). The interval before is restored when the last such block ends."""
+    with _sharing_lock:
+        if _sharing[0] == 0:
+            _sharing[1] = sys.getswitchinterval()
+            sys.setswitchinterval(LOAD_SWITCH_INTERVAL_S)
+        _sharing[0] += 1
+    try:
+        yield
+    finally:
+        with _sharing_lock:
+            _sharing[0] -= 1
+            if _sharing[0] == 0:
+                sys.setswitchinterval(_sharing[1])
+
+
+def compile_command(name: str, params: dict | None = None) -> list[str]:
+    """The separate process that compiles the kernels of ``name`` (and the pipeline's) into the on-disk
+    cache, at the lowest priority."""
+    return [sys.executable, "-m", "service.estimators.warm", "--background", name, json.dumps(params or {})]
 
 
 def _pipeline_kernels() -> tuple:
@@ -88,18 +131,31 @@ def _to_warm(name: str) -> list[str]:
     return names
 
 
+def needs_compiling(name: str) -> bool:
+    """Whether warming ``name`` in this process needs the separate process first: some of its kernels
+    (or the pipeline's, not yet warm here) are not in the on-disk cache."""
+    names = _to_warm(name)
+    return bool(names) and not _on_disk(tuple(k for n in names for k in _kernels(n)))
+
+
 def warm(name: str, params: dict | None = None) -> None:
     """Run a few samples through the estimator ``name`` so that its kernels are compiled (or loaded
     from the cache) in this process (``PIPELINE``: the hand pipeline's kernels). Raises ``ValueError``
     for an unknown name or bad settings."""
-    from ..model.hand import default_calibration
-    from ..model.kinematics import BaseMotion
     from .registry import estimator_class
 
-    if name == PIPELINE:
-        _warm_pipeline()
-        return
-    cls = estimator_class(name)
+    with sharing_the_interpreter():
+        if name == PIPELINE:
+            _warm_pipeline()
+            return
+        _warm_estimator(estimator_class(name), params)
+    _WARM.add(name)
+
+
+def _warm_estimator(cls, params: dict | None) -> None:
+    from ..model.hand import default_calibration
+    from ..model.kinematics import BaseMotion
+
     settings = cls.Settings(**(params or {}))
     geom = default_calibration("right").finger("index")
     estimator = cls(geom, settings=settings)
@@ -112,7 +168,6 @@ def warm(name: str, params: dict | None = None) -> None:
     from .chain import ChainHand
     if ChainHand.takes(estimator, 0.015):           # the hand pipeline's one call for all its fingers
         ChainHand().advance(0.015, [estimator], gyr, acc, hand)
-    _WARM.add(name)
 
 
 def is_warm(name: str) -> bool:
@@ -133,8 +188,8 @@ async def warm_off_loop(name: str, params: dict | None = None) -> None:
         return
     if not _on_disk(tuple(k for n in names for k in _kernels(n))):
         try:
-            proc = await asyncio.create_subprocess_exec(sys.executable, "-m", "service.estimators.warm", *names[-1:],
-                                                        json.dumps(params or {}), stdout=asyncio.subprocess.DEVNULL,
+            proc = await asyncio.create_subprocess_exec(*compile_command(names[-1], params),
+                                                        stdout=asyncio.subprocess.DEVNULL,
                                                         stderr=asyncio.subprocess.DEVNULL)
             await proc.wait()
         except OSError:
@@ -157,8 +212,8 @@ def warm_ahead(name: str, params: dict | None = None) -> None:
         return
     if not _on_disk(tuple(k for n in names for k in _kernels(n))):
         try:
-            subprocess.run([sys.executable, "-m", "service.estimators.warm", *names[-1:], json.dumps(params or {})],
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
+            subprocess.run(compile_command(names[-1], params), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                           check=False)
         except OSError:
             pass
     for n in names:
@@ -170,8 +225,13 @@ def warm_ahead(name: str, params: dict | None = None) -> None:
 
 
 def main(argv: list[str]) -> int:
+    if argv[:1] == ["--background"]:               # beside a serving process: the lowest priority
+        argv = argv[1:]
+        with contextlib.suppress(OSError):
+            os.nice(COMPILE_NICE - os.nice(0))
     if not argv:
-        print("usage: python -m service.estimators.warm NAME [PARAMS_JSON] (NAME: all for every estimator; the pipeline's kernels are always warmed)")
+        print("usage: python -m service.estimators.warm [--background] NAME [PARAMS_JSON] (NAME: all for every "
+              "estimator; the pipeline's kernels are always warmed; --background: at the lowest priority)")
         return 2
     from .registry import REGISTRY
     names = [PIPELINE] + ([n for n, c in REGISTRY.items() if c.jit_kernels] if argv[0] == "all" else [argv[0]])

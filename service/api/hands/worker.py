@@ -19,8 +19,8 @@ Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a ses
   error replies, e.g. an ``imu_batch``'s refused samples, come back in its ``rep``;
 * ``["cfg", sid, n, change]`` / ``["enrol", sid, n, segments]``: a configuration change / a gesture
   enrolment; an estimator whose kernels this process has not loaded is first compiled into the cache
-  by a separate process while the worker goes on serving (the session keeps its old estimator until
-  then), then loaded here and applied;
+  by a separate process at the lowest priority (unless they are in it), then loaded here by a thread,
+  while the worker goes on serving (the session keeps its old estimator until then), then applied;
 * ``["fmt", sid, binary]``: whether a subscriber of the session reads MessagePack (``binary``), so
   that its outputs are encoded as that too;
 * ``["drops", sid, subscriber_frames, overloaded]``: the session's counts for its frames'
@@ -73,7 +73,7 @@ import msgpack
 from ...pipeline.gc_policy import serving_gc
 from ...protocol import ProtocolError, parse_input, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
-from ...estimators.warm import is_warm, warm, warm_ahead
+from ...estimators.warm import compile_command, is_warm, needs_compiling, warm, warm_ahead
 from ..config import ServiceSettings
 from ..metrics import Metrics
 from ..outgoing import Outgoing
@@ -192,7 +192,8 @@ class Worker:
         self.metrics = Metrics()
         self.hands: dict[int, OwnedHand] = {}
         self.out: list = []
-        self.warming: dict[str, subprocess.Popen] = {}      # estimator name -> its compiling process
+        self.warming: dict[str, subprocess.Popen | threading.Thread] = {}
+        """estimator name -> its compiling process, then the thread that loads its kernels here"""
         self.waiting: list[list] = []                         # cfg/enrol messages in order, until warm
         self.send_lock = threading.Lock()
 
@@ -283,8 +284,9 @@ class Worker:
         elif kind in ("cfg", "enrol"):
             name = self.estimator_of(message)
             if name is not None and not is_warm(name) and name not in self.warming:
-                self.warming[name] = subprocess.Popen([sys.executable, "-m", "service.estimators.warm", name],
-                                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                self.warming[name] = (subprocess.Popen(compile_command(name), stdout=subprocess.DEVNULL,
+                                                       stderr=subprocess.DEVNULL)
+                                      if needs_compiling(name) else self.load(name))
             self.waiting.append(message)
             self.apply_waiting()
 
@@ -293,18 +295,30 @@ class Worker:
         body = message[3]
         return body.get("estimator") if message[0] == "cfg" and isinstance(body, dict) else None
 
+    @staticmethod
+    def load(name: str) -> threading.Thread:
+        """A thread that loads the kernels of ``name`` into this process from the cache (compiles them
+        if the cache failed) while the main thread goes on serving (``warm.sharing_the_interpreter``):
+        on the main thread, loading ``inertial`` stopped this worker's other sessions for 130 ms."""
+        def run() -> None:
+            with contextlib.suppress(ValueError):
+                warm(name)
+        thread = threading.Thread(target=run, name=f"load {name}", daemon=True)
+        thread.start()
+        return thread
+
     def poll_warming(self) -> None:
-        """Kernels compiled into the cache by their separate process are loaded here (quick), then the
+        """A compiling process that ended: a thread loads its kernels here; once they are loaded the
         changes that waited for them are applied."""
-        done = [name for name, proc in self.warming.items() if proc.poll() is not None]
-        for name in done:
-            del self.warming[name]
-            try:
-                with self.alive():
-                    warm(name)                      # from the cache (compiles here if the cache failed)
-            except ValueError:
-                pass
-        if done:
+        loaded = []
+        for name, job in list(self.warming.items()):
+            if isinstance(job, threading.Thread):
+                if not job.is_alive():
+                    loaded.append(name)
+                    del self.warming[name]
+            elif job.poll() is not None:
+                self.warming[name] = self.load(name)
+        if loaded:
             self.apply_waiting()
 
     def apply_waiting(self) -> None:
