@@ -471,7 +471,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.which == "switch":
         from .bench import switch
         print(switch.run(args.out, sessions=args.sessions, hand_workers=args.workers, cache=args.cache,
-                         passes=args.passes, gap_s=args.gap, seconds=args.seconds, inject_stop_ms=args.inject_stop_ms))
+                         passes=args.passes, gap_s=args.gap, seconds=args.seconds, inject_stop_ms=args.inject_stop_ms,
+                         lead_s=args.lead))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "robustness":
@@ -746,7 +747,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--gap", type=_positive_float, default=2.0, metavar="S",
                    help="undisturbed streaming before each switch, s (default 2)")
     b.add_argument("--seconds", type=_positive_float, default=None,
-                   help="streaming time per service (default: enough for the plan, 120 s more with a cold cache)")
+                   help="longest streaming time per service (default: enough for the plan, 240 s more with a cold "
+                        "cache); the stream ends with the last switch")
+    b.add_argument("--lead", type=_positive_float, default=3.0, metavar="S",
+                   help="streaming before the first switch, its baseline, s (default 3; a compile's window lasts tens "
+                        "of seconds)")
     b.add_argument("--inject-stop-ms", type=_positive_float, default=None, metavar="MS",
                    help="also stop the service's web process (SIGSTOP) this long with every switch: a known stall "
                         "the figures must show")

@@ -84,3 +84,5 @@ def test_bad_switch_arguments_are_refused(tmp_path, capsys):
     assert "--sessions must be at least 2" in capsys.readouterr().err
     assert main(["bench", "switch", "--inject-stop-ms", "5000", "--out", str(tmp_path)]) == 2
     assert "--inject-stop-ms" in capsys.readouterr().err
+    assert main(["bench", "switch", "--lead", "0.5", "--out", str(tmp_path)]) == 2
+    assert "--lead must be at least 1 s" in capsys.readouterr().err

@@ -340,11 +340,16 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
 
 
 def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None, cache: str = "both",
-        passes: int = 2, gap_s: float = 2.0, seconds: float | None = None, inject_stop_ms: float | None = None) -> str:
+        passes: int = 2, gap_s: float = 2.0, seconds: float | None = None, inject_stop_ms: float | None = None,
+        lead_s: float = LEAD_S) -> str:
+    """``lead_s``: streaming before the first switch, the baseline of the first (a compile's window lasts
+    tens of seconds: a lead as long compares it with as long a stretch of undisturbed streaming)."""
     from .process import torn_down_on_signal
 
     if sessions < 2:
         raise ValueError(f"--sessions must be at least 2 (the switched one and another), got {sessions}")
+    if lead_s < 1.0:
+        raise ValueError(f"--lead must be at least 1 s (the first switch's baseline), got {lead_s:g}")
     if passes < 1:
         raise ValueError(f"--passes must be at least 1, got {passes}")
     if gap_s < 1.0:
@@ -357,7 +362,8 @@ def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None,
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with torn_down_on_signal():                 # SIGTERM stops the service and the generator as Ctrl-C does
-        conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms) for c in caches]
+        conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms, lead_s=lead_s)
+                      for c in caches]
     (out / "results.json").write_text(json.dumps(conditions, indent=2))
     text = summary(conditions)
     (out / "summary.md").write_text(text)
