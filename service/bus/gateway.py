@@ -14,6 +14,7 @@ counted as ``lost_to_failover``; session summary). With no worker at all, source
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import time
 
 from nats.errors import NoRespondersError
@@ -22,8 +23,8 @@ from nats.errors import TimeoutError as NatsTimeout
 from ..api.config import ServiceSettings
 from ..api.metrics import Metrics
 from ..api.sessions import LiveSession, SessionConfig, SessionFull
-from .subjects import (ASSIGN, CONFIG_WAIT_S, REPLY_WAIT_S, close, config_subject, connect, output_subject, pack, source_subject,
-                       unpack)
+from .subjects import (ASSIGN, CONFIG_WAIT_S, PROBE_EVERY_S, REPLY_WAIT_S, close, config_subject, connect, output_subject,
+                       pack, source_subject, unpack, worker_gone)
 
 ASSIGN_TIMEOUT_S = 1.0
 """how long a gateway waits for a worker to answer ``ft.assign``, s"""
@@ -41,6 +42,7 @@ class GatewayBus:
         self.nc = nc
         self.loop = loop
         self._watching: set[str] = set()
+        self._owners: dict[str, list] = {}          # worker -> [event: found gone, last probe (monotonic s), probe]
 
     @staticmethod
     async def connect(url: str) -> "GatewayBus":
@@ -57,6 +59,39 @@ class GatewayBus:
             return unpack((await self.nc.request(ASSIGN, pack({"session": name}), timeout=ASSIGN_TIMEOUT_S)).data)
         except (NoRespondersError, NatsTimeout):
             return {}
+
+    def owner_gone(self, owner: str) -> asyncio.Event:
+        """An event set once the worker ``owner`` is found gone (nobody answers its liveness subject);
+        asks the server, at most every ``PROBE_EVERY_S`` for all of this gateway's sessions of that owner."""
+        entry = self._owners.setdefault(owner, [asyncio.Event(), float("-inf"), None])
+        if entry[2] is None and time.monotonic() - entry[1] >= PROBE_EVERY_S:
+            entry[1] = time.monotonic()
+            entry[2] = self.loop.create_task(self._probe(owner, entry))
+        return entry[0]
+
+    async def until_gone(self, owner: str, acted_on: asyncio.Event | None) -> asyncio.Event:
+        """Probe ``owner`` (``owner_gone``) until it is found gone; the event that says so. One already
+        acted on is not waited for (without any worker, a session would ask ``ft.assign`` in a loop)."""
+        while True:
+            gone = self.owner_gone(owner)
+            if gone is acted_on:
+                await asyncio.sleep(PROBE_EVERY_S)
+            elif gone.is_set():
+                return gone
+            else:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(gone.wait(), PROBE_EVERY_S)
+
+    async def _probe(self, owner: str, entry: list) -> None:
+        try:
+            if await worker_gone(self.nc, owner):
+                entry[0].set()
+            elif entry[0].is_set():                 # there again (a worker restarted under its name)
+                entry[0] = asyncio.Event()
+        except Exception:                           # reconnecting: the reply wait decides
+            pass
+        finally:
+            entry[2] = None
 
     async def request(self, subject: str, payload: dict, name: str, timeout_s: float = REPLY_WAIT_S) -> dict | None:
         """A request to the session's owner; ``None``: no worker owns the session now (the message is
@@ -135,6 +170,7 @@ class BusSession(LiveSession):
         self._replied = asyncio.Event()
         self._owner_ok = False
         self._owner: str | None = None              # the worker that owned the session when it was last asked
+        self._owner_gone_seen: asyncio.Event | None = None     # the owner's "gone" this session acted on
         self._source_error = None
         self._subscribed = asyncio.Event()
         self._subscriptions: list = []
@@ -216,26 +252,37 @@ class BusSession(LiveSession):
         await self._publish((parsed.type, getattr(parsed, "t", None), pack({"raw": raw})))
 
     async def _wait_replies(self) -> bool:
-        """Wait for a reply. None for ``REPLY_WAIT_S``: the workers check the owner; False when it was
+        """Wait for a reply. None for ``REPLY_WAIT_S``, or the owner found gone meanwhile
+        (``GatewayBus.until_gone``): the workers check the owner; False when it was
         gone and the session has a new owner now (the pending messages will never be answered). The new
         owner is known by its name, not only by the answer that claimed it: that answer may have been
         lost (a worker taking several sessions over answers late), and every later answer says "not
         claimed just now"; the session's source then waited for ever on a full window."""
         self._replied.clear()
-        try:
-            await asyncio.wait_for(self._replied.wait(), REPLY_WAIT_S)
+        replied = asyncio.ensure_future(self._replied.wait())
+        # the owner probed meanwhile: a session whose window is full publishes nothing, so only the probe
+        # finds a dead owner before the wait runs out (a gateway noticed one 0.77 s after a kill at 10 hands)
+        gone = (asyncio.ensure_future(self.bus.until_gone(self._owner, self._owner_gone_seen))
+                if self._owner is not None else None)
+        await asyncio.wait({replied} | ({gone} if gone else set()), timeout=REPLY_WAIT_S,
+                           return_when=asyncio.FIRST_COMPLETED)
+        for wait in (replied, gone):
+            if wait is not None and not wait.done():
+                wait.cancel()
+        if self._replied.is_set():
             return True
-        except asyncio.TimeoutError:
-            answer = await self.bus.assign(self.name)
-            if answer.get("claimed") or (answer.get("owner") is not None and self._owner is not None
-                                         and answer["owner"] != self._owner):
-                # moved: the caller's ``_recover`` sends the new owner what the old one never answered, and
-                # need not ask ``ft.assign`` once more when this answer already names a live owner (that
-                # second round trip to a busy new owner took 0.3-0.4 s of a 2 s takeover)
-                self._owner_ok = answer.get("owner") == answer.get("by")
-                self._owner = answer["owner"] if self._owner_ok else self._owner
-                return False
-            return True
+        if gone is not None and gone.done() and not gone.cancelled():
+            self._owner_gone_seen = gone.result()
+        answer = await self.bus.assign(self.name)
+        if answer.get("claimed") or (answer.get("owner") is not None and self._owner is not None
+                                     and answer["owner"] != self._owner):
+            # moved: the caller's ``_recover`` sends the new owner what the old one never answered, and
+            # need not ask ``ft.assign`` once more when this answer already names a live owner (that
+            # second round trip to a busy new owner took 0.3-0.4 s of a 2 s takeover)
+            self._owner_ok = answer.get("owner") == answer.get("by")
+            self._owner = answer["owner"] if self._owner_ok else self._owner
+            return False
+        return True
 
     def _write_off(self) -> None:
         """Messages sent to an owner that is gone will not be answered: kept for the next owner."""

@@ -12,7 +12,8 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
   if that moved the session (its owner was gone) the unanswered messages go to the new owner.
 * ``ft.worker.<id>`` (request, the worker itself): an empty liveness probe, answered at once. A
   worker's subscriptions end with its connection, so "no responders" means the process is gone: its
-  sessions are taken over at once instead of after the lease.
+  sessions are taken over at once instead of after the lease. Workers probe a session's owner before
+  they take it over; a gateway waiting for an owner's replies probes it every ``PROBE_EVERY_S``.
 * ``ft.cfg.<s>`` (request, owner): ``{"change": {...}}`` a configuration change; reply
   ``{"config": {...}}`` or ``{"error": str}``, once applied: an estimator whose kernels the worker has
   not loaded is compiled in a separate process and loaded first (up to ``CONFIG_WAIT_S``), while
@@ -59,6 +60,9 @@ CONNECT_TIMEOUT_S = 10.0
 """how long a worker or gateway tries to reach the NATS server at start, s (later: for ever)"""
 PROBE_TIMEOUT_S = 0.2
 """how long a worker waits for another worker's liveness answer before it relies on the lease, s"""
+PROBE_EVERY_S = 0.1
+"""while a gateway waits for a worker's replies (a session's window full), how often it asks whether
+that worker is still there, s"""
 _SAFE = re.compile(r"[A-Za-z0-9_-]+")
 
 
@@ -90,6 +94,19 @@ def pack(obj) -> bytes:
 
 def unpack(data: bytes):
     return msgpack.unpackb(data)
+
+
+async def worker_gone(nc, worker_id: str) -> bool:
+    """True when nobody answers the worker's liveness subject: its process (or its connection) is gone,
+    and the server says so at once. An answer, or none within ``PROBE_TIMEOUT_S`` (alive but slow, or
+    cut off: its lease decides), is False."""
+    try:
+        await nc.request(worker_subject(worker_id), b"", timeout=PROBE_TIMEOUT_S)
+        return False
+    except nats.errors.NoRespondersError:
+        return True
+    except nats.errors.TimeoutError:
+        return False
 
 
 async def connect(url: str, name: str):
