@@ -266,15 +266,22 @@ class BusSession(LiveSession):
         claimed just now"; the session's source then waited for ever on a full window."""
         self._replied.clear()
         replied = asyncio.ensure_future(self._replied.wait())
-        # the owner probed meanwhile: a session whose window is full publishes nothing, so only the probe
-        # finds a dead owner before the wait runs out (a gateway noticed one 0.77 s after a kill at 10 hands)
-        gone = (asyncio.ensure_future(self.bus.until_gone(self._owner, self._owner_gone_seen))
-                if self._owner is not None else None)
-        await asyncio.wait({replied} | ({gone} if gone else set()), timeout=REPLY_WAIT_S,
-                           return_when=asyncio.FIRST_COMPLETED)
-        for wait in (replied, gone):
-            if wait is not None and not wait.done():
-                wait.cancel()
+        deadline = time.monotonic() + REPLY_WAIT_S
+        gone = None
+        try:
+            await asyncio.wait({replied}, timeout=min(PROBE_EVERY_S, REPLY_WAIT_S))
+            if not replied.done() and self._owner is not None:
+                # a reply is late: is the owner still there? A session whose window is full publishes
+                # nothing, so only a probe finds a dead owner before the wait runs out (a gateway noticed
+                # one 0.77 s after a kill at 10 hands). Not while replies come in time: a backlog waits
+                # here at every reply, and a probe task each time would be work for nothing
+                gone = asyncio.ensure_future(self.bus.until_gone(self._owner, self._owner_gone_seen))
+                await asyncio.wait({replied, gone}, timeout=max(0.0, deadline - time.monotonic()),
+                                   return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for wait in (replied, gone):
+                if wait is not None and not wait.done():
+                    wait.cancel()
         if self._replied.is_set():
             return True
         if gone is not None and gone.done() and not gone.cancelled():
