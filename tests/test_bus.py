@@ -593,8 +593,10 @@ def test_a_takeover_claims_every_session_before_it_rebuilds_any_and_each_goes_on
                 await monitor.flush()
                 lives = {name: gateway.session(name, settings, Metrics()) for name in names}
                 await asyncio.gather(*(stream(lives[name], msgs[name][:half]) for name in names))
-                await _await(lambda: all(frames[name] for name in names), "frames of both sessions")
-                last_seq = {name: frames[name][-1]["seq"] for name in names}
+                # every frame the victim made is in (the monitor's connection is not the gateway's)
+                last_seq = {name: victim.worker.owned[name].sink.last_seq for name in names}
+                await _await(lambda: all(frames[name] and frames[name][-1]["seq"] == last_seq[name] for name in names),
+                             "the victim's frames of both sessions")
                 monkeypatch.setattr(gateway_module, "WINDOW", 1)               # a's window full at the kill
                 stuck.set()
                 streams = {"a": asyncio.create_task(stream(lives["a"], msgs["a"][half:half + rest]))}
