@@ -75,18 +75,11 @@ class GatewayBus:
             probe.add_done_callback(self._probes.discard)
         return entry[0]
 
-    async def until_gone(self, owner: str, acted_on: asyncio.Event | None) -> asyncio.Event:
-        """Probe ``owner`` (``owner_gone``) until it is found gone; the event that says so. One already
-        acted on is not waited for (without any worker, a session would ask ``ft.assign`` in a loop)."""
-        while True:
-            gone = self.owner_gone(owner)
-            if gone is acted_on:
-                await asyncio.sleep(PROBE_EVERY_S)
-            elif gone.is_set():
-                return gone
-            else:
-                with contextlib.suppress(asyncio.TimeoutError):
-                    await asyncio.wait_for(gone.wait(), PROBE_EVERY_S)
+    async def until_gone(self, owner: str) -> None:
+        """Probe ``owner`` (``owner_gone``) until it is found gone."""
+        while not (gone := self.owner_gone(owner)).is_set():
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(gone.wait(), PROBE_EVERY_S)
 
     async def _probe(self, owner: str, entry: list) -> None:
         started = time.monotonic()
@@ -176,7 +169,6 @@ class BusSession(LiveSession):
         self._replied = asyncio.Event()
         self._owner_ok = False
         self._owner: str | None = None              # the worker that owned the session when it was last asked
-        self._owner_gone_seen: asyncio.Event | None = None     # the owner's "gone" this session acted on
         self._source_error = None
         self._subscribed = asyncio.Event()
         self._subscriptions: list = []
@@ -275,7 +267,7 @@ class BusSession(LiveSession):
                 # nothing, so only a probe finds a dead owner before the wait runs out (a gateway noticed
                 # one 0.77 s after a kill at 10 hands). Not while replies come in time: a backlog waits
                 # here at every reply, and a probe task each time would be work for nothing
-                gone = asyncio.ensure_future(self.bus.until_gone(self._owner, self._owner_gone_seen))
+                gone = asyncio.ensure_future(self.bus.until_gone(self._owner))
                 await asyncio.wait({replied, gone}, timeout=max(0.0, deadline - time.monotonic()),
                                    return_when=asyncio.FIRST_COMPLETED)
         finally:
@@ -284,8 +276,8 @@ class BusSession(LiveSession):
                     wait.cancel()
         if self._replied.is_set():
             return True
-        if gone is not None and gone.done() and not gone.cancelled():
-            self._owner_gone_seen = gone.result()
+        # a dead owner's sessions ask at most once per PROBE_EVERY_S each: an answer lost (a busy new owner
+        # answering after ASSIGN_TIMEOUT_S) is asked again then, and without any worker nothing spins
         answer = await self.bus.assign(self.name)
         if answer.get("claimed") or (answer.get("owner") is not None and self._owner is not None
                                      and answer["owner"] != self._owner):
