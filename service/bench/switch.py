@@ -14,10 +14,13 @@ or in it (``warm``: loaded); later switches find them loaded in the process alre
 
 Per switch, for every *other* session: each frame's delay behind the source's schedule beyond the
 pipeline's alignment wait (``bench.load._timing``), over the switch window (from the request to
-``SETTLE_S`` after the reply: frames received after the request that were due by the window's end)
-against the largest of the frames received in as long just before the request (at least ``baseline_s``,
-at most back to the previous window's end). The stream ends with the last switch's window. The stall is the window's largest delay minus the
-baseline's (0 when smaller); the largest gap between consecutive frames minus the frame period is
+``SETTLE_S`` after the reply: frames received after the request that were due by the window's end and
+after the previous window's end, so that no frame counts in two windows) against the largest of the
+frames due in as long just before the request and received before it (at least ``baseline_s``; never
+before the previous window's end, nor in the stream's first ``WARMUP_S``: frames due there belong to no
+baseline). The stream ends with the last switch's window. The stall is the window's largest delay minus the
+baseline's (0 when smaller); a session with no frame in a window or its baseline has no stall figure and
+the verdict says the goal was not shown; the largest gap between consecutive frames minus the frame period is
 reported beside it. For the switched session: whether the change applied (the reply's estimator), how
 long the request took, its own largest delay in the window and how long after the reply its next frame
 arrived.
@@ -46,6 +49,8 @@ LEAD_S = 3.0
 """streaming before the first switch, s (the first baseline)"""
 MARGIN_S = 1.0
 """no switch starts later than this before the stream's planned end (plus its window), s"""
+WARMUP_S = 1.0
+"""the stream's first seconds (sessions starting, the service's first frames) left out of every baseline"""
 CACHE_STATES = ("warm", "cold")
 
 
@@ -146,16 +151,17 @@ def account(switches: list[dict], frames: dict[str, tuple[np.ndarray, np.ndarray
     clock), what each session saw; ``frames``: per session, its frames' arrival times (ascending) and
     their delays beyond the schedule (same order), s. Figures in ms (module docstring)."""
     out = []
-    previous_end = -np.inf
+    firsts = [a[0] - b[0] for a, b in frames.values() if len(a)]
+    previous_end = (min(firsts) if firsts else -np.inf) + WARMUP_S     # due times before it: no baseline
     for sw in switches:
         start, end = sw["sent"], sw["returned"] + settle_s
-        base_len = min(max(baseline_s, end - start), start - previous_end)
+        base_len = max(min(max(baseline_s, end - start), start - previous_end), 0.0)
         row = {**sw, "request_s": sw["returned"] - sw["sent"], "window_s": end - start, "baseline_s": base_len,
                "others": {}}
         for name, (arrivals, beyond) in frames.items():
             due = arrivals - beyond
-            inside = (arrivals >= start) & (due <= end)
-            before = (arrivals >= start - base_len) & (arrivals < start)
+            inside = (arrivals >= start) & (due <= end) & (due > previous_end)
+            before = (due >= start - base_len) & (due > previous_end) & (arrivals < start)
             w = float(beyond[inside].max()) * 1e3 if inside.any() else None
             b = float(beyond[before].max()) * 1e3 if before.any() else None
             gap = _largest_gap(arrivals, start, end)
@@ -325,16 +331,26 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
         for k, q in figures.items():
             lines.append(f"| {k} | {q['p50']:.1f} / {q['p99']:.1f} / {q['max']:.1f} ({q['n']}) |")
         every = figures.get("all")
-        verdict = ("no switch measured" if every is None else
-                   f"goal (no other session stalled more than {goal_ms:g} ms): "
-                   + ("met" if every["max"] <= goal_ms else f"MISSED (largest stall {every['max']:.1f} ms)"))
+        unmeasured = sum(s["stall_ms"] is None for row in c["switches"] for s in row["others"].values())
+        failed = sum(not row["applied"] for row in c["switches"])
+        goal = f"goal (no other session stalled more than {goal_ms:g} ms): "
+        if every is not None and every["max"] > goal_ms:
+            verdict = goal + f"MISSED (largest stall {every['max']:.1f} ms)"
+        elif every is None or unmeasured or failed or len(c["switches"]) < c["planned"]:
+            verdict = goal + "NOT SHOWN"
+        else:
+            verdict = goal + "met"
+        verdict += (f"; {unmeasured} session-switch(es) without a stall figure (no frame in the window or its "
+                    f"baseline)" if unmeasured else "") + (f"; {failed} switch(es) not applied" if failed else "")
         probe = c.get("probe") or {}
         health = probe.get("health") or {}
         lines += ["", verdict + (f"; /health p50 / p99 during the run {health['p50_ms']:.1f} / {health['p99_ms']:.1f} ms"
                                  if health.get("p50_ms") is not None else "") + ".", ""]
     lines += ["Stall: per switch and other session, the largest delay of its frames behind the source's schedule "
               "beyond the alignment wait in the switch window (the request until 0.5 s after the reply) minus the "
-              "largest in as long just before it (at least 1 s; back to the previous window at most), 0 when smaller. "
+              "largest of the frames due in as long just before it and received before it (at least 1 s; back to the "
+              "previous window's end at most, never the stream's first second), 0 when smaller; a frame counts in one "
+              "window at most. "
               "Gap: the longest time between consecutive frames of a session in the window minus the frame period."]
     return "\n".join(lines) + "\n"
 
