@@ -271,7 +271,12 @@ class Worker:
                     with contextlib.suppress(asyncio.TimeoutError):
                         await asyncio.wait_for(self._traffic.wait(), left)
                 owned = self._rebuilds.pop(0)
-                if is_warm((owned.restoring.get("config") or {}).get("estimator") or self.settings.estimator):
+                try:
+                    loaded = is_warm((owned.restoring.get("config") or {}).get("estimator") or self.settings.estimator)
+                except Exception:                   # a defect: rebuilt here, never left waiting for ever
+                    log.exception("worker %s: session %r: its estimator's kernels not looked up", self.id, owned.name)
+                    loaded = True
+                if loaded:
                     await self._rebuild(owned)
                     await asyncio.sleep(0)          # its waiting messages first (their callbacks are due now)
                 else:
