@@ -636,7 +636,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = sub.add_parser("bench", help="benchmarks: the paper's experiment, gestures, real data against peer "
                                          "libraries, service latency, CPU per hand, service load, robustness, "
-                                         "accuracy in use",
+                                         "accuracy in use, estimator switch",
                            description="Each benchmark has its own options: fingertrack bench NAME --help.")
     which = bench.add_subparsers(dest="which", required=True, metavar="NAME")
 

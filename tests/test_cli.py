@@ -233,6 +233,6 @@ def test_the_bench_help_names_every_benchmark(capsys):
     text = " ".join(_help([], capsys).split())
     topics = {"paper": "the paper's experiment", "gestures": "gestures", "peers": "peer libraries",
               "latency": "service latency", "cpu": "CPU per hand", "load": "service load", "robustness": "robustness",
-              "accuracy": "accuracy in use"}
+              "accuracy": "accuracy in use", "switch": "estimator switch"}
     assert set(names) == set(topics)
     assert all(topic in text for topic in topics.values()), text

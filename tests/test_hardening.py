@@ -865,8 +865,9 @@ def test_switching_to_a_compiled_estimator_warms_it_off_the_loop(server):
     assert answered >= 1
 
 
-def test_kernels_compile_in_a_process_at_the_lowest_priority_and_load_with_the_interpreter_shared():
-    """The separate process that compiles kernels beside a serving process runs at niceness 19; while
+def test_kernels_compile_in_a_process_at_a_lower_priority_and_load_with_the_interpreter_shared():
+    """The separate process that compiles kernels beside a serving process runs at niceness
+    ``COMPILE_NICE`` (5); while
     kernels load in a thread of a serving process, the interpreter's lock changes hands every 0.5 ms
     (nested loads too), and the interval before is restored after the last."""
     from service.estimators import warm

@@ -13,9 +13,11 @@ cache (the usual case after the first run, and in the container image) the separ
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
 start-up.
 
-Beside live sessions two things must not take their time: the separate process runs at the lowest
-priority (``--background``, niceness ``COMPILE_NICE``: on a machine short of cores every process serving a
-session gets a core first; a compile took tens of seconds of a core), and the samples that load the
+Beside live sessions two things must not take their time: the separate process runs at a lower
+priority than the web process (``--background``, niceness ``COMPILE_NICE``, the hand workers' default:
+a compile takes tens of seconds of a core; at the lowest priority, 19, it got almost no CPU on a machine
+whose cores other work kept busy, and a switch to an estimator not in the cache did not complete within
+300 s), and the samples that load the
 cached code into a serving process run in a thread with the interpreter's lock handed over every
 ``LOAD_SWITCH_INTERVAL_S`` (``sharing_the_interpreter``; loading ``inertial`` held it for 130 ms, the
 default interval lets a thread keep it 5 ms at a time)."""
@@ -36,8 +38,8 @@ _WARM: set[str] = set()
 PIPELINE = "pipeline"
 """The name under which the hand pipeline's own kernels are warmed."""
 
-COMPILE_NICE = 19
-"""niceness of the separate process that compiles kernels (``--background``): the lowest"""
+COMPILE_NICE = 5
+"""niceness of the separate process that compiles kernels (``--background``): the hand workers' default"""
 LOAD_SWITCH_INTERVAL_S = 0.0005
 """the interpreter's switch interval while kernels load in a thread of a serving process, s (default 0.005)"""
 _sharing = [0, None]                         # threads loading now, the switch interval before the first
@@ -66,7 +68,7 @@ def sharing_the_interpreter():
 
 def compile_command(name: str, params: dict | None = None) -> list[str]:
     """The separate process that compiles the kernels of ``name`` (and the pipeline's) into the on-disk
-    cache, at the lowest priority."""
+    cache, at a lower priority (``COMPILE_NICE``)."""
     return [sys.executable, "-m", "service.estimators.warm", "--background", name, json.dumps(params or {})]
 
 
@@ -225,13 +227,13 @@ def warm_ahead(name: str, params: dict | None = None) -> None:
 
 
 def main(argv: list[str]) -> int:
-    if argv[:1] == ["--background"]:               # beside a serving process: the lowest priority
+    if argv[:1] == ["--background"]:               # beside a serving process: a lower priority
         argv = argv[1:]
         with contextlib.suppress(OSError):
             os.nice(COMPILE_NICE - os.nice(0))
     if not argv:
         print("usage: python -m service.estimators.warm [--background] NAME [PARAMS_JSON] (NAME: all for every "
-              "estimator; the pipeline's kernels are always warmed; --background: at the lowest priority)")
+              "estimator; the pipeline's kernels are always warmed; --background: at a lower priority)")
         return 2
     from .registry import REGISTRY
     names = [PIPELINE] + ([n for n, c in REGISTRY.items() if c.jit_kernels] if argv[0] == "all" else [argv[0]])

@@ -19,7 +19,7 @@ Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a ses
   error replies, e.g. an ``imu_batch``'s refused samples, come back in its ``rep``;
 * ``["cfg", sid, n, change]`` / ``["enrol", sid, n, segments]``: a configuration change / a gesture
   enrolment; an estimator whose kernels this process has not loaded is first compiled into the cache
-  by a separate process at the lowest priority (unless they are in it), then loaded here by a thread,
+  by a separate process at a lower priority (unless they are in it), then loaded here by a thread,
   while the worker goes on serving (the session keeps its old estimator until then), then applied;
 * ``["fmt", sid, binary]``: whether a subscriber of the session reads MessagePack (``binary``), so
   that its outputs are encoded as that too;
