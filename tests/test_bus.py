@@ -649,3 +649,69 @@ def test_a_takeover_claims_every_session_before_it_rebuilds_any_and_each_goes_on
         assert all(b > a for a, b in zip(seqs, seqs[1:])), f"{name}: seq not increasing"
         assert {f["hand"] for f in frames[name]} == {hand}
         assert any(f["status"]["reference_poses"]["applied"] >= 1 for f in frames[name] if f["seq"] > last_seq[name])
+
+
+class _Connection:
+    """A NATS connection's stand-in for tests without a server: what is published, and scripted answers to
+    requests (an exception type or instance is raised)."""
+
+    def __init__(self, answers=()):
+        self.answers = list(answers)
+        self.published: list[tuple[str, bytes]] = []
+        self.is_connected = False                   # a worker's lease renewal (its fence) is skipped so
+
+    async def request(self, subject, data, timeout):
+        answer = self.answers.pop(0)
+        if isinstance(answer, BaseException) or isinstance(answer, type):
+            raise answer
+        return answer
+
+    async def publish(self, subject, data, reply=None):
+        self.published.append((subject, data))
+
+    async def subscribe(self, subject, cb=None, queue=None):
+        return None
+
+    async def flush(self):
+        pass
+
+    def new_inbox(self):
+        return "_INBOX.test"
+
+
+def test_a_gateway_s_probe_tells_an_answer_from_none_and_logs_only_a_defect(caplog):
+    """A worker found gone stays gone when a later probe gets no answer in time (which says nothing: the
+    gateway's own loop may have been too busy to read it), and is there again only when it answers. A
+    probe failing for the connection (reconnecting) is quiet; one failing for anything else is logged.
+    A worker not probed for ``OWNER_FORGOTTEN_S`` is forgotten. A timed-out probe used to count as an
+    answer, and every failure was swallowed."""
+    from nats.errors import ConnectionClosedError, NoRespondersError
+    from nats.errors import TimeoutError as NatsTimeout
+
+    from service.bus import gateway as gateway_module
+    from service.bus.gateway import GatewayBus
+
+    outcomes = [NoRespondersError, NatsTimeout, ConnectionClosedError, OSError("reset"), KeyError("a defect"),
+                object()]                           # the last: an answer
+
+    async def run():
+        bus = GatewayBus(_Connection(outcomes + [object(), object()]), asyncio.get_running_loop())  # w2, w3 answer
+        gone = []
+        for _ in outcomes:
+            if "w1" in bus._owners:
+                bus._owners["w1"].probed_at = float("-inf")     # probed again at once, not PROBE_EVERY_S later
+            bus.owner_gone("w1")
+            await asyncio.gather(*bus._probes)
+            gone.append(bus._owners["w1"].gone.is_set())
+        bus.owner_gone("w2")
+        bus._owners["w1"].probed_at -= gateway_module.OWNER_FORGOTTEN_S + 1.0
+        bus.owner_gone("w3")                        # a new worker: those not probed for long are forgotten
+        await asyncio.gather(*bus._probes)
+        return gone, set(bus._owners)
+
+    with caplog.at_level("WARNING", logger="fingertrack.bus"):
+        gone, known = asyncio.run(run())
+    assert gone == [True, True, True, True, True, False]
+    assert known == {"w2", "w3"}
+    logged = [r for r in caplog.records if r.levelname in ("WARNING", "ERROR")]
+    assert len(logged) == 1 and "w1" in logged[0].getMessage() and logged[0].exc_info[0] is KeyError

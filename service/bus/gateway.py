@@ -15,16 +15,21 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import time
+from dataclasses import dataclass, field
 
+from nats.errors import Error as NatsError
 from nats.errors import NoRespondersError
 from nats.errors import TimeoutError as NatsTimeout
 
 from ..api.config import ServiceSettings
 from ..api.metrics import Metrics
 from ..api.sessions import LiveSession, SessionConfig, SessionFull
-from .subjects import (ASSIGN, CONFIG_WAIT_S, PROBE_EVERY_S, REPLY_WAIT_S, close, config_subject, connect, output_subject,
-                       pack, source_subject, unpack, worker_gone)
+from .subjects import (ASSIGN, CONFIG_WAIT_S, PROBE_EVERY_S, REPLY_WAIT_S, Liveness, close, config_subject, connect,
+                       output_subject, pack, probe_worker, source_subject, unpack)
+
+log = logging.getLogger("fingertrack.bus")
 
 ASSIGN_TIMEOUT_S = 1.0
 """how long a gateway waits for a worker to answer ``ft.assign``, s"""
@@ -33,6 +38,19 @@ WINDOW = 256
 RESEND_MAX = 4 * WINDOW
 """source messages kept for a new owner while a session has none (more are lost and counted)"""
 UNCONFIRMED = {"errors": [], "unconfirmed": True}
+OWNER_FORGOTTEN_S = 30.0
+"""a worker this gateway has not probed for this long is forgotten (``GatewayBus.owner_gone``), s"""
+
+
+@dataclass
+class ProbedOwner:
+    """What a gateway's probes found of one session owner (``GatewayBus.owner_gone``)."""
+    gone: asyncio.Event = field(default_factory=asyncio.Event)
+    """set once a probe found the worker gone"""
+    probed_at: float = float("-inf")
+    """when the last probe started, monotonic s"""
+    gone_at: float = float("inf")
+    """when a probe last found it gone, monotonic s"""
 
 
 class GatewayBus:
@@ -42,7 +60,7 @@ class GatewayBus:
         self.nc = nc
         self.loop = loop
         self._watching: set[str] = set()
-        self._owners: dict[str, list] = {}          # worker -> [event: found gone, last probe, found gone at (monotonic s)]
+        self._owners: dict[str, ProbedOwner] = {}   # by worker id, those probed within OWNER_FORGOTTEN_S
         self._probes: set[asyncio.Task] = set()
 
     @staticmethod
@@ -67,13 +85,18 @@ class GatewayBus:
         A probe does not wait for the one before: a live owner behind with its sessions may take the
         whole ``PROBE_TIMEOUT_S`` to answer, and if it dies meanwhile that probe gets no answer at all
         (a 10-hand run found the dead owner 0.22-0.26 s after the kill so)."""
-        entry = self._owners.setdefault(owner, [asyncio.Event(), float("-inf"), float("inf")])
-        if time.monotonic() - entry[1] >= PROBE_EVERY_S:
-            entry[1] = time.monotonic()
+        now = time.monotonic()
+        entry = self._owners.get(owner)
+        if entry is None:                           # a new one: the workers not probed for long are forgotten
+            for worker in [w for w, known in self._owners.items() if now - known.probed_at > OWNER_FORGOTTEN_S]:
+                del self._owners[worker]
+            entry = self._owners[owner] = ProbedOwner()
+        if now - entry.probed_at >= PROBE_EVERY_S:
+            entry.probed_at = now
             probe = self.loop.create_task(self._probe(owner, entry))
             self._probes.add(probe)
             probe.add_done_callback(self._probes.discard)
-        return entry[0]
+        return entry.gone
 
     async def until_gone(self, owner: str) -> None:
         """Probe ``owner`` (``owner_gone``) until it is found gone."""
@@ -81,16 +104,21 @@ class GatewayBus:
             with contextlib.suppress(asyncio.TimeoutError):
                 await asyncio.wait_for(gone.wait(), PROBE_EVERY_S)
 
-    async def _probe(self, owner: str, entry: list) -> None:
+    async def _probe(self, owner: str, entry: ProbedOwner) -> None:
         started = time.monotonic()
         try:
-            if await worker_gone(self.nc, owner):
-                entry[0].set()
-                entry[2] = time.monotonic()
-            elif entry[0].is_set() and started > entry[2]:  # there again (a worker restarted under its name)
-                entry[0] = asyncio.Event()
-        except Exception:                           # reconnecting: the reply wait decides
-            pass
+            found = await probe_worker(self.nc, owner)
+        except (NatsError, OSError):                # reconnecting: the reply wait decides
+            return
+        except Exception:                           # a defect: logged, and the reply wait decides
+            log.exception("gateway: the liveness probe of worker %s failed", owner)
+            return
+        if found is Liveness.GONE:
+            entry.gone.set()
+            entry.gone_at = time.monotonic()
+        elif found is Liveness.ANSWERED and entry.gone.is_set() and started > entry.gone_at:
+            entry.gone = asyncio.Event()            # there again (a worker restarted under its name)
+        # Liveness.NO_ANSWER says nothing: what an earlier probe found stands
 
     async def request(self, subject: str, payload: dict, name: str, timeout_s: float = REPLY_WAIT_S) -> dict | None:
         """A request to the session's owner; ``None``: no worker owns the session now (the message is

@@ -32,6 +32,7 @@ Every payload is MessagePack. ``<s>`` is the session's subject token (``session_
 from __future__ import annotations
 
 import asyncio
+import enum
 import logging
 import re
 
@@ -96,17 +97,27 @@ def unpack(data: bytes):
     return msgpack.unpackb(data)
 
 
-async def worker_gone(nc, worker_id: str) -> bool:
-    """True when nobody answers the worker's liveness subject: its process (or its connection) is gone,
-    and the server says so at once. An answer, or none within ``PROBE_TIMEOUT_S`` (alive but slow, or
-    cut off: its lease decides), is False."""
+class Liveness(enum.Enum):
+    """What a liveness probe of a worker (``probe_worker``) found."""
+    ANSWERED = "answered"
+    """the worker answered: it is there"""
+    NO_ANSWER = "no answer"
+    """no answer within ``PROBE_TIMEOUT_S``: alive but slow, stuck or cut off, or the prober's own loop was
+    too busy to read the answer in time; says nothing either way (a worker's lease decides)"""
+    GONE = "gone"
+    """nobody listens on its liveness subject: its process (or its connection) is gone, the server says so at once"""
+
+
+async def probe_worker(nc, worker_id: str) -> Liveness:
+    """Probe the worker's liveness subject (``Liveness``). NATS and socket errors (reconnecting) are the
+    caller's to handle."""
     try:
         await nc.request(worker_subject(worker_id), b"", timeout=PROBE_TIMEOUT_S)
-        return False
+        return Liveness.ANSWERED
     except nats.errors.NoRespondersError:
-        return True
+        return Liveness.GONE
     except nats.errors.TimeoutError:
-        return False
+        return Liveness.NO_ANSWER
 
 
 async def connect(url: str, name: str):

@@ -45,7 +45,7 @@ from ..pipeline.gc_policy import serving_gc
 from ..protocol import ProtocolError, parse_message
 
 from .subjects import (ASSIGN, BUCKET, LEASE_S, RENEW_S, WORKERS_QUEUE, close, config_subject, connect, output_subject,
-                       pack, session_token, source_subject, unpack, worker_gone, worker_subject)
+                       Liveness, pack, probe_worker, session_token, source_subject, unpack, worker_subject)
 
 log = logging.getLogger("fingertrack.bus")
 HOLD_MAX_S = 0.5
@@ -199,7 +199,7 @@ class Worker:
             return self.id if await self._claim(name, None, None) else await self._owner_of(key)
         if state.get("worker") in (None, self.id):  # released by a worker that stopped, or ours before a restart
             return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
-        if state["worker"] != self.id and await worker_gone(self.ctl, state["worker"]):
+        if state["worker"] != self.id and await probe_worker(self.ctl, state["worker"]) is Liveness.GONE:
             return self.id if await self._claim(name, entry.revision, state) else await self._owner_of(key)
         now = time.monotonic()
         seen = self.seen.get(key)
