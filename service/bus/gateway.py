@@ -38,6 +38,11 @@ WINDOW = 256
 RESEND_MAX = 4 * WINDOW
 """source messages kept for a new owner while a session has none (more are lost and counted)"""
 UNCONFIRMED = {"errors": [], "unconfirmed": True}
+ASSIGN_BACKOFF_MAX_S = 0.3
+"""a session whose ``ft.assign`` answer came from another worker than the owner it names (that worker
+checked the owner and found it there, or could not tell: its lease decides) asks again after
+``PROBE_EVERY_S``, doubled after each such answer up to this, s (the check holds back the answering
+worker's own sessions, and that worker is often the one busy taking a dead worker's sessions over)"""
 OWNER_FORGOTTEN_S = 30.0
 """a worker this gateway has not probed for this long is forgotten (``GatewayBus.owner_gone``), s"""
 
@@ -197,6 +202,8 @@ class BusSession(LiveSession):
         self._replied = asyncio.Event()
         self._owner_ok = False
         self._owner: str | None = None              # the worker that owned the session when it was last asked
+        self._assign_gap = PROBE_EVERY_S            # ft.assign asked again after this at the soonest (ASSIGN_BACKOFF_MAX_S)
+        self._assign_after = float("-inf")          # ... from then on (monotonic s)
         self._source_error = None
         self._subscribed = asyncio.Event()
         self._subscriptions: list = []
@@ -252,15 +259,27 @@ class BusSession(LiveSession):
         lapsed), the source waits; then what the old owner never answered goes to the new one, in order."""
         self._write_off()
         while not self._owner_ok:
-            answer = await self.bus.assign(self.name)
+            answer = await self._assign()
             if answer and answer.get("owner") == answer.get("by"):
                 self._owner_ok, self._owner = True, answer["owner"]
             else:
-                await asyncio.sleep(0.05)
+                await asyncio.sleep(max(0.05, self._assign_after - time.monotonic()))
         kept, self._resend = self._resend, {}
         for n in sorted(kept):
             self.resent += 1
             await self._publish(kept[n])
+
+    async def _assign(self) -> dict:
+        """``ft.assign`` for this session (``GatewayBus.assign``). An answer from another worker than the
+        owner it names means that worker checked the owner for nothing: the next request waits
+        (``ASSIGN_BACKOFF_MAX_S``)."""
+        answer = await self.bus.assign(self.name)
+        if answer and answer.get("owner") != answer.get("by"):
+            self._assign_after = time.monotonic() + self._assign_gap
+            self._assign_gap = min(2 * self._assign_gap, ASSIGN_BACKOFF_MAX_S)
+        else:
+            self._assign_gap, self._assign_after = PROBE_EVERY_S, float("-inf")
+        return answer
 
     async def _publish(self, entry) -> None:
         self._n += 1
@@ -298,15 +317,18 @@ class BusSession(LiveSession):
                 gone = asyncio.ensure_future(self.bus.until_gone(self._owner))
                 await asyncio.wait({replied, gone}, timeout=max(0.0, deadline - time.monotonic()),
                                    return_when=asyncio.FIRST_COMPLETED)
+            if not replied.done() and (left := self._assign_after - time.monotonic()) > 0:
+                await asyncio.wait({replied}, timeout=left)     # not ft.assign again yet (``_assign``)
         finally:
             for wait in (replied, gone):
                 if wait is not None and not wait.done():
                     wait.cancel()
         if self._replied.is_set():
             return True
-        # a dead owner's sessions ask at most once per PROBE_EVERY_S each: an answer lost (a busy new owner
-        # answering after ASSIGN_TIMEOUT_S) is asked again then, and without any worker nothing spins
-        answer = await self.bus.assign(self.name)
+        # a dead owner's sessions ask at most once per PROBE_EVERY_S each, less often while the answers name
+        # the owner it had (``_assign``): an answer lost (a busy new owner answering after ASSIGN_TIMEOUT_S)
+        # is asked again then, and without any worker nothing spins
+        answer = await self._assign()
         if answer.get("claimed") or (answer.get("owner") is not None and self._owner is not None
                                      and answer["owner"] != self._owner):
             # moved: the caller's ``_recover`` sends the new owner what the old one never answered, and
