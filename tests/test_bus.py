@@ -770,3 +770,92 @@ def test_a_session_asks_ft_assign_less_often_while_the_answers_leave_it_with_the
     assert recovered == 4 and len(asked) == 8
     for got, least in zip(gaps[:3] + gaps[4:], expected + expected):
         assert got >= least - 0.002, (gaps, least)
+
+
+class _Request:
+    def __init__(self, payload: dict):
+        from service.bus.subjects import pack
+        self.data, self.reply, self.answers = pack(payload), "_INBOX.reply", []
+
+    async def respond(self, data):
+        self.answers.append(unpack(data))
+
+
+def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame_counter(caplog):
+    """The new owner refuses the stored hello (a hand this version does not know, as a worker of another
+    version could have stored): the rest of the session is rebuilt, its frames go on above the previous
+    owner's last ``seq``, the source's next reply says what was not restored, and the log says it in one
+    line (no traceback). The session used to restart at ``seq`` 1 (the rebuild raised before it set the
+    frame counter), its frames dropped as stale at every gateway."""
+    from service.api.config import ServiceSettings
+    from service.bus.worker import OwnedSession, Worker
+
+    settings = ServiceSettings.load(port=0)
+    msgs = [m for _, m in source_messages(SimConfig(motion="grasp", hand="right", seed=5, t_m_s=1.0))]
+    hello, calibration, data = msgs[0], msgs[1], msgs[2:]
+    state = {"session": "moved", "worker": "gone-worker", "seq": 400, "t": data[99]["samples"][-1]["t"],
+             "angles": None, "hello": {**hello, "hand": "middle"}, "calibration": calibration, "config": {}}
+
+    async def run():
+        worker = Worker("nats://unused", settings, "new-owner")
+        worker.nc = _Connection()
+        owned = OwnedSession("moved", settings, worker.metrics, revision=1)
+        owned.restoring = state
+        worker.owned["moved"] = owned
+        await worker._rebuild(owned)
+        replies = []
+        for m in data[100:]:                        # the source goes on where the previous owner stopped
+            request = _Request({"raw": m})
+            await worker._on_source(owned, request)
+            replies += request.answers
+            if sum(unpack(d)["type"] == "frame" for _, d in worker.nc.published) >= 3:
+                break
+        return owned, [f for _, d in worker.nc.published if (f := unpack(d))["type"] == "frame"], replies
+
+    with caplog.at_level("WARNING", logger="fingertrack.bus"):
+        owned, frames, replies = asyncio.run(run())
+    assert owned.ready.is_set() and owned.calibration == calibration and owned.hello["hand"] == "middle"
+    assert len(frames) >= 3 and all(f["seq"] > 400 for f in frames), [f["seq"] for f in frames]
+    code, detail = replies[0]["errors"][0]
+    assert code == "invalid_message" and "new-owner" in detail and "hello" in detail, replies[0]
+    assert all(not r["errors"] for r in replies[1:]), replies
+    lines = [r for r in caplog.records if "could not restore" in r.getMessage()]
+    assert len(lines) == 1 and lines[0].exc_info is None and "'moved'" in lines[0].getMessage()
+    assert not any(r.exc_info for r in caplog.records)
+
+
+def test_a_worker_that_stops_cancels_the_rebuilds_under_way(monkeypatch):
+    """A session taken over on an estimator whose kernels the worker has not loaded is rebuilt in a task
+    of its own (``_rebuild_forever``); stopping the worker cancels it (it used to go on after the stop),
+    and the session's waiting messages are let go."""
+    from service.api.config import ServiceSettings
+    from service.bus import worker as worker_module
+    from service.bus.worker import OwnedSession, Worker
+
+    settings = ServiceSettings.load(port=0)
+    monkeypatch.setattr(worker_module, "is_warm", lambda name, params=None: False)
+    entered, outcome = asyncio.Event(), []
+
+    async def slow_restore(self, owned, state):     # as loading an estimator's kernels: long
+        entered.set()
+        try:
+            await asyncio.Event().wait()
+        except asyncio.CancelledError:
+            outcome.append("cancelled")
+            raise
+    monkeypatch.setattr(Worker, "_restore", slow_restore)
+
+    async def run():
+        worker = Worker("nats://unused", settings, "stopping")
+        owned = OwnedSession("slow", settings, worker.metrics, revision=1)
+        owned.restoring = {"session": "slow", "worker": "gone-worker", "config": {"estimator": "inertial"}}
+        worker.owned["slow"] = owned
+        worker._tasks.append(asyncio.create_task(worker._rebuild_forever()))
+        worker._rebuilds.append(owned)
+        worker._rebuild_due.set()
+        await asyncio.wait_for(entered.wait(), 120.0)   # a failure bound
+        await worker.stop(release=False)
+        return list(outcome), owned.ready.is_set(), list(worker._answers)   # before asyncio.run cancels the rest
+
+    cancelled, ready, left = asyncio.run(run())
+    assert cancelled == ["cancelled"] and ready and not left

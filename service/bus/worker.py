@@ -66,6 +66,7 @@ class OwnedSession:
         self.calibration: dict | None = None
         self.resume_angles: dict | None = None      # applied at the first timed message after a takeover
         self.restoring: dict | None = None          # a taken-over session's previous state until it is rebuilt
+        self.restore_errors: list[list[str]] = []   # what a rebuild could not restore: sent with the next reply
         self.ready = asyncio.Event()                # rebuilt (at once for a new session): its messages may go in
         self.subscriptions: list = []
         self.lock = asyncio.Lock()
@@ -123,8 +124,10 @@ class Worker:
 
     async def stop(self, release: bool = True) -> None:
         """Stop; with ``release`` the sessions' leases say 'no owner' so another worker takes them at once."""
-        for task in self._tasks:
+        background = [*self._tasks, *self._answers]    # renewals, rebuilds, ft.assign answers under way
+        for task in background:
             task.cancel()
+        await asyncio.gather(*background, return_exceptions=True)
         for owned in list(self.owned.values()):
             for sub in owned.subscriptions:
                 await sub.unsubscribe()
@@ -183,6 +186,12 @@ class Worker:
             self._checking -= 1
             if not self._checking:
                 self._traffic.set()
+
+    async def _after_checks(self) -> None:
+        """Wait while ownership checks are under way (``_traffic_held``: ``HOLD_MAX_S`` at most)."""
+        if not self._traffic.is_set() and (left := self._held_until - time.monotonic()) > 0:
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(self._traffic.wait(), left)
 
     async def ensure_owner(self, name: str) -> str | None:
         """The session's owner after claiming it if it has none, its owner is gone, or its owner's
@@ -267,9 +276,7 @@ class Worker:
             await self._rebuild_due.wait()
             self._rebuild_due.clear()
             while self._rebuilds:
-                if not self._traffic.is_set() and (left := self._held_until - time.monotonic()) > 0:
-                    with contextlib.suppress(asyncio.TimeoutError):
-                        await asyncio.wait_for(self._traffic.wait(), left)
+                await self._after_checks()
                 owned = self._rebuilds.pop(0)
                 try:
                     loaded = is_warm((owned.restoring.get("config") or {}).get("estimator") or self.settings.estimator)
@@ -285,30 +292,49 @@ class Worker:
                     task.add_done_callback(self._answers.discard)
 
     async def _rebuild(self, owned: OwnedSession) -> None:
-        if self.owned.get(owned.name) is owned:     # else given up meanwhile
-            try:
+        try:
+            if self.owned.get(owned.name) is owned:     # else given up meanwhile
                 await self._restore(owned, owned.restoring)
-            except Exception:                       # a defect: the session goes on as a new one
-                log.exception("worker %s: session %r not rebuilt from its state", self.id, owned.name)
-        owned.restoring = None
-        owned.ready.set()
+        except Exception:                           # a defect: the session goes on with what was restored
+            log.exception("worker %s: session %r not rebuilt from its state", self.id, owned.name)
+        finally:                                    # its messages go in (or, if stopped, find it gone)
+            owned.restoring = None
+            owned.ready.set()
 
     async def _restore(self, owned: OwnedSession, state: dict) -> None:
-        """Rebuild a session from the previous owner's last state (module docstring: what survives)."""
-        for raw in (state.get("hello"), state.get("calibration")):
-            if raw is not None:
-                await self._handle(owned, raw)
+        """Rebuild a session from the previous owner's last state (module docstring: what survives). The
+        frame counter and the last angles first: whatever part of the state this worker cannot rebuild
+        (a stored message or configuration it refuses, e.g. of another version), the session's ``seq``
+        goes on from the previous owner's. What it could not rebuild is said in one log line, and a stored
+        message also in an error reply to the next source message (``OwnedSession.restore_errors``)."""
+        if state.get("seq"):
+            owned.sink.resume_after = (int(state["seq"]), float(state["t"]))
+        owned.resume_angles = state.get("angles") or None
+        for kind in ("hello", "calibration"):
+            if (raw := state.get(kind)) is None:
+                continue
+            try:
+                errors = (await self._handle(owned, raw))["errors"]
+            except Exception as err:                # a defect: the session goes on without it
+                log.exception("worker %s: session %r: its stored %s not restored", self.id, owned.name, kind)
+                errors = [["internal_error", f"{type(err).__name__} while restoring it"]]
+            for code, detail, *_ in errors:
+                self._not_restored(owned, code, f"its {kind}: {detail}; send the {kind} again")
+            setattr(owned, kind, getattr(owned, kind) or raw)   # kept in the state for a worker that can
         config = dict(state.get("config") or {})
         if config:
             if self.settings.record_dir is None:
                 config.pop("record", None)
             try:
                 await self._switch(owned, config)
-            except ValueError:
-                pass                                # e.g. an estimator this worker does not know: defaults
-        if state.get("seq"):
-            owned.sink.resume_after = (int(state["seq"]), float(state["t"]))
-        owned.resume_angles = state.get("angles") or None
+            except ValueError as err:               # e.g. an estimator this worker does not know: defaults
+                log.warning("session %r moved to worker %s, which could not restore its configuration %s: %s; "
+                            "the defaults apply", owned.name, self.id, config, err)
+
+    def _not_restored(self, owned: OwnedSession, code: str, what: str) -> None:
+        detail = f"the session moved to worker {self.id}, which could not restore {what}"
+        log.warning("%s (session %r)", detail, owned.name)
+        owned.restore_errors.append([code, detail])
 
     async def _renew(self, owned: OwnedSession) -> bool:
         """Rewrite the lease with the current state; False (and the session given up) if another
@@ -348,7 +374,10 @@ class Worker:
     async def _handle(self, owned: OwnedSession, raw: dict) -> dict:
         """Process one source message; the reply lists its error replies, ``(code, detail)`` as the
         embedded service gives them (``api.replies``), which the gateway passes on to the source."""
-        parsed = parse_message(raw)
+        try:
+            parsed = parse_message(raw)
+        except ProtocolError as err:                # the gateway validated it: only a version skew gets here
+            return {"errors": [[err.code, err.detail]]}
         try:
             errors = [list(reply) for reply in drop_replies(parsed, await owned.live.ingest(raw, parsed))]
         except Exception as err:                    # bad input, or a defect (logged in one line)
@@ -364,25 +393,18 @@ class Worker:
             await owned.ready.wait()
             if self.owned.get(owned.name) is not owned:
                 return                              # given up meanwhile: unanswered, its gateway asks again
-        elif (owned.sink.resume_after is None and not self._traffic.is_set()
-              and (left := self._held_until - time.monotonic()) > 0):
-            try:                                    # an ownership check first (module docstring)
-                await asyncio.wait_for(self._traffic.wait(), left)
-            except asyncio.TimeoutError:
-                pass
+        elif owned.sink.resume_after is None and not self._traffic.is_set():
+            await self._after_checks()              # an ownership check first (module docstring)
         raw = unpack(msg.data)["raw"]
         async with owned.lock:
-            try:
-                if owned.resume_angles is not None and (t := _first_time(raw)) is not None:
-                    ref = {"type": "reference_pose", "t0": t, "t1": t, "pose": owned.resume_angles}
-                    owned.resume_angles = None
-                    try:
-                        await self._handle(owned, ref)
-                    except ProtocolError:
-                        pass                        # angles the protocol refuses: start as a new session
-                reply = await self._handle(owned, raw)
-            except ProtocolError as err:            # the gateway validated it; only a version skew gets here
-                reply = {"errors": [[err.code, err.detail]]}
+            if owned.resume_angles is not None and (t := _first_time(raw)) is not None:
+                ref = {"type": "reference_pose", "t0": t, "t1": t, "pose": owned.resume_angles}
+                owned.resume_angles = None
+                await self._handle(owned, ref)      # angles the protocol refuses: it starts as a new session
+            reply = await self._handle(owned, raw)
+            if owned.restore_errors:                # first what its rebuild after a move could not restore
+                reply["errors"] = owned.restore_errors + reply["errors"]
+                owned.restore_errors = []
             # fence: after a long stall, make sure the session is still ours before publishing
             if time.monotonic() - owned.renewed_at > LEASE_S / 2 and not await self._renew(owned):
                 owned.sink.pending.clear()
