@@ -76,7 +76,15 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
     ns = x.shape[1]
     _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode,
             np.zeros((ns, N_STATE, 3)), x.reshape(-1, N_STATE), np.zeros(3),
-            np.zeros((3, 3)), 0, False)
+            np.zeros((3, 3)), 0, False, _scratch(ns, out_phi.shape[2]))
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _scratch(ns, nph):
+    """``_finger``'s work arrays for fingers of up to ``ns`` sensors and ``nph`` joints, allocated once per
+    call and shared by the fingers of a hand (``_finger`` names their rows)."""
+    return (np.empty((6, ns)), np.empty((5, nph)), np.zeros((2, 3, N_STATE)), np.empty((4, N_STATE, 3)),
+            np.empty((N_STATE, N_STATE)), np.zeros((6, 3)), np.empty(N_STATE), np.empty((9, 3, 3)))
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
@@ -125,6 +133,11 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
                 for ii in range(N_STATE):
                     for c in range(3):
                         cx[l, ii, c] *= fdec
+    ns_max = nph_max = 0
+    for f in range(dts.shape[0]):
+        ns_max = max(ns_max, sensor_start[f + 1] - sensor_start[f])
+        nph_max = max(nph_max, phalanx_start[f + 1] - phalanx_start[f])
+    ws = _scratch(ns_max, nph_max)
     for f in range(dts.shape[0]):
         s0, s1 = sensor_start[f], sensor_start[f + 1]
         q0, q1 = phalanx_start[f], phalanx_start[f + 1]
@@ -133,12 +146,12 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
                 hand_acc[f:f + 1], dts[f:f + 1], gyr[s0:s1].reshape(1, 1, ns, 3), acc[s0:s1].reshape(1, 1, ns, 3), hand1,
                 st[f], geo[geo_start[f]:geo_start[f + 1]], untracked[f], out_theta[s0:s1].reshape(1, 1, ns),
                 out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns),
-                cx, x, dl, pd, s0, joint and not untracked[f])
+                cx, x, dl, pd, s0, joint and not untracked[f], ws)
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode,
-            cx, x_all, dl, pd, s_off, joint):
+            cx, x_all, dl, pd, s_off, joint, ws):
     """Advance the state (``x``, ``p``, ``rates``, ``hand_acc``, in place) by every sample ``i`` of
     ``dts`` (``dt = 0`` is the first sample after initialisation: no prediction, no rate change).
     Outputs per sample: the filter's per-sensor angle ``out_theta`` (N, B, S), the joint angles on the
@@ -174,39 +187,20 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     fit_lag = st[ST_FIT_LAG]
     two_pi = 2.0 * math.pi
 
-    th = np.empty(ns)           # predicted per-sensor angle
-    rate = np.empty(ns)         # bias-corrected relative rate
-    prev = np.empty(ns)         # previous relative rate, corrected with the same bias
-    rc = np.empty(ns)           # rate change
-    meas = np.empty(ns)         # measured relative rate (the next sample's previous)
-    gxs = np.empty(ns)          # raw hinge-axis gyro reading
-    th_all = np.empty(nph)
-    w_all = np.empty(nph)
-    dw_all = np.empty(nph)
-    cs = np.empty(nph)
-    sn = np.empty(nph)
-    hm = np.zeros((3, N_STATE))         # H
-    hp = np.empty((3, N_STATE))         # H P
-    pht = np.empty((N_STATE, 3))        # P Hᵀ
-    kg = np.empty((N_STATE, 3))         # Kalman gain
-    a = np.empty((N_STATE, N_STATE))    # (I - K H) P
-    aht = np.empty((N_STATE, 3))        # (I - K H) P Hᵀ
-    vv = np.empty(3)                    # R_x(θ)ᵀ u
-    hth = np.empty(3)                   # ∂f/∂θ
-    yy = np.empty(3)                    # innovation
-    ee = np.empty(3)                    # (I + G) R_x(θ)ᵀ (the optical fit's lag error): R = r I + e eᵀ
-    ke = np.empty(N_STATE)              # K e
-    mb = np.empty((3, 3))               # R_Bᵀ R_Mᵀ
-    md = np.empty((3, 3))               # ∂f/∂δ = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ
-    phd = np.empty((3, 3))              # P_δ· Hᵀ
-    kd = np.empty((3, 3))               # δ's gain
-    sm = np.empty((3, 3))               # S
-    si = np.empty((3, 3))               # S⁻¹
-    phl = np.empty((N_STATE, 3))        # another sensor's P_lδ H_δᵀ
-    kl = np.empty((N_STATE, 3))
-    tl = np.empty((N_STATE, 3))         # K S
-    td = np.empty((3, 3))
-    dl0 = np.zeros(3)                   # δ when the finger's tick began
+    sv, pv, m3n, mn3, a, v3, ke, m33 = ws
+    th, rate, prev, rc, meas, gxs = sv[0], sv[1], sv[2], sv[3], sv[4], sv[5]
+    # predicted per-sensor angle, bias-corrected relative rate, previous relative rate (corrected with the
+    # same bias), rate change, measured relative rate (the next sample's previous), raw hinge-axis reading
+    th_all, w_all, dw_all, cs, sn = pv[0], pv[1], pv[2], pv[3], pv[4]
+    hm, hp = m3n[0], m3n[1]             # H, H P
+    pht, kg, aht, tl = mn3[0], mn3[1], mn3[2], mn3[3]   # P Hᵀ, the Kalman gain, (I - K H) P Hᵀ, K S
+    # a: (I - K H) P; ke: K e
+    vv, hth, yy, ee, wv, dl0 = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5]
+    # R_x(θ)ᵀ u, ∂f/∂θ, the innovation, (I + G) R_x(θ)ᵀ (the optical fit's lag error: R = r I + e eᵀ),
+    # Mᵀ S⁻¹ y (another sensor's dx = C wv), δ when the finger's tick began
+    mb, md, phd, kd, sm, si, am, bm, td = m33[0], m33[1], m33[2], m33[3], m33[4], m33[5], m33[6], m33[7], m33[8]
+    # R_Bᵀ R_Mᵀ, ∂f/∂δ = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ, P_δ· Hᵀ, δ's gain, S, S⁻¹, I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ (another
+    # sensor's C ← C am), I - Mᵀ K_δᵀ (its held scale row's), K_δ S
 
     for i in range(dts.shape[0]):
         dt = dts[i]
@@ -397,31 +391,41 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
                 if joint:
                     _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0, dt)
+                                  hm, pht, phd, kg, kd, sm, si, am, bm, wv, tl, td, gs_learn, dl0, dt)
                 else:
-                    # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form
+                    # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form; H's row rr has
+                    # entries at 0, 2 + rr and G's row (g..g + 2) only: the products sum those, in the
+                    # dense sum's order (the same numbers, the other terms being exact zeros)
                     for ii in range(N_STATE):
                         for rr in range(3):
+                            g = GA_START + 3 * rr
                             acc_p = 0.0
-                            acc_h = 0.0
-                            for ll in range(N_STATE):
-                                acc_p += p[b, k, ii, ll] * hm[rr, ll]
-                                acc_h += hm[rr, ll] * p[b, k, ll, ii]
+                            acc_p += p[b, k, ii, 0] * hm[rr, 0]
+                            acc_p += p[b, k, ii, 2 + rr] * hm[rr, 2 + rr]
+                            acc_p += p[b, k, ii, g] * hm[rr, g]
+                            acc_p += p[b, k, ii, g + 1] * hm[rr, g + 1]
+                            acc_p += p[b, k, ii, g + 2] * hm[rr, g + 2]
                             pht[ii, rr] = acc_p
+                            acc_h = 0.0
+                            acc_h += hm[rr, 0] * p[b, k, 0, ii]
+                            acc_h += hm[rr, 2 + rr] * p[b, k, 2 + rr, ii]
+                            acc_h += hm[rr, g] * p[b, k, g, ii]
+                            acc_h += hm[rr, g + 1] * p[b, k, g + 1, ii]
+                            acc_h += hm[rr, g + 2] * p[b, k, g + 2, ii]
                             hp[rr, ii] = acc_h
-                    s00 = s01 = s02 = s10 = s11 = s12 = s20 = s21 = s22 = 0.0
-                    for ll in range(N_STATE):
-                        m0, m1, m2 = hm[0, ll], hm[1, ll], hm[2, ll]
-                        q0, q1, q2 = pht[ll, 0], pht[ll, 1], pht[ll, 2]
-                        s00 += m0 * q0
-                        s01 += m0 * q1
-                        s02 += m0 * q2
-                        s10 += m1 * q0
-                        s11 += m1 * q1
-                        s12 += m1 * q2
-                        s20 += m2 * q0
-                        s21 += m2 * q1
-                        s22 += m2 * q2
+                    for r1 in range(3):
+                        g = GA_START + 3 * r1
+                        for r2 in range(3):
+                            acc_s = 0.0
+                            acc_s += hm[r1, 0] * pht[0, r2]
+                            acc_s += hm[r1, 2 + r1] * pht[2 + r1, r2]
+                            acc_s += hm[r1, g] * pht[g, r2]
+                            acc_s += hm[r1, g + 1] * pht[g + 1, r2]
+                            acc_s += hm[r1, g + 2] * pht[g + 2, r2]
+                            sm[r1, r2] = acc_s
+                    s00, s01, s02 = sm[0, 0], sm[0, 1], sm[0, 2]
+                    s10, s11, s12 = sm[1, 0], sm[1, 1], sm[1, 2]
+                    s20, s21, s22 = sm[2, 0], sm[2, 1], sm[2, 2]
                     s00 += r + ee[0] * ee[0]
                     s01 += ee[0] * ee[1]
                     s02 += ee[0] * ee[2]
@@ -460,9 +464,13 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                             a[ii, jj] = p[b, k, ii, jj] - (k0 * hp[0, jj] + k1 * hp[1, jj] + k2 * hp[2, jj])
                     for ii in range(N_STATE):
                         for rr in range(3):
+                            g = GA_START + 3 * rr
                             acc_a = 0.0
-                            for ll in range(N_STATE):
-                                acc_a += a[ii, ll] * hm[rr, ll]
+                            acc_a += a[ii, 0] * hm[rr, 0]
+                            acc_a += a[ii, 2 + rr] * hm[rr, 2 + rr]
+                            acc_a += a[ii, g] * hm[rr, g]
+                            acc_a += a[ii, g + 1] * hm[rr, g + 1]
+                            acc_a += a[ii, g + 2] * hm[rr, g + 2]
                             aht[ii, rr] = acc_a
                     for ii in range(N_STATE):
                         k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
@@ -497,13 +505,23 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                  hm, pht, phd, kg, kd, sm, si, phl, kl, tl, td, gs_learn, dl0, dt):
+                  hm, pht, phd, kg, kd, sm, si, am, bm, wv, tl, td, gs_learn, dl0, dt):
     """Sensor ``k``'s accelerometer update with the hand's shared acceleration error ``δ`` (world frame)
     as three more states: the measurement ``f = h(x_k) + M δ``, ``M = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ``; the
     augmented covariance keeps ``P_k``, ``C_l = P_{x_l δ}`` of every sensor ``l`` of the hand and ``P_δ``
     (the cross terms between two sensors' states are dropped, as between separate filters). Every
     other sensor moves by its correlation with ``δ``: ``K_l = C_l Mᵀ S⁻¹``. The covariance update is
-    the general form ``P - K (PHᵀ)ᵀ - PHᵀ Kᵀ + K S Kᵀ`` (valid for the held scale state's zeroed gain)."""
+    the general form ``P - K (PHᵀ)ᵀ - PHᵀ Kᵀ + K S Kᵀ`` (valid for the held scale state's zeroed gain).
+
+    The arithmetic follows the structure (the numpy reference, ``Chain._joint_step_reference``, does the
+    dense products; the results differ from it by rounding only): a row of ``H`` has five entries
+    (``∂f/∂θ``, ``b_a``'s 1 and ``v`` at ``G``'s row), so ``PHᵀ``, ``C Hᵀ`` and ``S`` sum only those, in
+    the dense sum's order (the same numbers: the other terms are exact zeros); ``P`` is updated on and
+    above its diagonal and mirrored. For another sensor ``l`` (``K_l = C_l Mᵀ S⁻¹`` with its scale row
+    held at 0), ``K_l S K_δᵀ = C_l Mᵀ S⁻¹ S K_δᵀ = C_l Mᵀ K_δᵀ`` cancels ``C_l Mᵀ K_δᵀ`` except on the
+    held row, so ``C_l ← C_l (I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ)``, its scale row ``← C_l,s (I - Mᵀ K_δᵀ)``, and
+    ``dx_l = C_l Mᵀ S⁻¹ y`` (``dx_l,s = 0``): two 3 x 3 matrices and a vector shared by every other
+    sensor, where ``K_l``, ``K_l S`` and the update of ``C_l`` took six products of 15 x 3 each."""
     gk = s_off + k
     ee[0] = ee[1] = ee[2] = 0.0         # the lag error is δ's now, not a widening
     for cc in range(3):
@@ -517,27 +535,40 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
     # the reference force took δ as it was when the finger's tick began
     for rr in range(3):
         yy[rr] -= md[rr, 0] * (dl[0] - dl0[0]) + md[rr, 1] * (dl[1] - dl0[1]) + md[rr, 2] * (dl[2] - dl0[2])
+    # PHᵀ + C Mᵀ and P_δ·Hᵀ = Cᵀ Hᵀ + P_δ Mᵀ: H's row rr has entries at 0, 2 + rr and G's row (g..g + 2)
     for ii in range(N_STATE):
         for rr in range(3):
+            g = GA_START + 3 * rr
             acc_p = 0.0
-            for ll in range(N_STATE):
-                acc_p += p[b, k, ii, ll] * hm[rr, ll]
+            acc_p += p[b, k, ii, 0] * hm[rr, 0]
+            acc_p += p[b, k, ii, 2 + rr] * hm[rr, 2 + rr]
+            acc_p += p[b, k, ii, g] * hm[rr, g]
+            acc_p += p[b, k, ii, g + 1] * hm[rr, g + 1]
+            acc_p += p[b, k, ii, g + 2] * hm[rr, g + 2]
             for cc in range(3):
                 acc_p += cx[gk, ii, cc] * md[rr, cc]
             pht[ii, rr] = acc_p
     for c1 in range(3):
         for rr in range(3):
+            g = GA_START + 3 * rr
             acc_p = 0.0
-            for ll in range(N_STATE):
-                acc_p += cx[gk, ll, c1] * hm[rr, ll]
+            acc_p += cx[gk, 0, c1] * hm[rr, 0]
+            acc_p += cx[gk, 2 + rr, c1] * hm[rr, 2 + rr]
+            acc_p += cx[gk, g, c1] * hm[rr, g]
+            acc_p += cx[gk, g + 1, c1] * hm[rr, g + 1]
+            acc_p += cx[gk, g + 2, c1] * hm[rr, g + 2]
             for cc in range(3):
                 acc_p += pd[c1, cc] * md[rr, cc]
             phd[c1, rr] = acc_p
     for r1 in range(3):
+        g = GA_START + 3 * r1
         for r2 in range(3):
-            acc_s = ee[r1] * ee[r2] + (r if r1 == r2 else 0.0)
-            for ll in range(N_STATE):
-                acc_s += hm[r1, ll] * pht[ll, r2]
+            acc_s = r if r1 == r2 else 0.0
+            acc_s += hm[r1, 0] * pht[0, r2]
+            acc_s += hm[r1, 2 + r1] * pht[2 + r1, r2]
+            acc_s += hm[r1, g] * pht[g, r2]
+            acc_s += hm[r1, g + 1] * pht[g + 1, r2]
+            acc_s += hm[r1, g + 2] * pht[g + 2, r2]
             for cc in range(3):
                 acc_s += md[r1, cc] * phd[cc, r2]
             sm[r1, r2] = acc_s
@@ -566,21 +597,35 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
     for c1 in range(3):
         for rr in range(3):
             td[c1, rr] = kd[c1, 0] * sm[0, rr] + kd[c1, 1] * sm[1, rr] + kd[c1, 2] * sm[2, rr]
-    # every other sensor of the hand, through its correlation with δ
+    # every other sensor of the hand, through its correlation with δ: am = I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ,
+    # bm = I - Mᵀ K_δᵀ (the held scale row), wv = Mᵀ S⁻¹ y
+    sy0 = si[0, 0] * yy[0] + si[0, 1] * yy[1] + si[0, 2] * yy[2]
+    sy1 = si[1, 0] * yy[0] + si[1, 1] * yy[1] + si[1, 2] * yy[2]
+    sy2 = si[2, 0] * yy[0] + si[2, 1] * yy[1] + si[2, 2] * yy[2]
+    for cc in range(3):
+        wv[cc] = md[0, cc] * sy0 + md[1, cc] * sy1 + md[2, cc] * sy2
+        for c1 in range(3):
+            q0 = si[0, 0] * phd[c1, 0] + si[0, 1] * phd[c1, 1] + si[0, 2] * phd[c1, 2]
+            q1 = si[1, 0] * phd[c1, 0] + si[1, 1] * phd[c1, 1] + si[1, 2] * phd[c1, 2]
+            q2 = si[2, 0] * phd[c1, 0] + si[2, 1] * phd[c1, 1] + si[2, 2] * phd[c1, 2]
+            eye = 1.0 if cc == c1 else 0.0
+            am[cc, c1] = eye - (md[0, cc] * q0 + md[1, cc] * q1 + md[2, cc] * q2)
+            bm[cc, c1] = eye - (md[0, cc] * kd[c1, 0] + md[1, cc] * kd[c1, 1] + md[2, cc] * kd[c1, 2])
     for l in range(cx.shape[0]):
         if l == gk:
             continue
-        for ii in range(N_STATE):
-            for rr in range(3):
-                phl[ii, rr] = cx[l, ii, 0] * md[rr, 0] + cx[l, ii, 1] * md[rr, 1] + cx[l, ii, 2] * md[rr, 2]
-        for ii in range(N_STATE):
-            for rr in range(3):
-                kl[ii, rr] = phl[ii, 0] * si[0, rr] + phl[ii, 1] * si[1, rr] + phl[ii, 2] * si[2, rr]
-        kl[GS, 0] = kl[GS, 1] = kl[GS, 2] = 0.0
-        _cross_update(cx, l, kl, phl, kd, phd, sm, tl)
         same = s_off <= l < s_off + ns and l - s_off > k
         for ii in range(N_STATE):
-            dx = kl[ii, 0] * yy[0] + kl[ii, 1] * yy[1] + kl[ii, 2] * yy[2]
+            e0, e1, e2 = cx[l, ii, 0], cx[l, ii, 1], cx[l, ii, 2]
+            if ii == GS:
+                cx[l, ii, 0] = e0 * bm[0, 0] + e1 * bm[1, 0] + e2 * bm[2, 0]
+                cx[l, ii, 1] = e0 * bm[0, 1] + e1 * bm[1, 1] + e2 * bm[2, 1]
+                cx[l, ii, 2] = e0 * bm[0, 2] + e1 * bm[1, 2] + e2 * bm[2, 2]
+                continue
+            cx[l, ii, 0] = e0 * am[0, 0] + e1 * am[1, 0] + e2 * am[2, 0]
+            cx[l, ii, 1] = e0 * am[0, 1] + e1 * am[1, 1] + e2 * am[2, 1]
+            cx[l, ii, 2] = e0 * am[0, 2] + e1 * am[1, 2] + e2 * am[2, 2]
+            dx = e0 * wv[0] + e1 * wv[1] + e2 * wv[2]
             if ii == 0 and same:
                 th[l - s_off] += dx        # not updated yet this tick: its predicted angle moves (below)
             else:
@@ -592,11 +637,13 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
     # the sensor itself and δ
     _cross_update(cx, gk, kg, pht, kd, phd, sm, tl)
     for ii in range(N_STATE):
-        for jj in range(N_STATE):
-            acc_p = 0.0
-            for rr in range(3):
-                acc_p += kg[ii, rr] * pht[jj, rr] + pht[ii, rr] * kg[jj, rr] - tl[ii, rr] * kg[jj, rr]
-            p[b, k, ii, jj] -= acc_p
+        t0, t1, t2 = pht[ii, 0] - tl[ii, 0], pht[ii, 1] - tl[ii, 1], pht[ii, 2] - tl[ii, 2]
+        k0, k1, k2 = kg[ii, 0], kg[ii, 1], kg[ii, 2]
+        for jj in range(ii, N_STATE):
+            acc_p = k0 * pht[jj, 0] + k1 * pht[jj, 1] + k2 * pht[jj, 2] + t0 * kg[jj, 0] + t1 * kg[jj, 1] + t2 * kg[jj, 2]
+            v = p[b, k, ii, jj] - acc_p
+            p[b, k, ii, jj] = v
+            p[b, k, jj, ii] = v
     for c1 in range(3):
         for c2 in range(3):
             acc_p = 0.0
