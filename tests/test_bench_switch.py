@@ -75,6 +75,19 @@ def test_a_session_without_frames_after_the_request_has_no_stall_figure_rather_t
     assert row["others"]["load-1"]["stall_ms"] is None and row["stall_ms"] is None
 
 
+def test_a_gap_that_runs_past_the_window_s_end_counts_to_the_next_frame():
+    """Another session's frames stop during the switch window and come again only after it has ended: the
+    gap counts up to that next frame, not only to the last frame inside the window."""
+    switches = [{"estimator": "vector", "sent": 3.0, "returned": 3.2}]           # window 3.0-3.7
+    due = np.arange(0.0, 6.0, PERIOD)
+    arrivals = due + 0.003
+    arrivals[(due >= 3.25) & (due < 4.5)] = 4.5 + 0.003                         # nothing from 3.25 to 4.5
+    frames = {"load-0": _frames(0.0, 6.0, 0.004), "load-1": (arrivals, arrivals - due)}
+    row, = account(switches, frames, "load-0", PERIOD)
+    assert row["others"]["load-1"]["largest_gap_minus_period_ms"] >= 1e3 * (4.5 - 3.25 - 2 * PERIOD)
+    assert row["others"]["load-1"]["baseline_largest_gap_minus_period_ms"] < 1.0
+
+
 def test_the_plan_goes_through_every_estimator_and_back_to_the_default():
     from service.estimators.registry import REGISTRY
     from service.pipeline.hand import PipelineSettings
@@ -113,3 +126,5 @@ def test_bad_switch_arguments_are_refused(tmp_path, capsys):
     assert "--inject-stop-ms" in capsys.readouterr().err
     assert main(["bench", "switch", "--lead", "0.5", "--out", str(tmp_path)]) == 2
     assert "--lead must be at least 1 s" in capsys.readouterr().err
+    assert main(["bench", "switch", "--seconds", "3", "--out", str(tmp_path)]) == 2    # no switch would run
+    assert "--seconds must be at least" in capsys.readouterr().err

@@ -87,7 +87,7 @@ def cold_cache(folder: Path, names: list[str]) -> tuple[Path, int]:
 
     source = numba_cache_dir()
     if source is None:
-        raise RuntimeError("no writable kernel cache: a cold cache cannot be made")
+        raise ValueError("no writable kernel cache: a cold cache cannot be made (--cache warm runs without one)")
     copy = folder / "numba"
     shutil.copytree(source, copy)
     removed = 0
@@ -136,12 +136,15 @@ def _switcher(url: str, admin: str, names: list[str], seconds: float, gap_s: flo
     return switch_all
 
 
-def _largest_gap(arrivals: np.ndarray, start: float, end: float) -> float | None:
+def _largest_gap(arrivals: np.ndarray, start: float, end: float, past_end: bool = True) -> float | None:
     """The longest time between consecutive frames received in ``[start, end]``, counting from the last
-    frame before ``start``; None without two frames."""
+    frame before ``start`` and (``past_end``) to the first after ``end``: a gap that runs past the end
+    counts, up to that frame, or to the end when none came; None without two frames."""
     i0 = max(int(np.searchsorted(arrivals, start, side="left")) - 1, 0)
     i1 = int(np.searchsorted(arrivals, end, side="right"))
     part = arrivals[i0:i1]
+    if past_end:
+        part = arrivals[i0:i1 + 1] if i1 < len(arrivals) else np.append(part, end)
     return float(np.diff(part).max()) if len(part) > 1 else None
 
 
@@ -165,7 +168,7 @@ def account(switches: list[dict], frames: dict[str, tuple[np.ndarray, np.ndarray
             w = float(beyond[inside].max()) * 1e3 if inside.any() else None
             b = float(beyond[before].max()) * 1e3 if before.any() else None
             gap = _largest_gap(arrivals, start, end)
-            gap_b = _largest_gap(arrivals, start - base_len, start)
+            gap_b = _largest_gap(arrivals, start - base_len, start, past_end=False)   # the window's own gap is not its
             # the window's two parts: until the reply (the switch itself), after it (the new estimator running)
             part = [beyond[inside & (due <= sw["returned"])], beyond[inside & (due > sw["returned"])]]
             seen = {"frames": int(inside.sum()), "max_delay_ms": w, "baseline_max_delay_ms": b,
@@ -191,8 +194,11 @@ def account(switches: list[dict], frames: dict[str, tuple[np.ndarray, np.ndarray
 
 
 def _kernel_state(names: list[str], cache: str) -> list[str]:
-    """What each switch in ``names`` finds of its estimator's kernels in the service (module docstring)."""
+    """What each switch in ``names`` finds of its estimator's kernels in the service (module docstring);
+    with ``cache`` warm, what the disk cache holds now (before the service starts): kernels missing from it
+    are compiled then, and said so."""
     from ..estimators.registry import REGISTRY
+    from ..estimators.warm import _kernels, _on_disk
     from ..pipeline.hand import PipelineSettings
 
     seen = {PipelineSettings().estimator}
@@ -202,8 +208,11 @@ def _kernel_state(names: list[str], cache: str) -> list[str]:
             out.append("no kernels")
         elif name in seen:
             out.append("loaded")
+        elif cache == "cold":
+            out.append("compiled (not in the cache)")
         else:
-            out.append("compiled (not in the cache)" if cache == "cold" else "loaded from the disk cache")
+            out.append("loaded from the disk cache" if _on_disk(_kernels(name))
+                       else "compiled (not in the cache although warm: warm it first)")
         seen.add(name)
     return out
 
@@ -221,6 +230,7 @@ def run_condition(cache: str = "warm", sessions: int = 4, hand_workers: int | No
     if cache not in CACHE_STATES:
         raise ValueError(f"cache must be one of {list(CACHE_STATES)}, got {cache!r}")
     names = list(names) if names is not None else plan(passes)
+    states = _kernel_state(names, cache)            # before the service fills the cache
     if seconds is None:       # the stream ends with the last switch; at the latest (a compile takes tens of s):
         seconds = lead_s + len(names) * (gap_s + SETTLE_S + 2.0) + (240.0 if cache == "cold" else 0.0) + MARGIN_S
     limits = {"max_sessions": max(64, sessions), "max_sessions_per_token": max(8, sessions),
@@ -244,7 +254,6 @@ def run_condition(cache: str = "warm", sessions: int = 4, hand_workers: int | No
             load_after = os.getloadavg()[0]
             _, summaries = rest(svc.url, "GET", "/v1/sessions", svc.admin)
     switches = lvl["killed"].get("switches", [])
-    states = _kernel_state(names, cache)
     for sw, state in zip(switches, states):
         sw["kernels"] = state
     frames = {}
@@ -372,14 +381,20 @@ def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None,
         raise ValueError(f"--gap must be at least 1 s (the baseline before each switch), got {gap_s:g}")
     if inject_stop_ms is not None and not 0 < inject_stop_ms < 1e3 * gap_s:
         raise ValueError(f"--inject-stop-ms must be positive and shorter than the gap, got {inject_stop_ms:g}")
+    if seconds is not None and seconds < lead_s + SETTLE_S + MARGIN_S:
+        raise ValueError(f"--seconds must be at least the lead plus {SETTLE_S + MARGIN_S:g} s for one switch, "
+                         f"got {seconds:g}")
     caches = CACHE_STATES if cache == "both" else (cache,)
     if any(c not in CACHE_STATES for c in caches):
         raise ValueError(f"--cache must be warm, cold or both, got {cache!r}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with torn_down_on_signal():                 # SIGTERM stops the service and the generator as Ctrl-C does
-        conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms, lead_s=lead_s)
-                      for c in caches]
+        try:
+            conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms, lead_s=lead_s)
+                          for c in caches]
+        except RuntimeError as err:             # the service or a load generator did not start or failed
+            raise ValueError(str(err)) from None
     (out / "results.json").write_text(json.dumps(conditions, indent=2))
     text = summary(conditions)
     (out / "summary.md").write_text(text)
