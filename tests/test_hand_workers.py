@@ -315,15 +315,55 @@ def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
                 os.kill(pid, signal.SIGKILL)
 
 
+class _Peer:
+    """A ``hands.worker.Worker`` run by a thread of this process, and the web process's end of its socket."""
+
+    def __init__(self):
+        import socket
+        import threading
+
+        from service.api.hands import worker as hands_worker
+
+        self.mod = hands_worker
+        self.ours, theirs = socket.socketpair()
+        self.worker = hands_worker.Worker(theirs, _settings(1))
+        self.thread = threading.Thread(target=self.worker.run, daemon=True)
+        self.thread.start()
+        self.received: list = []
+        self._buffer = bytearray()
+
+    def send(self, messages: list) -> None:
+        self.ours.sendall(self.mod.frame(messages))
+
+    def until(self, condition, what: str) -> None:
+        import msgpack
+
+        self.ours.settimeout(120.0)                 # a bound for a failure only
+        while not condition():
+            try:
+                chunk = self.ours.recv(1 << 20)
+            except TimeoutError:
+                raise AssertionError(f"nothing from the worker for 120 s waiting for {what}") from None
+            assert chunk, f"the worker ended before {what}"
+            self._buffer.extend(chunk)
+            while len(self._buffer) >= 4 and len(self._buffer) >= 4 + (size := self.mod.HEADER.unpack_from(self._buffer)[0]):
+                self.received.extend(msgpack.unpackb(bytes(self._buffer[4:4 + size])))
+                del self._buffer[:4 + size]
+
+    def replies(self, sid: int) -> list:
+        return [m for m in self.received if m[0] == "rep" and m[1] == sid]
+
+    def close(self) -> None:
+        self.ours.close()
+        self.thread.join(60.0)
+
+
 def test_a_worker_serves_its_other_sessions_while_a_thread_loads_an_estimator_s_kernels(monkeypatch):
     """The worker loads a switched-to estimator's kernels in a thread (on its main thread, loading
     ``inertial`` from the cache stopped its other sessions for 130 ms): while the loading is held,
     another session's source messages are answered, frames included; the change applies once it is
     loaded, and not before."""
-    import socket
     import threading
-
-    import msgpack
 
     from service.api import sessions
     from service.api.hands import worker as hands_worker
@@ -338,41 +378,61 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_loads_an_estimator_s_
     monkeypatch.setattr(hands_worker, "is_warm", lambda name: name != "vector" or name in loaded)
     monkeypatch.setattr(hands_worker, "needs_compiling", lambda name: False)    # in the cache: no process
     monkeypatch.setattr(sessions, "warm_ahead", lambda name, params=None: None)
-    ours, theirs = socket.socketpair()
-    worker = hands_worker.Worker(theirs, _settings(1))
-    thread = threading.Thread(target=worker.run, daemon=True)
-    thread.start()
-    received, buffer = [], bytearray()
-
-    def send(messages):
-        ours.sendall(hands_worker.frame(messages))
-
-    def until(condition, what):
-        ours.settimeout(120.0)                  # a bound for a failure only
-        while not condition():
-            try:
-                chunk = ours.recv(1 << 20)
-            except TimeoutError:
-                raise AssertionError(f"nothing from the worker for 120 s waiting for {what}") from None
-            assert chunk, f"the worker ended before {what}"
-            buffer.extend(chunk)
-            while len(buffer) >= 4 and len(buffer) >= 4 + (size := hands_worker.HEADER.unpack_from(buffer)[0]):
-                received.extend(msgpack.unpackb(bytes(buffer[4:4 + size])))
-                del buffer[:4 + size]
-
+    peer = _Peer()
     try:
         msgs = [m for _, m in _messages("right", 1.0, 5)]
-        send([["open", 1, "a", None], ["open", 2, "b", None], ["cfg", 2, 1, {"estimator": "vector"}]])
+        peer.send([["open", 1, "a", None], ["open", 2, "b", None], ["cfg", 2, 1, {"estimator": "vector"}]])
         assert entered.wait(120.0), "the kernels' loading never began"
-        send([["src", 1, n, m] for n, m in enumerate(msgs, 1)])
-        until(lambda: sum(1 for m in received if m[0] == "rep" and m[1] == 1) == len(msgs), "session a's replies")
-        assert any(m[0] == "out" and m[1] == 1 and m[3][0] == "frame" for m in received)
-        assert not any(m[0] == "cfgrep" for m in received)      # b's change waits for its kernels
+        peer.send([["src", 1, n, m] for n, m in enumerate(msgs, 1)])
+        peer.until(lambda: len(peer.replies(1)) == len(msgs), "session a's replies")
+        assert any(m[0] == "out" and m[1] == 1 and m[3][0] == "frame" for m in peer.received)
+        assert not any(m[0] == "cfgrep" for m in peer.received)      # b's change waits for its kernels
         release.set()
-        until(lambda: any(m[0] == "cfgrep" for m in received), "b's change")
-        reply, = [m for m in received if m[0] == "cfgrep"]
+        peer.until(lambda: any(m[0] == "cfgrep" for m in peer.received), "b's change")
+        reply, = [m for m in peer.received if m[0] == "cfgrep"]
         assert reply[1:3] == [2, 1] and reply[3]["estimator"] == "vector" and reply[4] is None, reply
     finally:
         release.set()
-        ours.close()
-        thread.join(60.0)
+        peer.close()
+
+
+def test_a_worker_serves_its_other_sessions_while_a_thread_builds_a_moved_in_session_s_hand(monkeypatch):
+    """A session opened on a worker (new, moved in from another worker, or after a restart) has its hand
+    built by a thread (10-20 ms of the interpreter on the main thread would stop the worker's other
+    sessions): while b's build is held, a's source messages are answered; b's messages, sent meanwhile,
+    are answered after it, in order, with b's frames continuing from its state's ``seq``."""
+    import threading
+
+    from service.api.hands import worker as hands_worker
+
+    entered, release = threading.Event(), threading.Event()
+
+    class HeldHand(hands_worker.OwnedHand):
+        def __init__(self, name, settings, metrics, state):
+            if name == "b":
+                entered.set()
+                assert release.wait(120.0), "the test never released the build"
+            super().__init__(name, settings, metrics, state)
+    monkeypatch.setattr(hands_worker, "OwnedHand", HeldHand)
+    peer = _Peer()
+    try:
+        msgs = [m for _, m in _messages("right", 1.0, 6)]
+        hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "worker-test"}
+        state = {"session": "b", "seq": 500, "t": -1.0, "angles": None, "hello": hello,
+                 "calibration": None, "config": {"estimator": "chain", "estimator_params": {}}}
+        peer.send([["open", 1, "a", None], ["src", 1, 1, hello]])
+        peer.until(lambda: len(peer.replies(1)) == 1, "a's hello answered")
+        peer.send([["open", 2, "b", state]])
+        assert entered.wait(120.0), "b's build never began"
+        peer.send([["src", 2, n, m] for n, m in enumerate(msgs, 1)])
+        peer.send([["src", 1, n, m] for n, m in enumerate(msgs, 2)])
+        peer.until(lambda: len(peer.replies(1)) == len(msgs) + 1, "a's replies")
+        assert peer.replies(2) == []                # b's wait for its hand
+        release.set()
+        peer.until(lambda: len(peer.replies(2)) == len(msgs), "b's replies")
+        assert [m[2] for m in peer.replies(2)] == list(range(1, len(msgs) + 1))             # in order
+        seqs = [m[3][1] for m in peer.received if m[0] == "out" and m[1] == 2 and m[3][0] == "frame"]
+        assert seqs and seqs[0] > 500 and all(x < y for x, y in zip(seqs, seqs[1:])), seqs[:5]
+    finally:
+        release.set()
+        peer.close()

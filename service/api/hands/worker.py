@@ -10,8 +10,11 @@ settings a hand needs (no secrets).
 Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a session number ``sid``):
 
 * ``["open", sid, name, state]``: own the session; ``state`` is the compact session state of
-  ``hands.owner`` (``None`` for a new session; after a restart of a worker its last state, so the
-  hand continues from its last estimate);
+  ``hands.owner`` (``None`` for a new session; after a restart of a worker, or when the session moves
+  between workers, its last state, so the hand continues from its last estimate). Its hand is built by
+  a thread while the worker goes on serving its other sessions (building a hand takes 10-20 ms of the
+  interpreter; ``warm.sharing_the_interpreter``); the session's messages that come meanwhile wait for it,
+  in order;
 * ``["src", sid, n, raw]``: a validated source message (packed once more, as MessagePack bytes, so
   that the web process packs it once and can send it again as it is), numbered ``n`` per session;
 * ``["chk", sid, n, data, binary]``: a source data message (``imu``, ``imu_batch``, ``pose`` with only
@@ -73,7 +76,7 @@ import msgpack
 from ...pipeline.gc_policy import serving_gc
 from ...protocol import ProtocolError, parse_input, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
-from ...estimators.warm import compile_command, is_warm, needs_compiling, warm, warm_ahead
+from ...estimators.warm import compile_command, is_warm, needs_compiling, sharing_the_interpreter, warm, warm_ahead
 from ..config import ServiceSettings
 from ..metrics import Metrics
 from ..outgoing import Outgoing
@@ -89,6 +92,8 @@ WARM_POLL_S = 0.05
 """how often a worker compiling kernels in a separate process looks whether it has finished, s"""
 ALIVE_S = 0.2
 """how often a worker in a long operation it knows of says it is alive, s"""
+OPEN_POLL_S = 0.005
+"""how often a worker whose thread builds a session's hand looks whether it has finished, s"""
 
 
 def _plain(value):
@@ -195,6 +200,9 @@ class Worker:
         self.warming: dict[str, subprocess.Popen | threading.Thread] = {}
         """estimator name -> its compiling process, then the thread that loads its kernels here"""
         self.waiting: list[list] = []                         # cfg/enrol messages in order, until warm
+        self.opening: dict[int, tuple[threading.Thread, list, list]] = {}
+        """sid -> the thread building its hand, the hand once built (or the error), the session's messages
+        that came meanwhile (in order)"""
         self.send_lock = threading.Lock()
 
     def send(self) -> None:
@@ -226,7 +234,7 @@ class Worker:
     def run(self) -> None:
         buf = bytearray()
         while True:
-            timeout = WARM_POLL_S if self.warming else None
+            timeout = OPEN_POLL_S if self.opening else WARM_POLL_S if self.warming else None
             readable, _, _ = select.select([self.sock], [], [], timeout)
             if readable:
                 chunk = self.sock.recv(1 << 20)
@@ -240,6 +248,7 @@ class Worker:
                     batch = msgpack.unpackb(bytes(buf[HEADER.size:HEADER.size + size]))
                     del buf[:HEADER.size + size]
                     self.handle_batch(batch)
+            self.poll_opening()
             self.poll_warming()
             self.send()
 
@@ -253,6 +262,9 @@ class Worker:
 
     def dispatch(self, message: list) -> None:
         kind, sid = message[0], message[1]
+        if sid in self.opening:                     # its hand is being built: after it, in order
+            self.opening[sid][2].append(message)
+            return
         if kind == "src":
             owned = self.hands.get(sid)
             if owned is None:
@@ -275,8 +287,8 @@ class Worker:
             if (owned := self.hands.get(sid)) is not None:
                 owned.drops = (int(message[2]), int(message[3]))
         elif kind == "open":
-            with self.alive():                      # a state's estimator may have to be loaded first
-                self.hands[sid] = OwnedHand(message[2], self.settings, self.metrics, message[3])
+            box: list = []
+            self.opening[sid] = (self.build(message[2], message[3], box), box, [])
         elif kind == "close":
             owned = self.hands.pop(sid, None)
             if owned is not None:
@@ -289,6 +301,33 @@ class Worker:
                                       if needs_compiling(name) else self.load(name))
             self.waiting.append(message)
             self.apply_waiting()
+
+    def build(self, name: str, state: dict | None, box: list) -> threading.Thread:
+        """A thread that builds a session's hand into ``box`` (its state's estimator may have to be loaded
+        or compiled first) with the interpreter's lock handed over often, while the main thread serves the
+        other sessions; ``poll_opening`` takes it from there."""
+        def run() -> None:
+            try:
+                with self.alive(), sharing_the_interpreter():
+                    built = OwnedHand(name, self.settings, self.metrics, state)
+            except BaseException as err:            # raised on the main thread, as before the thread
+                built = err
+            box.append(built)
+        thread = threading.Thread(target=run, name=f"open {name}", daemon=True)
+        thread.start()
+        return thread
+
+    def poll_opening(self) -> None:
+        """Sessions whose hand is built: theirs from now on, and the messages that waited for it handled."""
+        for sid, (thread, box, held) in list(self.opening.items()):
+            if not box:
+                continue
+            thread.join()
+            del self.opening[sid]
+            if isinstance(box[0], BaseException):
+                raise box[0]
+            self.hands[sid] = box[0]
+            self.handle_batch(held)
 
     @staticmethod
     def estimator_of(message: list) -> str | None:
