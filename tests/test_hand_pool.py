@@ -1,7 +1,8 @@
-"""The hand worker pool's stall watchdog (``service.api.hands.pool``) with real worker processes: an
+"""The hand worker pool (``service.api.hands.pool``) with real worker processes: its stall watchdog (an
 idle worker is not silent when it is first sent a message, a stopped worker is replaced as soon as the
-other worker goes on answering, and a worker busy with a long message is not. Waits are for events and
-counts; timeouts only bound a failure."""
+other worker goes on answering, and a worker busy with a long message is not), and a session switched
+to a costly estimator in a worker of its own. Waits are for events and counts; timeouts only bound a
+failure."""
 import asyncio
 import os
 import signal
@@ -11,6 +12,7 @@ from clients.glove import source_messages
 from service.api.config import ServiceSettings
 from service.api.hands.pool import LAG_EVIDENCE, HandPool
 from service.api.metrics import Metrics
+from service.api.sessions import Subscriber
 from service.protocol import parse_message
 from service.protocol.messages import MAX_BATCH_SAMPLES
 from service.sim.session import SimConfig
@@ -212,3 +214,61 @@ def test_a_data_message_is_known_by_its_head_only_when_nothing_else_could_make_i
     assert data_type('{"type":"hello","protocol":1}') is None
     assert data_type('{"type":"imu_batchX","samples":[]}') is None
     assert data_type(' {"type":"imu"}') is None and data_type('["type","imu"]') is None
+
+
+def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_own_and_comes_back_with_its_state():
+    """Sessions a and b on one worker; b is switched to ``ekf`` (per finger and sample in Python, more
+    than a core per hand): it moves with its state to a worker process of its own,
+    ``hand_worker_isolated_nice`` nicer than this one, and back to the shared worker when switched to
+    ``chain`` (its own worker then ends). Every source message of both is answered without an error,
+    b's frames go on with increasing ``seq`` on each estimator in turn, and a never moves."""
+    msgs = _glove(0.6, 4)                         # ekf is slow: a few of its frames tell
+    parts = [msgs[:len(msgs) // 2], msgs[len(msgs) // 2:3 * len(msgs) // 4], msgs[3 * len(msgs) // 4:]]
+
+    async def run():
+        pool = await _pool(1)
+        try:
+            a, b = pool.session("a", pool.settings, pool.metrics), pool.session("b", pool.settings, pool.metrics)
+            errors, stages = [], []
+
+            async def answer(code, detail, *samples):
+                errors.append((code, detail))
+            sub = Subscriber(frames_max=100_000, events_max=100_000)
+            b.subscribers.add(sub)
+            shared = a.link
+            for live in (a, b):
+                live.attach_source(answer)
+                await _ingest(live, HELLO)
+            for part, estimator in zip(parts, ("chain", "ekf", "chain")):
+                if estimator != b.config.estimator:
+                    await asyncio.to_thread(b.update_config, {"estimator": estimator})
+                link = b.link
+                stage = {"link": link, "pid": link.pid, "nice": os.getpriority(os.PRIO_PROCESS, link.pid)}
+                for m in part:
+                    await _ingest(a, m)
+                    await _ingest(b, m)
+                await a.settled()
+                await b.settled()
+                stage["frames"] = [(f.message["seq"], f.message["status"]["estimator"]) for kind, f, _ in sub.queue
+                                   if kind == "frame"]
+                sub.queue.clear()
+                stages.append(stage)
+            own = stages[1]["link"]
+            await _until(lambda: own.proc.returncode is not None, "b's own worker to end")
+            return a, b, shared, stages, errors, pool.settings.hand_worker_isolated_nice
+        finally:
+            await pool.close()
+
+    a, b, shared, stages, errors, nicer = asyncio.run(run())
+    assert errors == []
+    first, costly, back = stages
+    want_nice = min(19, os.getpriority(os.PRIO_PROCESS, 0) + nicer)
+    assert first["link"] is shared and costly["link"].isolated and costly["pid"] != shared.pid
+    assert costly["nice"] == want_nice, (costly["nice"], want_nice)
+    assert back["link"] is shared and back["pid"] == shared.pid
+    for stage, estimator in zip(stages, ("chain", "ekf", "chain")):
+        assert stage["frames"] and {e for _, e in stage["frames"]} == {estimator}
+    seqs = [seq for stage in stages for seq, _ in stage["frames"]]
+    assert all(x < y for x, y in zip(seqs, seqs[1:])), seqs
+    assert a.link is shared and a.restarts == a.moves == 0
+    assert b.moves == 2 and b.restarts == 0

@@ -155,8 +155,10 @@ def test_switching_a_session_to_an_estimator_not_loaded_in_its_worker_does_not_s
     compiled by a separate process first, or loaded by a thread of the worker when they are cached) and
     just after it, session a, streaming in real time, gets every frame of whole 100 ms windows of its
     stream time. (A cached load takes a fraction of a second: the windows counted run until 0.5 s of
-    a's stream time after the reply, so that a short switch is judged too.)"""
-    with ServerThread(_settings(1)) as server:
+    a's stream time after the reply, so that a short switch is judged too.) Without a worker of its own for
+    the switched session (``hand_worker_isolate``; ``tests/test_hand_pool.py`` has that case): the
+    switch happens in the worker that serves a."""
+    with ServerThread(_settings(1, hand_worker_isolate=False)) as server:
         async def run():
             frames: list = []
             sub = Subscription(server.ws_url, "a", VIEWER)

@@ -100,6 +100,15 @@ class ServiceSettings(BaseSettings):
                                   "process once its kernels are loaded, so that the web process, on every frame's and "
                                   "health check's path, gets a core first; 0 on a machine shared with other work where "
                                   "the workers should not yield to it")
+    hand_worker_isolate: bool = Field(True, description="a session switched to an estimator that runs per finger and "
+                                      "sample through Python (any but the compiled chain: 8-140 % of a core per hand) moves "
+                                      "with its state to a hand worker process of its own, hand_worker_isolated_nice nicer "
+                                      "than the web process, and back to a shared worker when switched to the compiled "
+                                      "chain: it cannot starve the other sessions, but may fall behind its source on a busy "
+                                      "machine, which it says (GET /v1/sessions: behind_s; the log); false: it stays on its "
+                                      "shared worker")
+    hand_worker_isolated_nice: int = Field(10, ge=0, le=19, description="a session's own hand worker (hand_worker_isolate) "
+                                           "runs this much nicer than the web process from its start")
     hand_worker_stall_s: float = Field(10.0, gt=0, le=600, description="a hand worker that answers nothing for this "
                                        "long while it owes answers is killed and its sessions move to the others, s")
     hand_worker_lag_s: float = Field(1.0, gt=0, le=600, description="sooner: a hand worker that answers nothing for "

@@ -23,6 +23,10 @@ class Metrics:
                                      "on the event loop after WebSocket connections ended (api/churn.py)",
                                      registry=self.registry)
         self.sessions = Gauge("fingertrack_sessions", "live sessions", registry=self.registry)
+        self.behind = Gauge("fingertrack_session_behind_seconds", "how much later the session's last frame came behind "
+                            "its source's real time than its frames did at best (hand workers; a session on a costly "
+                            "estimator in a worker of its own may fall behind on a busy machine)", ["session"],
+                            registry=self.registry)
         self.subscribers = Gauge("fingertrack_subscribers", "connected subscribers", registry=self.registry)
         self.latency = Histogram("fingertrack_ingest_to_send_seconds", "time from receiving a source message to sending "
                                  "the output it caused", ["session"], registry=self.registry,
@@ -31,7 +35,7 @@ class Metrics:
 
     def forget_session(self, name: str) -> None:
         """Drop the series of a removed session (a name may come back as a new session)."""
-        for family in (self.messages_in, self.messages_out, self.dropped_frames, self.overloaded, self.latency):
+        for family in (self.messages_in, self.messages_out, self.dropped_frames, self.overloaded, self.latency, self.behind):
             try:
                 family.remove(name)
             except KeyError:

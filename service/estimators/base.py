@@ -136,6 +136,14 @@ class FingerEstimator:
     kernels: ClassVar[tuple] = ()
     """Those kernels (numba dispatchers), so that ``estimators.warm`` can tell whether they are cached on disk."""
 
+    @classmethod
+    def whole_hand_compiled(cls, settings: EstimatorSettings) -> bool:
+        """Whether a hand on this estimator (with ``settings``) advances all its fingers in one compiled call
+        per tick (``chain.ChainHand``): a few % of a core per hand. Every other estimator runs per finger and
+        sample through Python (8-140 % of a core per hand, ``fingertrack bench cpu --estimator NAME``), so
+        the service runs a session on one in a hand worker process of its own (``api.hands.pool``)."""
+        return False
+
     def __init__(self, geom: FingerGeometry, settings: EstimatorSettings | None = None,
                  initial_theta: np.ndarray | None = None, batch_shape: tuple[int, ...] = (),
                  gravity_world: np.ndarray = DEFAULT_GRAVITY_WORLD, extra_couplings: tuple = ()):

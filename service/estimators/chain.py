@@ -250,6 +250,10 @@ class Chain(FingerEstimator):
     jit_kernels = True
     kernels = (K.run, K.run_hand)
 
+    @classmethod
+    def whole_hand_compiled(cls, settings: ChainSettings) -> bool:
+        return settings.implementation == "compiled"
+
     def __init__(self, *args, extra_couplings: tuple = (), **kwargs):
         super().__init__(*args, extra_couplings=extra_couplings, **kwargs)
         self._compiled = self.settings.implementation == "compiled"

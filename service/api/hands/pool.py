@@ -35,11 +35,28 @@ session as ``worker.restarts`` and ``worker.resent_after_restart`` (``GET /v1/se
 A worker runs ``hand_worker_nice`` nicer than the web process once it has loaded its kernels (``hands.worker``):
 on a machine short of cores, the process that moves every message (and answers the health checks) gets a
 core first when it has work.
+
+A session switched to an estimator that runs per finger and sample through Python (every one but the
+compiled ``chain``, ``FingerEstimator.whole_hand_compiled``: 8-140 % of a core per hand, against a few %)
+runs in a worker process of its own (``hand_worker_isolate``): one is started for it with that estimator
+loaded, ``hand_worker_isolated_nice`` nicer than this process from its start (its start-up yields too),
+while the session goes on with its old estimator on its shared worker; then the session moves there with
+its state and every unanswered source message, as after a crash (``reopen``; the new configuration in
+the state), and the change applies there. On a machine short of cores it then cannot starve the shared
+workers' sessions, but it may fall behind its own source, which it says: ``behind_s`` in ``GET
+/v1/sessions``, the gauge ``fingertrack_session_behind_seconds``, a log line past ``BEHIND_WARN_S``.
+Switched back to the compiled chain, the change applies in its own worker; once the session has caught
+up (``CAUGHT_UP``, or after ``CATCH_UP_WAIT_S``) it moves to the shared worker with the fewest sessions,
+and its own worker ends (as when the session closes). A move loses what a restart loses (below; the
+estimator switch itself restarts the filter anyway) and counts as ``worker.moves``; a worker builds a
+moved-in (or new) session's hand in a thread (``hands.worker``), so its other sessions go on meanwhile.
 """
 from __future__ import annotations
 
 import asyncio
 import collections
+import concurrent.futures
+import contextlib
 import fcntl
 import itertools
 import json
@@ -58,6 +75,7 @@ import msgpack
 import orjson
 
 from ..config import ServiceSettings
+from ...estimators.registry import EstimatorSpec, estimator_class
 from ..metrics import Metrics
 from gestures.recognizer import GestureSettings
 
@@ -84,14 +102,27 @@ more than moving the frame); at most half a subscriber queue (``subscriber_queue
 frame is dropped for it"""
 CONFIG_WAIT_S = 300.0
 """longest wait for a worker to apply a configuration change (it may compile an estimator first), s"""
+CAUGHT_UP = 16
+"""a session leaves its own worker for a shared one once it has at most this many source messages unanswered
+(the shared worker handles them again: a few ms)"""
+CATCH_UP_WAIT_S = 30.0
+"""longest wait for a session to catch up before it leaves its own worker anyway, s"""
+BEHIND_WARN_S = 1.0
+"""a session whose frames come this much later behind its source than they did at best is logged once (until it
+has caught up to a tenth of it), s"""
 
 
 class WorkerLink:
     """One worker slot: its process (replaced when it dies), the socket to it and its sessions."""
 
-    def __init__(self, pool: "HandPool", slot: int):
+    def __init__(self, pool: "HandPool", slot: int, estimator: str | None = None):
         self.pool = pool
         self.slot = slot
+        self.isolated = estimator is not None
+        """the worker of one session on a costly estimator (``estimator``, the one it loads before it is
+        ready), ``hand_worker_isolated_nice`` nicer than this process from its start (module docstring)"""
+        self.given = (pool.worker_settings if estimator is None else
+                      {**pool.worker_settings, "estimator": estimator, "hand_worker_nice": 0})
         self.proc: asyncio.subprocess.Process | None = None
         self.pid: int | None = None
         self.ready = asyncio.Event()
@@ -123,11 +154,15 @@ class WorkerLink:
         self.ready.clear()
         try:
             self.proc = await asyncio.create_subprocess_exec(
-                sys.executable, "-m", "service.api.hands.worker", str(child.fileno()), json.dumps(self.pool.worker_settings),
+                sys.executable, "-m", "service.api.hands.worker", str(child.fileno()), json.dumps(self.given),
                 str(os.getpid()), pass_fds=(child.fileno(),))
         finally:
             child.close()
         self.pid = self.proc.pid
+        if self.isolated:                           # from its start: its start-up yields to the serving processes too
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, self.pid,
+                               min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.pool.settings.hand_worker_isolated_nice))
         self._cpu_ns, self.worked = None, time.monotonic()
         reader, self._writer = await asyncio.open_unix_connection(sock=parent)
         self._sock, self._reader = parent, reader
@@ -236,18 +271,14 @@ class WorkerLink:
         if self._writer is not None:
             self._writer.close()
         self._writer, self._out, self._held = None, [], [m for m in self._out if m[0] == "close"]
-        others = [x for x in self.pool.links if x is not self and x.ready.is_set() and not x._restarting]
+        # a session of its own worker waits for its new process (the shared workers are not for it)
+        others = [] if self.isolated else [x for x in self.pool.links
+                                           if x is not self and x.ready.is_set() and not x._restarting]
         log.warning("hand worker %d (pid %d) ended with %s; %d session(s) continue %s", self.slot, proc.pid, code,
                     len(self.sessions), "on the other workers" if others else "when it has restarted")
         if others:
             for live in list(self.sessions.values()):
-                target = min(others, key=lambda x: len(x.sessions))
-                del self.sessions[live.sid]
-                self.owed -= len(live._pending)
-                live.link = target
-                target.sessions[live.sid] = live
-                live.reopen()
-                target.owed += len(live._pending)
+                min(others, key=lambda x: len(x.sessions)).take(live)
         if not was_ready:
             await asyncio.sleep(RESTART_BACKOFF_S)  # it died starting: do not restart in a tight loop
         await self.start()
@@ -257,6 +288,16 @@ class WorkerLink:
         held, self._held = self._held, []
         for message in held:
             self.send(message)
+
+    def take(self, live: "ProcessSession", config: dict | None = None, restart: bool = True) -> None:
+        """``live``, a session of another worker, on this one from its state (``ProcessSession.reopen``)."""
+        old = live.link
+        if old.sessions.pop(live.sid, None) is not None:
+            old.owed -= len(live._pending)
+        live.link = self
+        self.sessions[live.sid] = live
+        self.owed += len(live._pending)
+        live.reopen(config, restart)
 
     def stalled(self, now: float, lag_s: float, limit_s: float) -> bool:
         """A ready worker that owes source messages an answer and has sent nothing for ``limit_s``, or
@@ -288,12 +329,15 @@ class WorkerLink:
         ran, self._cpu_ns = self._cpu_ns is not None and cpu_ns != self._cpu_ns, cpu_ns
         return state == "R" or ran
 
-    async def stop(self) -> None:
+    async def stop(self, kill: bool = False) -> None:
+        """The process ends at the end of its input (``kill``: at once; it has nothing left to do)."""
         for task in self._tasks:
             if task is not asyncio.current_task():
                 task.cancel()
         if self._writer is not None:
             self._writer.close()                    # the worker ends at the end of its input
+        if kill and self.proc is not None and self.proc.returncode is None:
+            self.proc.kill()
         if self.proc is not None and self.proc.returncode is None:
             try:
                 await asyncio.wait_for(self.proc.wait(), 5.0)
@@ -311,6 +355,10 @@ class HandPool:
         self.worker_settings = {"estimator": settings.estimator, "output_rate_hz": settings.output_rate_hz,
                                 "hand_worker_nice": settings.hand_worker_nice}
         self.links = [WorkerLink(self, i) for i in range(settings.hand_workers)]
+        """the shared workers"""
+        self.isolated: list[WorkerLink] = []
+        """the workers of one session each (module docstring)"""
+        self._isolated_slots = itertools.count(settings.hand_workers)
         self.outs_per_turn = max(1, min(OUTS_PER_TURN, settings.subscriber_queue_frames // 2))
         self.loop: asyncio.AbstractEventLoop | None = None
         self.closing = False
@@ -331,7 +379,7 @@ class HandPool:
         while True:
             await asyncio.sleep(min(1.0, lag / 4))
             now = time.monotonic()
-            for link in self.links:
+            for link in [*self.links, *self.isolated]:
                 if link.stalled(now, lag, limit):
                     log.warning("hand worker %d (pid %d) answered nothing for %.1f s while it owed answers; "
                                 "killing it, its sessions move", link.slot, link.pid, now - link.heard)
@@ -345,7 +393,57 @@ class HandPool:
         self.closing = True
         if self._watchdog is not None:
             self._watchdog.cancel()
-        await asyncio.gather(*(link.stop() for link in self.links))
+        await asyncio.gather(*(link.stop() for link in [*self.links, *self.isolated]))
+
+    def isolates(self, spec: EstimatorSpec) -> bool:
+        """Whether a session on ``spec`` runs in a worker of its own (module docstring)."""
+        return self.settings.hand_worker_isolate and not estimator_class(spec.name).whole_hand_compiled(spec.settings)
+
+    def call(self, coroutine, timeout_s: float):
+        """Run ``coroutine`` on the event loop and wait for its result (from a thread of the API)."""
+        future = asyncio.run_coroutine_threadsafe(coroutine, self.loop)
+        try:
+            return future.result(timeout_s)
+        except concurrent.futures.TimeoutError:
+            future.cancel()
+            raise ValueError(f"moving the session between hand workers took longer than {timeout_s:g} s") from None
+
+    async def move(self, live: "ProcessSession", isolated: bool, config: dict | None = None) -> None:
+        """``live`` with its state (and ``config`` in place of its configuration) to a new worker of its own
+        (``isolated``), once that has started, or to the shared worker with the fewest sessions once it has
+        caught up (its own worker's backlog would otherwise be handled again there, beside other sessions);
+        its former worker forgets it, and a worker of its own ends."""
+        if isolated:
+            target = WorkerLink(self, next(self._isolated_slots), estimator=(config or {}).get("estimator", live.config.estimator))
+            self.isolated.append(target)
+            try:
+                await target.start()
+                await asyncio.wait_for(target.ready.wait(), CONFIG_WAIT_S)
+            except (OSError, asyncio.TimeoutError) as err:
+                await self.retire(target)
+                why = str(err) if isinstance(err, OSError) else f"not ready within {CONFIG_WAIT_S:g} s"
+                raise ValueError(f"the session's own hand worker did not start ({why}); the session stays as it "
+                                 f"was") from None
+        else:
+            deadline = time.monotonic() + CATCH_UP_WAIT_S
+            while len(live._pending) > CAUGHT_UP and time.monotonic() < deadline:
+                await asyncio.sleep(0.01)
+            target = min(self.links, key=lambda x: len(x.sessions))
+        old = live.link                             # (a restart may have moved it meanwhile)
+        if live.sid not in old.sessions:            # closed meanwhile
+            if target.isolated:
+                await self.retire(target)
+            return
+        target.take(live, config, restart=False)
+        old.send(["close", live.sid])
+        if old.isolated:
+            await self.retire(old)
+
+    async def retire(self, link: WorkerLink) -> None:
+        """A worker of one session that has left it (or never came) ends."""
+        if link in self.isolated:
+            self.isolated.remove(link)
+            await link.stop(kill=True)
 
     def session(self, name: str, settings: ServiceSettings, metrics: Metrics) -> "ProcessSession":
         """A new session on the worker with the fewest sessions (from the loop or a thread of the API)."""
@@ -391,6 +489,15 @@ class ProcessSession(LiveSession):
         self._told: tuple | None = None             # (MessagePack wanted, drops) as the worker last heard
         self.restarts = 0
         self.resent = 0
+        self.moves = 0
+        """times it moved to a worker of its own or back (module docstring)"""
+        self._configuring = threading.Lock()        # one change at a time: a move must not cross another
+        self._best_lag: float | None = None         # the least (arrival - source time) of its frames so far, s
+        self._last_t: float | None = None
+        self.behind_s = 0.0
+        """how much later its last frame came behind its source's real time than its frames did at best, s"""
+        self._behind_told = False
+        self._behind_gauge = metrics.behind.labels(name)
         self._n = 0
         self._pending: dict[int, tuple] = {}        # n -> (type, its message to the worker, t_ingest, calibration or None)
         self._replied = asyncio.Event()
@@ -450,16 +557,23 @@ class ProcessSession(LiveSession):
         return {"session": self.name, "worker": self.link.pid, "seq": frame_.get("seq", 0), "t": frame_.get("t"),
                 "angles": angles or None, "hello": self.hello, "calibration": self.calibration, "config": config}
 
-    def reopen(self) -> None:
-        """After its worker died, on its new worker: the session from its state, then every unanswered
-        message and configuration change."""
-        self.restarts += 1
+    def reopen(self, config: dict | None = None, restart: bool = True) -> None:
+        """After its worker died (``restart``), or moving to another worker: on its new worker, the session
+        from its state (with ``config`` in place of its configuration), then every unanswered message and
+        configuration change."""
+        if restart:
+            self.restarts += 1
+        else:
+            self.moves += 1
         self.link.owe(besides=self)
-        self.link.send(["open", self.sid, self.name, self.state()])
+        state = self.state()
+        if config is not None:
+            state["config"] = config
+        self.link.send(["open", self.sid, self.name, state])
         self._told = None
         self._tell_worker()
         for n in sorted(self._pending):
-            self.resent += 1
+            self.resent += restart
             body = self._pending[n][1]
             self.link.send([body[0], self.sid, n, *body[1:]])
         for n in sorted(self._config_waits):        # changes the dead worker had not answered
@@ -544,8 +658,27 @@ class ProcessSession(LiveSession):
                 return                              # already passed on (cannot happen without a restart)
             self._last = (seq, out)
             self.hand_name = hand or self.hand_name
+            self._pace(head[2])
         self._deliver(out, pending[2] if pending else time.perf_counter())
         self._tell_worker()
+
+    def _pace(self, t: float) -> None:
+        """``behind_s`` after a frame of source time ``t``: its arrival here minus ``t`` beyond the least of
+        that so far (a step back of the source's clock starts the count again); logged when it passes
+        ``BEHIND_WARN_S`` (a session on a costly estimator in a worker of its own on a busy machine)."""
+        lag = time.perf_counter() - t
+        if self._best_lag is None or lag < self._best_lag or t < self._last_t:
+            self._best_lag = lag
+        self._last_t = t
+        self.behind_s = lag - self._best_lag
+        self._behind_gauge.set(self.behind_s)
+        if self.behind_s > BEHIND_WARN_S and not self._behind_told:
+            self._behind_told = True
+            log.warning("session %s: its frames come %.1f s behind its source (estimator %s; its hand worker does "
+                        "not keep pace)", self.name, self.behind_s, self.config.estimator)
+        elif self._behind_told and self.behind_s < BEHIND_WARN_S / 10:
+            self._behind_told = False
+            log.warning("session %s: its frames keep pace with its source again", self.name)
 
     def on_reply(self, n: int, errors: list, accepted: bool | None = None) -> None:
         """Source message ``n`` handled: its error replies go to the source. ``accepted``: a message the
@@ -601,28 +734,42 @@ class ProcessSession(LiveSession):
 
     def update_config(self, change) -> dict:
         """Validated here (a bad change changes nothing), applied by the worker (which may compile the
-        estimator's kernels first, in a separate process, while every session goes on), then kept here."""
+        estimator's kernels first, in a separate process, while every session goes on), then kept here.
+        A change to a costly estimator moves the session with it to a worker of its own first; once it is
+        on the compiled chain again, it goes back to a shared worker (module docstring)."""
         spec, params, gestures, record = self.checked_config(change)
         remote = SessionConfigChange.model_validate(change).model_dump(exclude_none=True, exclude={"record"})
-        if remote:
-            applied = self._request("cfg", remote)
-            self.config = SessionConfig.model_validate({**applied, "record": record})
-        else:
-            self.config = self.config.model_copy(update={"record": record})
-        self._apply_recording()
-        return self.config.model_dump()
+        pool = self.link.pool
+        with self._configuring:
+            if remote:
+                try:
+                    if pool.isolates(spec) and not self.link.isolated:
+                        moved = {"estimator": spec.name, "estimator_params": params, "gestures": gestures.model_dump()}
+                        pool.call(pool.move(self, isolated=True, config=moved), 2 * CONFIG_WAIT_S)
+                    applied = self._request("cfg", remote)
+                    self.config = SessionConfig.model_validate({**applied, "record": record})
+                finally:
+                    now = EstimatorSpec.of(self.config.estimator, self.config.estimator_params)
+                    if self.link.isolated and not pool.isolates(now):
+                        pool.call(pool.move(self, isolated=False), CONFIG_WAIT_S + CATCH_UP_WAIT_S)
+            else:
+                self.config = self.config.model_copy(update={"record": record})
+            self._apply_recording()
+            return self.config.model_dump()
 
     def enrol(self, segments: list) -> dict:
         """Fitted by the worker, which holds the recent frames (``LiveSession.enrol``)."""
-        result = self._request("enrol", segments)
-        self.config = self.config.model_copy(update={"gestures": GestureSettings.model_validate(result["gestures"])})
+        with self._configuring:
+            result = self._request("enrol", segments)
+            self.config = self.config.model_copy(update={"gestures": GestureSettings.model_validate(result["gestures"])})
         return result
 
     def summary(self) -> dict:
         out = super().summary()
         out["hand"] = self.hand_name or "right"
-        out["worker"] = {"slot": self.link.slot, "pid": self.link.pid, "restarts": self.restarts,
-                         "resent_after_restart": self.resent}
+        out["worker"] = {"slot": self.link.slot, "pid": self.link.pid, "own": self.link.isolated,
+                         "restarts": self.restarts, "resent_after_restart": self.resent, "moves": self.moves}
+        out["behind_s"] = self.behind_s
         return out
 
     def close(self) -> None:
@@ -631,3 +778,6 @@ class ProcessSession(LiveSession):
             self.link.owed -= len(self._pending)
         if not self.link.pool.closing:
             self._to_worker(["close", self.sid])
+            if self.link.isolated:                  # its own worker has nothing left to do
+                link, pool = self.link, self.link.pool
+                pool.loop.call_soon_threadsafe(lambda: pool.loop.create_task(pool.retire(link)))
