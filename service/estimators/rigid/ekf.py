@@ -20,12 +20,16 @@ vectorised (``estimators.kalman``, used by the batch mode). Both give the same n
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from filterpy.kalman import ExtendedKalmanFilter
 
 from .. import kalman
 from ...model import quaternion as quat
 from ...model.frames import skew
+
+if TYPE_CHECKING:                                   # imported where first used: it takes a second (scipy.stats)
+    from filterpy.kalman import ExtendedKalmanFilter
 
 
 class BatchedKalman:
@@ -49,6 +53,7 @@ class FilterpyKalman:
         key = (index, n, m)
         eng = self._engines.get(key)
         if eng is None:
+            from filterpy.kalman import ExtendedKalmanFilter
             eng = self._engines[key] = ExtendedKalmanFilter(dim_x=n, dim_z=m)
         return eng
 
