@@ -84,7 +84,7 @@ def _scratch(ns, nph):
     """``_finger``'s work arrays for fingers of up to ``ns`` sensors and ``nph`` joints, allocated once per
     call and shared by the fingers of a hand (``_finger`` names their rows)."""
     return (np.empty((6, ns)), np.empty((5, nph)), np.zeros((2, 3, N_STATE)), np.empty((4, N_STATE, 3)),
-            np.empty((N_STATE, N_STATE)), np.zeros((6, 3)), np.empty(N_STATE), np.empty((9, 3, 3)))
+            np.empty((N_STATE, N_STATE)), np.zeros((6, 3)), np.empty(N_STATE), np.empty((8, 3, 3)))
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
@@ -92,13 +92,13 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
              out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp):
     """One tick of several fingers (a hand) in one call: finger ``f`` is ``_finger`` on its rows of the
     stacked arrays, the same arithmetic as ``run`` on that finger alone. Its sensors are rows
-    ``sensor_start[f]:sensor_start[f + 1]`` of ``x`` (S, 14), ``p`` (S, 14, 14), ``rates`` (S), ``gyr``
+    ``sensor_start[f]:sensor_start[f + 1]`` of ``x`` (S, 15), ``p`` (S, 15, 15), ``rates`` (S), ``gyr``
     and ``acc`` (S, 3), ``out_theta`` and ``out_mode`` (S); its joints entries
     ``phalanx_start[f]:phalanx_start[f + 1]`` of ``out_phi`` and ``out_phal``; its constants
     ``geo[geo_start[f]:geo_start[f + 1]]``; its own step ``dts[f]`` (0 right after it starts), last
-    smoothed hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 12) and ``untracked[f]``. The
+    smoothed hand acceleration ``hand_acc[f]`` (F, 3), settings ``st[f]`` (F, 15) and ``untracked[f]``. The
     hand's motion ``hand`` (18) is shared, and so is the optical acceleration's error ``δ`` (``dl`` (3), its
-    covariance ``pd`` (3, 3), every sensor's cross-covariance with it ``cx`` (S, 14, 3); ``jp``: its time
+    covariance ``pd`` (3, 3), every sensor's cross-covariance with it ``cx`` (S, 15, 3); ``jp``: its time
     constant, scale, floor and the time since ``δ`` was last advanced, ``chain.py``), updated in place; with the time constant 0 there is none and
     each finger widens its accelerometers along the fit's lag error instead."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
@@ -198,9 +198,9 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     vv, hth, yy, ee, wv, dl0 = v3[0], v3[1], v3[2], v3[3], v3[4], v3[5]
     # R_x(θ)ᵀ u, ∂f/∂θ, the innovation, (I + G) R_x(θ)ᵀ (the optical fit's lag error: R = r I + e eᵀ),
     # Mᵀ S⁻¹ y (another sensor's dx = C wv), δ when the finger's tick began
-    mb, md, phd, kd, sm, si, am, bm, td = m33[0], m33[1], m33[2], m33[3], m33[4], m33[5], m33[6], m33[7], m33[8]
+    mb, md, phd, kd, sm, si, am, td = m33[0], m33[1], m33[2], m33[3], m33[4], m33[5], m33[6], m33[7]
     # R_Bᵀ R_Mᵀ, ∂f/∂δ = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ, P_δ· Hᵀ, δ's gain, S, S⁻¹, I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ (another
-    # sensor's C ← C am), I - Mᵀ K_δᵀ (its held scale row's), K_δ S
+    # sensor's C ← C am), K_δ S
 
     for i in range(dts.shape[0]):
         dt = dts[i]
@@ -391,7 +391,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
                 if joint:
                     _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                                  hm, pht, phd, kg, kd, sm, si, am, bm, wv, tl, td, gs_learn, dl0, dt)
+                                  hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt)
                 else:
                     # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form; H's row rr has
                     # entries at 0, 2 + rr and G's row (g..g + 2) only: the products sum those, in the
@@ -505,7 +505,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                  hm, pht, phd, kg, kd, sm, si, am, bm, wv, tl, td, gs_learn, dl0, dt):
+                  hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt):
     """Sensor ``k``'s accelerometer update with the hand's shared acceleration error ``δ`` (world frame)
     as three more states: the measurement ``f = h(x_k) + M δ``, ``M = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ``; the
     augmented covariance keeps ``P_k``, ``C_l = P_{x_l δ}`` of every sensor ``l`` of the hand and ``P_δ``
@@ -517,11 +517,12 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
     dense products; the results differ from it by rounding only): a row of ``H`` has five entries
     (``∂f/∂θ``, ``b_a``'s 1 and ``v`` at ``G``'s row), so ``PHᵀ``, ``C Hᵀ`` and ``S`` sum only those, in
     the dense sum's order (the same numbers: the other terms are exact zeros); ``P`` is updated on and
-    above its diagonal and mirrored. For another sensor ``l`` (``K_l = C_l Mᵀ S⁻¹`` with its scale row
-    held at 0), ``K_l S K_δᵀ = C_l Mᵀ S⁻¹ S K_δᵀ = C_l Mᵀ K_δᵀ`` cancels ``C_l Mᵀ K_δᵀ`` except on the
-    held row, so ``C_l ← C_l (I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ)``, its scale row ``← C_l,s (I - Mᵀ K_δᵀ)``, and
-    ``dx_l = C_l Mᵀ S⁻¹ y`` (``dx_l,s = 0``): two 3 x 3 matrices and a vector shared by every other
-    sensor, where ``K_l``, ``K_l S`` and the update of ``C_l`` took six products of 15 x 3 each."""
+    above its diagonal and mirrored. For another sensor ``l``, ``K_l = C_l Mᵀ S⁻¹`` (its scale row held
+    at 0) and ``C_l - K_l (P_δ·Hᵀ)ᵀ - C_l Mᵀ K_δᵀ + K_l S K_δᵀ`` is ``C_l (I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ)`` in exact
+    arithmetic (``K_l S K_δᵀ = C_l Mᵀ K_δᵀ`` on the other rows; on the held row the first and last terms
+    are 0 and ``Mᵀ K_δᵀ = Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ``, ``S`` being symmetric), and ``dx_l = C_l Mᵀ S⁻¹ y`` but on the
+    held row (0): a 3 x 3 matrix and a vector shared by every other sensor, where ``K_l``, ``K_l S`` and
+    the update of ``C_l`` took six products of 15 x 3 each."""
     gk = s_off + k
     ee[0] = ee[1] = ee[2] = 0.0         # the lag error is δ's now, not a widening
     for cc in range(3):
@@ -597,8 +598,7 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
     for c1 in range(3):
         for rr in range(3):
             td[c1, rr] = kd[c1, 0] * sm[0, rr] + kd[c1, 1] * sm[1, rr] + kd[c1, 2] * sm[2, rr]
-    # every other sensor of the hand, through its correlation with δ: am = I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ,
-    # bm = I - Mᵀ K_δᵀ (the held scale row), wv = Mᵀ S⁻¹ y
+    # every other sensor of the hand, through its correlation with δ: am = I - Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ, wv = Mᵀ S⁻¹ y
     sy0 = si[0, 0] * yy[0] + si[0, 1] * yy[1] + si[0, 2] * yy[2]
     sy1 = si[1, 0] * yy[0] + si[1, 1] * yy[1] + si[1, 2] * yy[2]
     sy2 = si[2, 0] * yy[0] + si[2, 1] * yy[1] + si[2, 2] * yy[2]
@@ -610,21 +610,17 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
             q2 = si[2, 0] * phd[c1, 0] + si[2, 1] * phd[c1, 1] + si[2, 2] * phd[c1, 2]
             eye = 1.0 if cc == c1 else 0.0
             am[cc, c1] = eye - (md[0, cc] * q0 + md[1, cc] * q1 + md[2, cc] * q2)
-            bm[cc, c1] = eye - (md[0, cc] * kd[c1, 0] + md[1, cc] * kd[c1, 1] + md[2, cc] * kd[c1, 2])
     for l in range(cx.shape[0]):
         if l == gk:
             continue
         same = s_off <= l < s_off + ns and l - s_off > k
         for ii in range(N_STATE):
             e0, e1, e2 = cx[l, ii, 0], cx[l, ii, 1], cx[l, ii, 2]
-            if ii == GS:
-                cx[l, ii, 0] = e0 * bm[0, 0] + e1 * bm[1, 0] + e2 * bm[2, 0]
-                cx[l, ii, 1] = e0 * bm[0, 1] + e1 * bm[1, 1] + e2 * bm[2, 1]
-                cx[l, ii, 2] = e0 * bm[0, 2] + e1 * bm[1, 2] + e2 * bm[2, 2]
-                continue
             cx[l, ii, 0] = e0 * am[0, 0] + e1 * am[1, 0] + e2 * am[2, 0]
             cx[l, ii, 1] = e0 * am[0, 1] + e1 * am[1, 1] + e2 * am[2, 1]
             cx[l, ii, 2] = e0 * am[0, 2] + e1 * am[1, 2] + e2 * am[2, 2]
+            if ii == GS:
+                continue                   # K_l holds the scale state
             dx = e0 * wv[0] + e1 * wv[1] + e2 * wv[2]
             if ii == 0 and same:
                 th[l - s_off] += dx        # not updated yet this tick: its predicted angle moves (below)
