@@ -717,14 +717,15 @@ def test_a_gateway_s_probe_tells_an_answer_from_none_and_logs_only_a_defect(capl
     assert len(logged) == 1 and "w1" in logged[0].getMessage() and logged[0].exc_info[0] is KeyError
 
 
-def test_a_session_asks_ft_assign_less_often_while_the_answers_leave_it_with_the_owner_it_had(monkeypatch):
-    """While ``ft.assign`` answers come from another worker than the owner they name (a stuck owner whose
-    lease has not lapsed, or a dead one the answering worker could not yet find gone), each answer cost
-    that worker an ownership check that holds its own sessions back: the session asks again after 0.1 s,
-    then 0.2 s, then at most every ``ASSIGN_BACKOFF_MAX_S``, and after an answer from the owner itself
-    after 0.1 s again. Seen in both places a session asks: recovering an owner, and waiting for the
-    replies of one. It used to ask every 0.05 s (recovering) or 0.1 s (waiting), whatever the answers.
-    (The intervals are a quarter of the service's here, to keep the test short.)"""
+def test_a_session_asks_ft_assign_less_often_while_the_answers_leave_it_with_a_live_owner(monkeypatch):
+    """While ``ft.assign`` answers come from another worker than the owner they name, an owner this
+    gateway has not found gone (a stuck owner whose lease has not lapsed, or one behind with its replies),
+    each answer cost that worker an ownership check that holds its own sessions back: the session asks
+    again after 0.1 s, then 0.2 s, then at most every ``ASSIGN_BACKOFF_MAX_S``; seen in both places a
+    session asks: recovering an owner, and waiting for the replies of one. It used to ask every 0.05 s
+    (recovering) or 0.1 s (waiting), whatever the answers. Once this gateway found the owner named gone
+    (a takeover is due) it asks again without the pause, however long the last answer said to wait. (The
+    intervals are a quarter of the service's here, to keep the test short.)"""
     from service.api.config import ServiceSettings
     from service.api.metrics import Metrics
     from service.bus import gateway as gateway_module
@@ -732,6 +733,7 @@ def test_a_session_asks_ft_assign_less_often_while_the_answers_leave_it_with_the
 
     PROBE_EVERY_S, ASSIGN_BACKOFF_MAX_S = gateway_module.PROBE_EVERY_S / 4, gateway_module.ASSIGN_BACKOFF_MAX_S / 4
     monkeypatch.setattr(gateway_module, "PROBE_EVERY_S", PROBE_EVERY_S)
+    monkeypatch.setattr(gateway_module, "REPLY_WAIT_S", PROBE_EVERY_S)
     monkeypatch.setattr(gateway_module, "ASSIGN_BACKOFF_MAX_S", ASSIGN_BACKOFF_MAX_S)
 
     elsewhere = {"owner": "stuck", "by": "w2", "claimed": False}
@@ -740,36 +742,46 @@ def test_a_session_asks_ft_assign_less_often_while_the_answers_leave_it_with_the
         def __init__(self):
             self.loop = asyncio.get_running_loop()
             self.nc = _Connection()
-            self.answers = [elsewhere] * 3 + [{"owner": "w2", "by": "w2", "claimed": True}] + [elsewhere] * 4
+            self.answers = [elsewhere] * 3 + [{"owner": "w2", "by": "w2", "claimed": True}]
             self.asked: list[float] = []
+            self.gone: set[str] = set()             # owners this gateway's probes found gone
 
         async def assign(self, name):
             self.asked.append(time.monotonic())
             return self.answers.pop(0)
 
-        async def until_gone(self, owner):          # the owner was found gone at once
-            pass
+        def found_gone(self, owner):
+            return owner in self.gone
+
+        async def until_gone(self, owner):
+            if owner not in self.gone:
+                await asyncio.Event().wait()
 
     async def run():
         bus = ScriptedBus()
         live = BusSession("s", ServiceSettings.load(port=0), Metrics(), bus)
         live._pending[1] = ("pose", 0.0, b"held")   # sent to the stuck owner, unanswered
         await live._recover()                       # three answers naming the stuck owner, then w2 claims it
-        recovered = len(bus.asked)
         assert live.resent == 1 and [data for _, data in bus.nc.published] == [b"held"]
-        live._owner = "w2"                          # ... and w2 never answers it: it died
-        bus.answers = [{"owner": "w2", "by": "w3", "claimed": False}] * 4
-        for _ in range(4):                          # the window full: the session waits for replies
-            assert await live._wait_replies()       # ... and the answers keep naming w2
+        recovered = len(bus.asked)
+        bus.answers = [{"owner": "w2", "by": "w3", "claimed": False}] * 6
+        for _ in range(4):                          # the window full, w2 behind: the session waits for replies
+            assert await live._wait_replies()       # ... and the answers name w2
+        waited = len(bus.asked)
+        bus.gone.add("w2")                          # w2 died; the last answer said to wait long
+        live._assign_after = time.monotonic() + 3600.0
+        for _ in range(2):
+            assert await asyncio.wait_for(live._wait_replies(), 60.0)   # a failure bound
         live.close()
-        return bus.asked, recovered
+        return bus.asked, recovered, waited, (live._assign_gap, live._assign_after)
 
-    asked, recovered = asyncio.run(run())
+    asked, recovered, waited, backoff = asyncio.run(run())
     gaps = [b - a for a, b in zip(asked, asked[1:])]
     expected = [PROBE_EVERY_S, 2 * PROBE_EVERY_S, ASSIGN_BACKOFF_MAX_S]     # lower bounds (a slow machine is later)
-    assert recovered == 4 and len(asked) == 8
-    for got, least in zip(gaps[:3] + gaps[4:], expected + expected):
+    assert (recovered, waited, len(asked)) == (4, 8, 10)
+    for got, least in zip(gaps[:3] + gaps[4:7], expected + expected):
         assert got >= least - 0.002, (gaps, least)
+    assert backoff == (PROBE_EVERY_S, float("-inf"))     # asked again with no pause while w2 is found gone
 
 
 class _Request:
