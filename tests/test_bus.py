@@ -651,6 +651,11 @@ def test_a_takeover_claims_every_session_before_it_rebuilds_any_and_each_goes_on
         assert any(f["status"]["reference_poses"]["applied"] >= 1 for f in frames[name] if f["seq"] > last_seq[name])
 
 
+class _Subscription:
+    async def unsubscribe(self):
+        pass
+
+
 class _Connection:
     """A NATS connection's stand-in for tests without a server: what is published, and scripted answers to
     requests (an exception type or instance is raised)."""
@@ -670,7 +675,7 @@ class _Connection:
         self.published.append((subject, data))
 
     async def subscribe(self, subject, cb=None, queue=None):
-        return None
+        return _Subscription()
 
     async def flush(self):
         pass
@@ -794,19 +799,19 @@ class _Request:
 
 
 def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame_counter(caplog):
-    """The new owner refuses the stored hello (a hand this version does not know, as a worker of another
-    version could have stored): the rest of the session is rebuilt, its frames go on above the previous
-    owner's last ``seq``, the source's next reply says what was not restored, and the log says it in one
-    line (no traceback). The session used to restart at ``seq`` 1 (the rebuild raised before it set the
-    frame counter), its frames dropped as stale at every gateway."""
+    """The new owner refuses the stored hello (a field this version reads otherwise, as a worker of another
+    version could have stored it): the rest of the session is rebuilt, on the hello's hand, its frames go
+    on above the previous owner's last ``seq``, the source's next reply says what was not restored, and
+    the log says it in one line (no traceback). The session used to restart at ``seq`` 1 (the rebuild
+    raised before it set the frame counter), its frames dropped as stale at every gateway."""
     from service.api.config import ServiceSettings
     from service.bus.worker import OwnedSession, Worker
 
     settings = ServiceSettings.load(port=0)
-    msgs = [m for _, m in source_messages(SimConfig(motion="grasp", hand="right", seed=5, t_m_s=1.0))]
+    msgs = [m for _, m in source_messages(SimConfig(motion="grasp", hand="left", seed=5, t_m_s=1.0))]
     hello, calibration, data = msgs[0], msgs[1], msgs[2:]
     state = {"session": "moved", "worker": "gone-worker", "seq": 400, "t": data[99]["samples"][-1]["t"],
-             "angles": None, "hello": {**hello, "hand": "middle"}, "calibration": calibration, "config": {}}
+             "angles": None, "hello": {**hello, "protocol": "one"}, "calibration": calibration, "config": {}}
 
     async def run():
         worker = Worker("nats://unused", settings, "new-owner")
@@ -826,8 +831,9 @@ def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame
 
     with caplog.at_level("WARNING", logger="fingertrack.bus"):
         owned, frames, replies = asyncio.run(run())
-    assert owned.ready.is_set() and owned.calibration == calibration and owned.hello["hand"] == "middle"
+    assert owned.ready.is_set() and owned.calibration == calibration and owned.hello == state["hello"]
     assert len(frames) >= 3 and all(f["seq"] > 400 for f in frames), [f["seq"] for f in frames]
+    assert {f["hand"] for f in frames} == {"left"}
     code, detail = replies[0]["errors"][0]
     assert code == "invalid_message" and "new-owner" in detail and "hello" in detail, replies[0]
     assert all(not r["errors"] for r in replies[1:]), replies
@@ -839,7 +845,8 @@ def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame
 def test_a_worker_that_stops_cancels_the_rebuilds_under_way(monkeypatch):
     """A session taken over on an estimator whose kernels the worker has not loaded is rebuilt in a task
     of its own (``_rebuild_forever``); stopping the worker cancels it (it used to go on after the stop),
-    and the session's waiting messages are let go."""
+    the session's waiting messages are let go, and its lease is released with the previous owner's state
+    as it was (its configuration, hello and calibration), not the half-rebuilt session's."""
     from service.api.config import ServiceSettings
     from service.bus import worker as worker_module
     from service.bus.worker import OwnedSession, Worker
@@ -857,17 +864,29 @@ def test_a_worker_that_stops_cancels_the_rebuilds_under_way(monkeypatch):
             raise
     monkeypatch.setattr(Worker, "_restore", slow_restore)
 
+    released = []
+
+    class Leases:
+        async def update(self, key, value, last):
+            released.append((key, unpack(value), last))
+
+    hello = {"type": "hello", "protocol": 1, "hand": "left", "source": "bus-test"}
+    previous = {"session": "slow", "worker": "gone-worker", "seq": 40, "t": 2.0, "angles": None, "hello": hello,
+                "calibration": None, "config": {"estimator": "inertial"}}
+
     async def run():
         worker = Worker("nats://unused", settings, "stopping")
-        owned = OwnedSession("slow", settings, worker.metrics, revision=1)
-        owned.restoring = {"session": "slow", "worker": "gone-worker", "config": {"estimator": "inertial"}}
+        worker.kv = Leases()
+        owned = OwnedSession("slow", settings, worker.metrics, revision=7)
+        owned.restoring = previous
         worker.owned["slow"] = owned
         worker._tasks.append(asyncio.create_task(worker._rebuild_forever()))
         worker._rebuilds.append(owned)
         worker._rebuild_due.set()
         await asyncio.wait_for(entered.wait(), 120.0)   # a failure bound
-        await worker.stop(release=False)
+        await worker.stop(release=True)
         return list(outcome), owned.ready.is_set(), list(worker._answers)   # before asyncio.run cancels the rest
 
     cancelled, ready, left = asyncio.run(run())
     assert cancelled == ["cancelled"] and ready and not left
+    assert released == [("sslow", {**previous, "worker": None}, 7)]

@@ -42,7 +42,7 @@ from ..api.replies import drop_replies, failure_reply
 from ..api.sessions import LiveSession
 from ..estimators.warm import is_warm, warm_off_loop
 from ..pipeline.gc_policy import serving_gc
-from ..protocol import ProtocolError, parse_message
+from ..protocol import PROTOCOL_VERSION, ProtocolError, parse_message
 
 from .subjects import (ASSIGN, BUCKET, LEASE_S, RENEW_S, WORKERS_QUEUE, close, config_subject, connect, output_subject,
                        Liveness, pack, probe_worker, session_token, source_subject, unpack, worker_subject)
@@ -295,11 +295,13 @@ class Worker:
         try:
             if self.owned.get(owned.name) is owned:     # else given up meanwhile
                 await self._restore(owned, owned.restoring)
+        except asyncio.CancelledError:              # stopped: its lease is released with the previous state as it
+            owned.ready.set()                       # was (``restoring`` kept), its waiting messages find it gone
+            raise
         except Exception:                           # a defect: the session goes on with what was restored
             log.exception("worker %s: session %r not rebuilt from its state", self.id, owned.name)
-        finally:                                    # its messages go in (or, if stopped, find it gone)
-            owned.restoring = None
-            owned.ready.set()
+        owned.restoring = None
+        owned.ready.set()
 
     async def _restore(self, owned: OwnedSession, state: dict) -> None:
         """Rebuild a session from the previous owner's last state (module docstring: what survives). The
@@ -313,14 +315,13 @@ class Worker:
         for kind in ("hello", "calibration"):
             if (raw := state.get(kind)) is None:
                 continue
-            try:
-                errors = (await self._handle(owned, raw))["errors"]
-            except Exception as err:                # a defect: the session goes on without it
-                log.exception("worker %s: session %r: its stored %s not restored", self.id, owned.name, kind)
-                errors = [["internal_error", f"{type(err).__name__} while restoring it"]]
+            errors = (await self._handle(owned, raw))["errors"]
+            if errors and kind == "hello" and raw.get("hand") in ("left", "right"):
+                # the hand at least: its calibration and angles are of that hand, and so must its frames be
+                await self._handle(owned, {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": raw["hand"]})
             for code, detail, *_ in errors:
                 self._not_restored(owned, code, f"its {kind}: {detail}; send the {kind} again")
-            setattr(owned, kind, getattr(owned, kind) or raw)   # kept in the state for a worker that can
+            setattr(owned, kind, raw)               # kept as stored, for a worker that can rebuild it
         config = dict(state.get("config") or {})
         if config:
             if self.settings.record_dir is None:
