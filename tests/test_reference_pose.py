@@ -58,6 +58,33 @@ def test_chain_takes_a_known_configuration_as_a_measurement():
     assert np.abs(before).max() > 1e-3 and np.all(np.abs(after) < np.abs(before))
 
 
+@pytest.mark.parametrize("seed", [1, 4])
+def test_a_reference_pose_hold_measures_each_gyro_offset(seed):
+    """A finger held still on a still hand from an unknown start, the gyros with the simulated offsets (no
+    white noise): over the hold each gyro's relative hinge-axis rate is its offset, so with the hold's
+    measurement weighted as exact (``hold_rate_std_rad_s`` tiny, no scale term) the offsets after the
+    reference are the simulated ones, where the accelerometer alone leaves them 0.2-0.9 deg/s off after
+    the same 2 s (the hold's own reference update without its interval moves them by their correlation
+    with the angle only)."""
+    sess = simulate(SimConfig(motion="point", hand_motion="still", noise="offset", seed=seed, duration_s=2.0,
+                              fingers=("index",), reference_hold_s=2.0))
+    samples = samples_from_session(sess, "index")
+    n = int(np.searchsorted(samples.t, 2.0 + 1e-9))
+    assert np.abs(sess.joint_rates["index"][:n]).max() == 0.0
+    ids = [sp.id for sp in sess.calibration.finger("index").sensors]
+    offset = np.array([sess.gyr_offset[sess.sensor_ids.index(i)][0] for i in ids])
+    settings = ChainSettings(hold_rate_std_rad_s=1e-6, gyro_scale_uncertainty=0.0)
+    err = {}
+    for hold in (None, (float(samples.t[0]), float(samples.t[n - 1]))):
+        est = Chain(sess.calibration.finger("index"), settings=settings)
+        for k in range(n):
+            est.update(*samples.sample(k))
+        est.known_configuration(joint_to_phalanx_angles(sess.joint_angles["index"][n - 1]), 0.03, hold_s=hold)
+        err[hold is not None] = np.degrees(np.abs(est.state["filter"]["x"][:, 1] - offset))
+    assert np.all(err[True] < 0.02), err
+    assert np.any(err[False] > 0.2), err
+
+
 def _mounted(delta_rad):
     """The default right hand with index.1 and index.2 turned on their phalanges by ``delta_rad`` about
     the hinge axis (the sensor-to-phalanx rotation ``R_x(δ)``)."""

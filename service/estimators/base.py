@@ -205,9 +205,10 @@ class FingerEstimator:
         Estimators that learn something about their sensors (offsets) take it over here; the default
         keeps nothing but the configuration the pipeline passes as ``initial_theta``."""
 
-    def known_configuration(self, theta: np.ndarray, std_rad: float) -> None:
+    def known_configuration(self, theta: np.ndarray, std_rad: float, hold_s: tuple[float, float] | None = None) -> None:
         """The finger is known to be at phalanx angles ``theta`` (*B, n) rad, each joint to within
-        ``std_rad`` (a ``reference_pose``, at the time of the last processed sample). The default, for
+        ``std_rad`` (a ``reference_pose``, at the time of the last processed sample), and, with
+        ``hold_s`` ``(t0, t1)``, to have been held so over that interval. The default, for
         estimators without an explicit uncertainty, restarts from it at the next sample as from a known
         initial configuration (paper 2.2.3); filters that carry a covariance override this with a
         measurement update that keeps what they have learned."""

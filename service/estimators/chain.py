@@ -172,6 +172,20 @@ sensor of a finger moved through its correlation with ``δ`` has its predicted a
 back to the next tick was tried before: it found ``δ`` but the angles did not gain, since it ignored the
 correlation with them.)
 
+**The hold of a reference pose.** A ``reference_pose`` says the hand held the configuration from ``t0``
+to ``t1`` (DESIGN.md), not only that it was there at ``t1``: every phalanx was still on the hand, so each
+gyro's relative hinge-axis rate (its hinge-axis reading less the hand's rate about the hinge axis, the
+``rate_meas`` the filter integrates) averaged over the hold is its offset, ``r̄ = b_g + s_g ḡ_x + n``
+(item 6's scale term with ``ḡ_x`` the mean hinge-axis reading). Without it the offsets come only from
+the weak accelerometer, and at the reference they move with the angle through the correlation the
+filter has built while converging from an unknown start: on a tuning trial whose start was 30-43 deg off
+(556), every long-finger offset estimate was 3-4 deg/s off after the reference, all the same way, and the
+fingers drifted 6-10 deg. The measurement's std is ``hold_rate_std_rad_s`` and the gyro's scale and
+cross-axis errors times the mean reading (``gyro_scale_uncertainty`` |ḡ|: a hand turning during the hold
+leaks into the hinge axis). Applied at the reference before its angle update, per sensor, over the part of
+the hold this estimator saw (at least ``hold_min_s``). (Zero-rate *detection* was tried and dropped,
+item 2; this is a hold the glove app declares.)
+
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
 on all three phalanges it would be, and is left for later. The hand kinematics are taken as given
@@ -239,9 +253,48 @@ class ChainSettings(EstimatorSettings):
     gyro_scale_walk_rts: float = Field(0.0, ge=0.0, description="random walk of the gyro scale state, 1/√s")
     lost_optics_drift_rad_s: float = Field(0.1, gt=0.0, description="growth of the angle std while the optics are lost, rad/s: the pipeline carries the hand's orientation on from the finger gyros, so it drifts by their scale (±3 %) and cross-axis (±2 %) errors of a hand turning at up to 2-3 rad/s and their offsets' residual, not by the hand's whole rotation (the shared LOST_RATE_RAD_S of 1 rad/s: tuning trials 500-511 2.55 -> 2.48 deg, 512-519 2.78 -> 2.67)")
     rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
+    reference_hold_offsets: bool = Field(True, description="a reference_pose's hold [t0, t1] also measures each gyro's offset: the finger was still on its hand, so its mean relative hinge-axis rate over the hold is the offset ('The hold of a reference pose' in the module docstring)")
+    hold_rate_std_rad_s: float = Field(1.0 * DEG, gt=0.0, description="std of a hold's mean relative rate as a measurement of the gyro offset, besides the gyro's scale and cross-axis errors: the optical hand rate's error over the hold (orientation jitter of 0.1-0.5 deg at both ends of a 2 s hold: about 0.35 deg/s) and a held hand's slow drift (1 deg over 2 s: 0.5 deg/s), rad/s")
+    hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
                                 "tested equal to (to 1e-9), about a hundred times slower")
+
+
+class HoldLog:
+    """Running integrals over time of each sensor's relative hinge-axis rate (S,) and gyro reading (S, 3)
+    at every tick, for the mean over a ``reference_pose``'s hold. Grows to ``capacity`` ticks, then keeps
+    the newer half."""
+
+    def __init__(self, n_sensors: int, capacity: int = 4096):
+        self._t = np.empty(capacity)
+        self._r = np.zeros((capacity, n_sensors))
+        self._g = np.zeros((capacity, n_sensors, 3))
+        self._n = 0
+
+    def add(self, t: float, dt: float, rate: np.ndarray, gyr: np.ndarray) -> None:
+        """One tick at ``t`` after a step of ``dt``: ``rate`` (S,) and ``gyr`` (S, 3) the sensors' values."""
+        n = self._n
+        if n == self._t.shape[0]:
+            half = n // 2
+            self._t[:half], self._r[:half], self._g[:half] = self._t[half:], self._r[half:], self._g[half:]
+            n = half
+        if n:
+            np.add(self._r[n - 1], dt * rate, out=self._r[n])
+            np.add(self._g[n - 1], dt * gyr, out=self._g[n])
+        self._t[n] = t
+        self._n = n + 1
+
+    def mean(self, t0: float, t1: float, min_s: float):
+        """``(mean rate (S,), mean reading (S, 3))`` over the ticks within ``[t0, t1]``, or None when
+        they span less than ``min_s``."""
+        t = self._t[:self._n]
+        i0 = int(np.searchsorted(t, t0 - 1e-9))
+        i1 = int(np.searchsorted(t, t1 + 1e-9)) - 1
+        if i1 <= i0 or t[i1] - t[i0] < min_s:
+            return None
+        span = t[i1] - t[i0]
+        return (self._r[i1] - self._r[i0]) / span, (self._g[i1] - self._g[i0]) / span
 
 
 class Chain(FingerEstimator):
@@ -263,9 +316,18 @@ class Chain(FingerEstimator):
         self._settings_vector[K.ST_GS_LEARN] = 0.0 if extra_couplings else 1.0
         self._geometry_vector = K.geometry_vector(self.obs, self.closure, self.gravity_world)
         self._hand_untracked = False
+        # the running integrals for a reference pose's hold (advanced here or by a ChainHand)
+        self._hold = HoldLog(self.n_sensors) if not self.batch_shape else None
 
     # -- the compiled path ---------------------------------------------------------------------
     def _advance(self, t, gyr, acc, hand):
+        dt = 0.0 if self._state is None else t - self._t_last
+        out = self._advance_filter(t, gyr, acc, hand)
+        if self._hold is not None:
+            self._hold.add(t, dt, self._state["rate"], gyr)
+        return out
+
+    def _advance_filter(self, t, gyr, acc, hand):
         if self._state is None:
             self._start_t = t
         if not self._compiled:
@@ -435,14 +497,17 @@ class Chain(FingerEstimator):
                 P[..., k, :, 0] = mP[..., :, 0]
                 P[..., k, 0, 0] = np.maximum(mP[..., 0, 0], s.rebuild_angle_std_rad**2)
 
-    def known_configuration(self, theta: np.ndarray, std_rad: float) -> None:
+    def known_configuration(self, theta: np.ndarray, std_rad: float, hold_s: tuple[float, float] | None = None) -> None:
         """A measurement ``θ_{i_k} = theta[i_k]`` of every sensor's phalanx angle, all of a finger's
         sensors in one update: a phalanx angle sums ``i_k + 1`` joints, each known to ``std_rad``
         independently, so two sensors' errors share the joints below the lower one (covariance
         ``(min(i_k, i_l) + 1) std²``). It corrects the angles and, through the covariance the filter
         has built up, the offsets and the mounting turns about the hinge axes (item 5 of the module
         docstring). The sensors' filters are separate, so the update's cross terms between sensors
-        are dropped afterwards. Before the first sample it becomes the initial configuration."""
+        are dropped afterwards. Before the first sample it becomes the initial configuration. With
+        ``hold_s`` ``(t0, t1)``, the interval the configuration was held, each gyro's mean relative rate
+        over it is first a measurement of its offset ("The hold of a reference pose" in the module
+        docstring)."""
         if self._state is None:
             self.reset(initial_theta=theta)
             self._known_std_rad = std_rad
@@ -450,7 +515,9 @@ class Chain(FingerEstimator):
         theta = np.broadcast_to(np.asarray(theta, dtype=float), self.batch_shape + (self.geom.n_phalanges,))
         phalanges = np.array([sp.phalanx for sp in self.geom.sensors])
         measured = theta[..., phalanges]
-        x, P = self._state["x"], self._state["P"].copy()
+        x, P = self._state["x"].copy(), self._state["P"].copy()
+        if hold_s is not None:
+            self._hold_offsets(x, P, hold_s)
         self._take_up_hinge_mounting(P, correlated=True)
         ns = len(phalanges)
         n = ns * N_STATE
@@ -466,6 +533,30 @@ class Chain(FingerEstimator):
         dx, P_all = kalman.update(P_all, H, R, y)
         P = np.stack([P_all[..., k * N_STATE:(k + 1) * N_STATE, k * N_STATE:(k + 1) * N_STATE] for k in range(ns)], axis=-3)
         self._state = {**self._state, "x": x + dx.reshape(x.shape), "P": P}
+
+    def _hold_offsets(self, x: np.ndarray, P: np.ndarray, hold_s: tuple[float, float]) -> None:
+        """The hold's mean relative rate of each sensor as a measurement of its offset (in place on ``x``,
+        ``P``): ``r̄ = b_g + s_g ḡ_x`` with std ``hold_rate_std_rad_s`` and ``gyro_scale_uncertainty`` |ḡ|."""
+        s = self.settings
+        if not s.reference_hold_offsets or self._hold is None:
+            return
+        means = self._hold.mean(float(hold_s[0]), float(hold_s[1]), s.hold_min_s)
+        if means is None:
+            return
+        rate, gyr = means
+        gx = self.obs.hinge_rate(gyr)
+        learn = self._settings_vector[K.ST_GS_LEARN] > 0.5
+        for k in range(self.n_sensors):
+            h = np.zeros(N_STATE)
+            h[BG] = 1.0
+            h[GS] = gx[k] if learn else 0.0
+            r = s.hold_rate_std_rad_s**2 + (s.gyro_scale_uncertainty * float(np.linalg.norm(gyr[k])))**2
+            y = rate[k] - h @ x[k] - (0.0 if learn else x[k, GS] * gx[k])
+            ph = P[k] @ h
+            gain = ph / (h @ ph + r)
+            x[k] += gain * y
+            P[k] -= np.outer(gain, ph)
+            P[k] = 0.5 * (P[k] + P[k].T)
 
     def _take_up_hinge_mounting(self, P: np.ndarray, correlated: bool = False) -> None:
         """Add the mounting turn about the hinge axis (``G_zy = -G_yz = δ``) to ``P`` (in place) with its
@@ -754,8 +845,17 @@ class ChainHand:
                    self._cx, self._dl, self._pd, self._jp)
         for e in estimators:
             e._t_last = t
+        self._log_holds(t, dts, gyr)
         self._keep_shared_error_finite()
         return phi, mode.tolist(), *self._starts
+
+    def _log_holds(self, t: float, dts: np.ndarray, gyr: np.ndarray) -> None:
+        """Each estimator's running integrals for a reference pose's hold (``HoldLog``), as its own
+        ``_advance`` keeps them."""
+        starts = self._starts[1]
+        for f, e in enumerate(self._estimators):
+            s0, s1 = starts[f], starts[f + 1]
+            e._hold.add(t, float(dts[f]), self._rate[s0:s1], gyr[s0:s1])
 
     def _delta_step(self, t: float, dts: np.ndarray) -> float:
         """The time δ decays over in this tick: since it was last advanced, not the fingers' own step (a
@@ -808,5 +908,6 @@ class ChainHand:
             e._t_last = t
             phi.append(e.closure.joint_angles(e._branch(theta)))
             modes += mode.tolist()
+        self._log_holds(t, dts, gyr)
         self._keep_shared_error_finite()
         return np.concatenate(phi), modes, *self._starts

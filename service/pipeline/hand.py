@@ -104,7 +104,7 @@ class Uninstrumented:
     def inherit(self, previous) -> None:
         pass
 
-    def known_configuration(self, theta, std_rad: float) -> None:
+    def known_configuration(self, theta, std_rad: float, hold_s=None) -> None:
         pass
 
     def hand_tracked(self, tracked: bool) -> None:
@@ -450,7 +450,8 @@ class HandSession:
                 continue
             for finger, phi in ref.joint_angles(self._fingers).items():
                 fs = self._fingers[finger]
-                fs.estimator.known_configuration(joint_to_phalanx_angles(np.asarray(phi)), self.settings.reference_pose_std_rad)
+                fs.estimator.known_configuration(joint_to_phalanx_angles(np.asarray(phi)), self.settings.reference_pose_std_rad,
+                                                 hold_s=(ref.t0, ref.t1))
                 if not fs.estimator.started:
                     fs.phi = np.asarray(phi, dtype=float)
             self.counters.references_applied += 1
