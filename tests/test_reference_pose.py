@@ -5,7 +5,8 @@ import asyncio
 import numpy as np
 import pytest
 
-from service.estimators.base import samples_from_session
+from service.estimators.base import FingerSamples, samples_from_session
+from service.model.kinematics import BaseMotion
 from dataclasses import replace
 
 from scipy.spatial.transform import Rotation
@@ -58,14 +59,14 @@ def test_chain_takes_a_known_configuration_as_a_measurement():
     assert np.abs(before).max() > 1e-3 and np.all(np.abs(after) < np.abs(before))
 
 
-@pytest.mark.parametrize("seed", [1, 4])
-def test_a_reference_pose_hold_measures_each_gyro_offset(seed):
+@pytest.mark.parametrize("seed, path", [(1, "update"), (4, "run")])
+def test_a_reference_pose_hold_measures_each_gyro_offset(seed, path):
     """A finger held still on a still hand from an unknown start, the gyros with the simulated offsets (no
     white noise): over the hold each gyro's relative hinge-axis rate is its offset, so with the hold's
     measurement weighted as exact (``hold_rate_std_rad_s`` tiny, no scale term) the offsets after the
     reference are the simulated ones, where the accelerometer alone leaves them 0.2-0.9 deg/s off after
     the same 2 s (the hold's own reference update without its interval moves them by their correlation
-    with the angle only)."""
+    with the angle only). Sample by sample (the live pipeline's path) or in one batch (``estimate``'s)."""
     sess = simulate(SimConfig(motion="point", hand_motion="still", noise="offset", seed=seed, duration_s=2.0,
                               fingers=("index",), reference_hold_s=2.0))
     samples = samples_from_session(sess, "index")
@@ -77,8 +78,12 @@ def test_a_reference_pose_hold_measures_each_gyro_offset(seed):
     err = {}
     for hold in (None, (float(samples.t[0]), float(samples.t[n - 1]))):
         est = Chain(sess.calibration.finger("index"), settings=settings)
-        for k in range(n):
-            est.update(*samples.sample(k))
+        if path == "run":
+            est.run(FingerSamples(samples.t[:n], samples.gyr[:n], samples.acc[:n],
+                                  BaseMotion(*(getattr(samples.hand, k)[:n] for k in BaseMotion.__dataclass_fields__))))
+        else:
+            for k in range(n):
+                est.update(*samples.sample(k))
         est.known_configuration(joint_to_phalanx_angles(sess.joint_angles["index"][n - 1]), 0.03, hold_s=hold)
         err[hold is not None] = np.degrees(np.abs(est.state["filter"]["x"][:, 1] - offset))
     assert np.all(err[True] < 0.02), err

@@ -369,6 +369,11 @@ class Chain(FingerEstimator):
             np.ascontiguousarray(samples.acc, dtype=float).reshape(n, nb, ns, 3), hand.flat.reshape(n, nb, K.HAND_SIZE),
             np.asarray(hand.acceleration)[0])
         self._t_last = float(t[-1])
+        if self._hold is not None:
+            # the relative rate the kernel integrates (``_init_state``'s), sample by sample
+            rate = self.obs.relative_rate(np.asarray(samples.gyr, dtype=float), hand)
+            for k in range(n):
+                self._hold.add(float(t[k]), float(dts[k]), rate[k], samples.gyr[k])
         b = (n,) + self.batch_shape
         return FingerTrack(t, phal.reshape(b + phal.shape[-1:]), phi.reshape(b + phi.shape[-1:]), mode.reshape(b + (ns,)))
 

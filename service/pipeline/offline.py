@@ -109,15 +109,15 @@ def run_with_references(estimator: FingerEstimator, samples: FingerSamples, fing
     for ref in sorted(references, key=lambda r: r.t1):
         angles = ref.joint_angles([finger]).get(finger)
         if angles is not None:
-            cuts.append((int(np.searchsorted(t, ref.t1 - 1e-9)) + 1, angles))
+            cuts.append((int(np.searchsorted(t, ref.t1 - 1e-9)) + 1, angles, (ref.t0, ref.t1)))
     parts, start = [], 0
-    for stop, angles in cuts + [(len(t), None)]:
+    for stop, angles, hold in cuts + [(len(t), None, None)]:
         stop = min(stop, len(t))
         if stop > start:
             parts.append(estimator.run(_slice(samples, start, stop)))
             start = stop
         if angles is not None:
-            estimator.known_configuration(joint_to_phalanx_angles(np.asarray(angles, dtype=float)), std_rad)
+            estimator.known_configuration(joint_to_phalanx_angles(np.asarray(angles, dtype=float)), std_rad, hold_s=hold)
     if not parts:
         return estimator.run(samples)
     return FingerTrack(t, *(np.concatenate([getattr(p, k) for p in parts]) for k in ("theta", "phi", "mode")))
