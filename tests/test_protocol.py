@@ -5,6 +5,8 @@ import pytest
 
 from service.model.hand import default_calibration
 from service.protocol import Calibration, Hello, Imu, Pose, ProtocolError, Truth, decode, encode, parse_line, read_recording
+from service.protocol.messages import MAX_BATCH_SAMPLES
+from service.protocol.wire import parse_input
 from service.protocol.fast import IMU, POSE
 from service.sim.session import SimConfig, simulate, write_recording
 
@@ -60,6 +62,31 @@ def test_invalid_lines_are_rejected_with_a_clear_error(line, code, fragment):
         parse_line(line)
     assert exc.value.code == code
     assert fragment in exc.value.detail
+
+
+def test_a_float_literal_that_overflows_is_found_in_text_and_bytes_and_one_digit_less_is_not():
+    """1.8e308 is the largest float64: a float literal of 309 digits before its point overflows to
+    infinity, one of 308 nines does not (the prefilter finds digit runs by a byte table)."""
+    for digits, refused in ((309, True), (308, False)):
+        text = json.dumps({**GOOD_IMU, "note": 0.0}).replace("0.0}", "9" * digits + ".5}")
+        for data in (text, text.encode(), text.replace('"note"', '"n\u00f6te"')):   # bytes; text beyond ASCII
+            if refused:
+                with pytest.raises(ProtocolError, match="non-finite number at n"):
+                    parse_input(data)
+            else:
+                assert isinstance(parse_input(data)[1], Imu)
+
+
+def test_a_batch_longer_than_the_limit_is_refused_for_its_length_before_its_samples_are_read():
+    sample = {k: v for k, v in GOOD_IMU.items() if k != "type"}
+    batch = {"type": "imu_batch", "samples": [sample] * MAX_BATCH_SAMPLES + [{"t": "bad"}]}
+    with pytest.raises(ProtocolError) as exc:
+        parse_line(json.dumps(batch))
+    assert exc.value.code == "invalid_message"
+    assert exc.value.detail.startswith(f"imu_batch: samples: at most {MAX_BATCH_SAMPLES} samples per batch, "
+                                       f"got {MAX_BATCH_SAMPLES + 1} (got [")
+    assert len(exc.value.detail) < 200                     # the samples are not all written into it
+    assert len(parse_line(json.dumps({**batch, "samples": batch["samples"][:MAX_BATCH_SAMPLES]})).samples) == MAX_BATCH_SAMPLES
 
 
 def test_unknown_fields_are_ignored_and_invalid_pose_needs_no_values():

@@ -259,13 +259,23 @@ _ADAPTER: TypeAdapter = TypeAdapter(SourceMessage)
 SOURCE_TYPES = ("hello", "calibration", "pose", "imu", "imu_batch", "reference_pose", "truth", "sync")
 
 
+def _shown(value) -> str:
+    """The first 60 characters of a refused value as JSON (``{...}`` for an object), without writing
+    all of a long list: the first items alone give them when they fill the 60 characters."""
+    if isinstance(value, dict):
+        return "{...}"
+    if isinstance(value, list) and len(value) > 8:
+        head = json.dumps(value[:8], default=str)
+        if len(head) > 60:                    # the same first 60 characters as the whole list's text
+            return head[:60]
+    return json.dumps(value, default=str)[:60]
+
+
 def _describe(err: ValidationError) -> str:
     parts = []
     for e in err.errors(include_url=False)[:3]:
         loc = ".".join(str(p) for p in e["loc"][1:]) or "message"
-        value = e.get("input")
-        shown = json.dumps(value, default=str)[:60] if not isinstance(value, dict) else "{...}"
-        parts.append(f"{loc}: {e['msg']} (got {shown})")
+        parts.append(f"{loc}: {e['msg']} (got {_shown(e.get('input'))})")
     more = len(err.errors()) - 3
     return "; ".join(parts) + (f"; and {more} more" if more > 0 else "")
 
@@ -313,12 +323,18 @@ def parse_message(obj: object) -> Hello | Calibration | Pose | Imu | ImuBatch | 
     kind = obj.get("type")
     if kind not in SOURCE_TYPES:
         raise ProtocolError("unknown_type", f"unknown message type {kind!r}; expected one of {list(SOURCE_TYPES)}")
+    if kind == "imu_batch" and type(samples := obj.get("samples")) is list and len(samples) > MAX_BATCH_SAMPLES:
+        # refused before its samples are validated: a batch too long costs no more than a valid one (it
+        # cost 45 times as much, 0.54 s for 4100 samples: pydantic validates every sample first)
+        raise ProtocolError("invalid_message", f"imu_batch: samples: at most {MAX_BATCH_SAMPLES} samples per "
+                                               f"batch, got {len(samples)} (got {_shown(samples)})")
     try:
         return _ADAPTER.validate_python(obj)
     except ValidationError as err:
         if kind == "imu_batch" and (partial := _refuse_samples(obj, err)) is not None:
             raise partial from None
-        code = "non_unit_quaternion" if "unit quaternion" in str(err) else "invalid_message"
+        quaternion = any("unit quaternion" in e["msg"] for e in err.errors(include_url=False, include_input=False))
+        code = "non_unit_quaternion" if quaternion else "invalid_message"
         raise ProtocolError(code, f"{kind}: {_describe(err)}") from None
 
 
