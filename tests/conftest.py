@@ -24,12 +24,33 @@ def pytest_configure(config):
     config._sent_dir = tempfile.mkdtemp(prefix="fingertrack-sent-")
     os.environ["FINGERTRACK_TEST_SENT_DIR"] = config._sent_dir
     os.environ["PYTHONPATH"] = os.pathsep.join([str(SENT_CAPTURE), *filter(None, [os.environ.get("PYTHONPATH")])])
+    if not hasattr(config, "workerinput"):              # with pytest-xdist, once, in the controlling process
+        _compile_kernels_once()
     count = config.getoption("busy")
-    if count and not hasattr(config, "workerinput"):   # with pytest-xdist, once, in the controlling process
+    if count and not hasattr(config, "workerinput"):
         from busy import busy_processes
         config._busy = busy_processes(count)
         pids = config._busy.__enter__()
         print(f"\nbusy: {count} CPU-bound processes beside the tests (pids {pids})")
+
+
+def _compile_kernels_once() -> None:
+    """Kernels not yet in the on-disk cache (a fresh checkout) are compiled here once, before the test
+    processes start, in two processes side by side (chain's, and the pipeline's with inertial's: 35-40 s
+    of a core each). Else each test process, and each service a test starts, finds the cache empty and
+    compiles the same kernels at the same time (the first tests to touch them took minutes). Tests of a
+    cold cache use caches of their own."""
+    import subprocess
+    import sys
+    from service.estimators.warm import PIPELINE, _kernels, _on_disk
+    cold = [name for name in ("chain", PIPELINE, "inertial") if not _on_disk(_kernels(name))]
+    groups = [[n for n in cold if n == "chain"], [n for n in cold if n != "chain"]]
+    procs = [subprocess.Popen([sys.executable, "-c", f"from service.estimators.warm import warm\nfor n in {g!r}: warm(n)"],
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT) for g in groups if g]
+    for proc in procs:
+        out = proc.communicate()[0]
+        if proc.returncode:                 # the tests that use the kernels compile them again, and fail or pass
+            print(f"\ncompiling kernels before the tests failed ({proc.returncode}):\n{out.decode(errors='replace')}")
 
 
 def pytest_unconfigure(config):
