@@ -4,7 +4,10 @@ be written (each lies under a regular file, which no user, root included, can cr
 starts, runs the kernels (a glove's frames reach a subscriber) and writes nothing into the package's
 folders (numba, given an unwritable cache folder, used to cache beside the package's source, and a
 read-only root file system made that fail at import: "cannot cache function ...: no locator
-available"). Mounting the root read-only needs privileges a test run may not have; what the service
+available"). Every kernel module is imported as always; the sessions run a default estimator without
+kernels of its own, so that only the pipeline's kernels are compiled (without a cache, or into a new
+one: each case compiles from nothing; ``chain``'s would add 35-40 s of a core to each, and its
+kernels are cached by the same numba mechanism, imported with the others). Mounting the root read-only needs privileges a test run may not have; what the service
 writes is what such a mount would refuse."""
 import asyncio
 import os
@@ -65,7 +68,7 @@ def test_the_service_serves_with_no_writable_cache_home_or_package(tmp_path, tem
         tmp.mkdir()
     port = free_port()
     env = {**os.environ, "NUMBA_CACHE_DIR": str(blocked / "numba"), "HOME": str(blocked / "home"),
-           "XDG_CACHE_HOME": str(blocked / "cache"), "TMPDIR": str(tmp), "FINGERTRACK_HAND_WORKERS": "1",
+           "XDG_CACHE_HOME": str(blocked / "cache"), "TMPDIR": str(tmp), "FINGERTRACK_HAND_WORKERS": "1", "FINGERTRACK_ESTIMATOR": "madgwick",
            "FINGERTRACK_ADMIN_TOKEN": ADMIN, "FINGERTRACK_TOKENS": f'{{"{SOURCE}": "source", "{VIEWER}": "viewer"}}'}
     before = _package_files()
     log = tmp_path / "serve.log"
