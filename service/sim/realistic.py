@@ -52,7 +52,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import signal
 from scipy.spatial.transform import Rotation
 
 from ..model.frames import GRAVITY_M_S2, matrix_to_quat
@@ -206,6 +205,8 @@ def soft_tissue(t: np.ndarray, ddtheta: np.ndarray, natural_hz: float, damping: 
     """Deflection ``δ`` of a skin-mounted sensor about the hinge axis and its two derivatives, (N,) each:
     ``δ̈ + 2ζω_n δ̇ + ω_n² δ = -θ̈`` from rest (module docstring), integrated exactly for an input that is
     linear between samples (``scipy.signal.lsim``)."""
+    from scipy import signal          # here: importing it takes 1-2 s, at every start of whatever imports the simulator
+
     wn = 2.0 * np.pi * natural_hz
     a = np.array([[0.0, 1.0], [-wn * wn, -2.0 * damping * wn]])
     b = np.array([[0.0], [-1.0]])
