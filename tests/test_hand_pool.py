@@ -217,16 +217,17 @@ def test_a_data_message_is_known_by_its_head_only_when_nothing_else_could_make_i
 
 
 def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_own_and_comes_back_with_its_state():
-    """Sessions a and b on one worker; b is switched to ``ekf`` (per finger and sample in Python, more
-    than a core per hand): it moves with its state to a worker process of its own,
-    ``hand_worker_isolated_nice`` nicer than this one, and back to the shared worker when switched to
-    ``chain`` (its own worker then ends). Every source message of both is answered without an error,
-    b's frames go on with increasing ``seq`` on each estimator in turn, and a never moves."""
-    msgs = _glove(0.6, 4)                         # ekf is slow: a few of its frames tell
+    """Sessions a and b on one worker; b is switched to ``vector`` (per finger and sample in Python): it
+    moves with its state to a worker process of its own, ``hand_worker_isolated_nice`` nicer than this
+    one, and back to the shared worker when switched to ``chain`` (its own worker then ends). Every
+    source message of both is answered without an error, b's frames go on with increasing ``seq`` on
+    each estimator in turn. a, switched to ``madgwick`` while b has the one worker of their own allowed
+    (``hand_worker_isolated_max``), stays on the shared worker."""
+    msgs = _glove(0.6, 4)
     parts = [msgs[:len(msgs) // 2], msgs[len(msgs) // 2:3 * len(msgs) // 4], msgs[3 * len(msgs) // 4:]]
 
     async def run():
-        pool = await _pool(1)
+        pool = await _pool(1, hand_worker_isolated_max=1)
         try:
             a, b = pool.session("a", pool.settings, pool.metrics), pool.session("b", pool.settings, pool.metrics)
             errors, stages = [], []
@@ -239,9 +240,11 @@ def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_
             for live in (a, b):
                 live.attach_source(answer)
                 await _ingest(live, HELLO)
-            for part, estimator in zip(parts, ("chain", "ekf", "chain")):
+            for part, estimator in zip(parts, ("chain", "vector", "chain")):
                 if estimator != b.config.estimator:
                     await asyncio.to_thread(b.update_config, {"estimator": estimator})
+                if estimator == "vector":
+                    await asyncio.to_thread(a.update_config, {"estimator": "madgwick"})
                 link = b.link
                 stage = {"link": link, "pid": link.pid, "nice": os.getpriority(os.PRIO_PROCESS, link.pid)}
                 for m in part:
@@ -266,9 +269,9 @@ def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_
     assert first["link"] is shared and costly["link"].isolated and costly["pid"] != shared.pid
     assert costly["nice"] == want_nice, (costly["nice"], want_nice)
     assert back["link"] is shared and back["pid"] == shared.pid
-    for stage, estimator in zip(stages, ("chain", "ekf", "chain")):
+    for stage, estimator in zip(stages, ("chain", "vector", "chain")):
         assert stage["frames"] and {e for _, e in stage["frames"]} == {estimator}
     seqs = [seq for stage in stages for seq, _ in stage["frames"]]
     assert all(x < y for x, y in zip(seqs, seqs[1:])), seqs
-    assert a.link is shared and a.restarts == a.moves == 0
+    assert a.link is shared and a.restarts == a.moves == 0 and a.config.estimator == "madgwick"
     assert b.moves == 2 and b.restarts == 0

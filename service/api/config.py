@@ -107,6 +107,9 @@ class ServiceSettings(BaseSettings):
                                       "chain: it cannot starve the other sessions, but may fall behind its source on a busy "
                                       "machine, which it says (GET /v1/sessions: behind_s; the log); false: it stays on its "
                                       "shared worker")
+    hand_worker_isolated_max: int = Field(2, ge=0, le=64, description="sessions with a hand worker of their own "
+                                          "(hand_worker_isolate) at once, about 200 MB each; past it a session switched "
+                                          "to a costly estimator stays on its shared worker (logged)")
     hand_worker_isolated_nice: int = Field(10, ge=0, le=19, description="a session's own hand worker (hand_worker_isolate) "
                                            "runs this much nicer than the web process from its start")
     hand_worker_stall_s: float = Field(10.0, gt=0, le=600, description="a hand worker that answers nothing for this "

@@ -38,7 +38,8 @@ core first when it has work.
 
 A session switched to an estimator that runs per finger and sample through Python (every one but the
 compiled ``chain``, ``FingerEstimator.whole_hand_compiled``: 8-140 % of a core per hand, against a few %)
-runs in a worker process of its own (``hand_worker_isolate``): one is started for it with that estimator
+runs in a worker process of its own (``hand_worker_isolate``; at most ``hand_worker_isolated_max`` at once,
+past it the session stays on its shared worker, logged): one is started for it with that estimator
 loaded, ``hand_worker_isolated_nice`` nicer than this process from its start (its start-up yields too),
 while the session goes on with its old estimator on its shared worker; then the session moves there with
 its state and every unanswered source message, as after a crash (``reopen``; the new configuration in
@@ -297,6 +298,8 @@ class WorkerLink:
         live.link = self
         self.sessions[live.sid] = live
         self.owed += len(live._pending)
+        # a close of it held here while this worker restarted (it left before) would follow the reopen
+        self._held = [m for m in self._held if not (m[0] == "close" and m[1] == live.sid)]
         live.reopen(config, restart)
 
     def stalled(self, now: float, lag_s: float, limit_s: float) -> bool:
@@ -408,12 +411,17 @@ class HandPool:
             future.cancel()
             raise ValueError(f"moving the session between hand workers took longer than {timeout_s:g} s") from None
 
-    async def move(self, live: "ProcessSession", isolated: bool, config: dict | None = None) -> None:
+    async def move(self, live: "ProcessSession", isolated: bool, config: dict | None = None) -> bool:
         """``live`` with its state (and ``config`` in place of its configuration) to a new worker of its own
         (``isolated``), once that has started, or to the shared worker with the fewest sessions once it has
         caught up (its own worker's backlog would otherwise be handled again there, beside other sessions);
-        its former worker forgets it, and a worker of its own ends."""
+        its former worker forgets it, and a worker of its own ends. False: not moved, ``hand_worker_isolated_max``
+        workers of their own run already (or the session closed meanwhile)."""
         if isolated:
+            if len(self.isolated) >= self.settings.hand_worker_isolated_max:
+                log.warning("session %s stays on its shared hand worker: %d sessions have a worker of their own "
+                            "(hand_worker_isolated_max)", live.name, len(self.isolated))
+                return False
             target = WorkerLink(self, next(self._isolated_slots), estimator=(config or {}).get("estimator", live.config.estimator))
             self.isolated.append(target)
             try:
@@ -424,20 +432,25 @@ class HandPool:
                 why = str(err) if isinstance(err, OSError) else f"not ready within {CONFIG_WAIT_S:g} s"
                 raise ValueError(f"the session's own hand worker did not start ({why}); the session stays as it "
                                  f"was") from None
+            except BaseException:                   # cancelled (the service closing, the wait given up)
+                await self.retire(target)
+                raise
         else:
             deadline = time.monotonic() + CATCH_UP_WAIT_S
             while len(live._pending) > CAUGHT_UP and time.monotonic() < deadline:
                 await asyncio.sleep(0.01)
-            target = min(self.links, key=lambda x: len(x.sessions))
+            ready = [x for x in self.links if x.ready.is_set() and not x._restarting]
+            target = min(ready or self.links, key=lambda x: len(x.sessions))
         old = live.link                             # (a restart may have moved it meanwhile)
-        if live.sid not in old.sessions:            # closed meanwhile
+        if live.sid not in old.sessions or self.closing:     # closed meanwhile
             if target.isolated:
                 await self.retire(target)
-            return
+            return False
         target.take(live, config, restart=False)
         old.send(["close", live.sid])
         if old.isolated:
             await self.retire(old)
+        return True
 
     async def retire(self, link: WorkerLink) -> None:
         """A worker of one session that has left it (or never came) ends."""
@@ -582,7 +595,8 @@ class ProcessSession(LiveSession):
     # -- source messages ---------------------------------------------------------------------------
     def attach_source(self, send_error) -> None:
         self._source_error = send_error
-        self._greeted = False                       # a new connection: until its hello, every message decoded here
+        self._greeted = False
+        self._best_lag = None                       # a new source: its clock is another                       # a new connection: until its hello, every message decoded here
 
     def parse_input(self, data: str | bytes, binary: bool):
         """``(decoded value, message)`` of a received message: a data message (``imu``, ``imu_batch``,
@@ -624,6 +638,7 @@ class ProcessSession(LiveSession):
         if parsed.type == "hello":
             self.hello = raw
             self._greeted = True
+            self._best_lag = None
             self.hand_name = raw.get("hand", self.hand_name)
         kept = raw if parsed.type == "calibration" else None     # the session's state, once it is accepted
         self._send_source(parsed.type, ["src", packed], kept)
@@ -743,7 +758,7 @@ class ProcessSession(LiveSession):
         with self._configuring:
             if remote:
                 try:
-                    if pool.isolates(spec) and not self.link.isolated:
+                    if pool.isolates(spec) and not self.link.isolated:   # (past the limit it stays: logged)
                         moved = {"estimator": spec.name, "estimator_params": params, "gestures": gestures.model_dump()}
                         pool.call(pool.move(self, isolated=True, config=moved), 2 * CONFIG_WAIT_S)
                     applied = self._request("cfg", remote)
@@ -769,7 +784,8 @@ class ProcessSession(LiveSession):
         out["hand"] = self.hand_name or "right"
         out["worker"] = {"slot": self.link.slot, "pid": self.link.pid, "own": self.link.isolated,
                          "restarts": self.restarts, "resent_after_restart": self.resent, "moves": self.moves}
-        out["behind_s"] = self.behind_s
+        oldest = min((entry[2] for entry in self._pending.values()), default=None)   # a worker that answers nothing
+        out["behind_s"] = max(self.behind_s, 0.0 if oldest is None else time.perf_counter() - oldest)
         return out
 
     def close(self) -> None:
