@@ -394,6 +394,8 @@ def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None,
             conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms, lead_s=lead_s)
                           for c in caches]
         except RuntimeError as err:             # the service or a load generator did not start or failed
+            if type(err) is not RuntimeError:   # RecursionError, NotImplementedError: a defect, with its traceback
+                raise
             raise ValueError(str(err)) from None
     (out / "results.json").write_text(json.dumps(conditions, indent=2))
     text = summary(conditions)

@@ -48,7 +48,8 @@ workers' sessions, but it may fall behind its own source, which it says: ``behin
 /v1/sessions``, the gauge ``fingertrack_session_behind_seconds``, a log line past ``BEHIND_WARN_S``.
 Switched back to the compiled chain, the change applies in its own worker; once the session has caught
 up (``CAUGHT_UP``, or after ``CATCH_UP_WAIT_S``) it moves to the shared worker with the fewest sessions,
-and its own worker ends (as when the session closes). A move loses what a restart loses (below; the
+and its own worker ends (as when the session closes). Only a switch moves a session: a new one starts on
+a shared worker whatever the service's default estimator. A move loses what a restart loses (below; the
 estimator switch itself restarts the filter anyway) and counts as ``worker.moves``; a worker builds a
 moved-in (or new) session's hand in a thread (``hands.worker``), so its other sessions go on meanwhile.
 """
@@ -752,10 +753,10 @@ class ProcessSession(LiveSession):
         estimator's kernels first, in a separate process, while every session goes on), then kept here.
         A change to a costly estimator moves the session with it to a worker of its own first; once it is
         on the compiled chain again, it goes back to a shared worker (module docstring)."""
-        spec, params, gestures, record = self.checked_config(change)
-        remote = SessionConfigChange.model_validate(change).model_dump(exclude_none=True, exclude={"record"})
         pool = self.link.pool
-        with self._configuring:
+        with self._configuring:                     # validated against the configuration it changes
+            spec, params, gestures, record = self.checked_config(change)
+            remote = SessionConfigChange.model_validate(change).model_dump(exclude_none=True, exclude={"record"})
             if remote:
                 try:
                     if pool.isolates(spec) and not self.link.isolated:   # (past the limit it stays: logged)
