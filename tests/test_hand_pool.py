@@ -275,3 +275,24 @@ def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_
     assert all(x < y for x, y in zip(seqs, seqs[1:])), seqs
     assert a.link is shared and a.restarts == a.moves == 0 and a.config.estimator == "madgwick"
     assert b.moves == 2 and b.restarts == 0
+
+
+def test_a_session_moving_back_to_a_restarting_worker_drops_the_close_of_it_held_there():
+    """A worker restarting when a session left it holds that session's ``close`` until its new process
+    runs; if the session moves back meanwhile, its reopen must not be followed by that close (the worker
+    would drop the hand and the session's messages go unanswered). Held closes of other sessions stay."""
+    class Moving:                                  # what ``take`` needs of a session
+        def __init__(self, sid, link):
+            self.sid, self.link, self._pending, self.reopened = sid, link, {1: None, 2: None}, []
+            link.sessions[sid] = self
+
+        def reopen(self, config, restart):
+            self.reopened.append((config, restart))
+    pool = HandPool(ServiceSettings.load(port=0, hand_workers=2), Metrics())
+    restarting, other = pool.links
+    restarting._held = [["close", 5], ["close", 6]]
+    live = Moving(5, other)
+    other.owed = 2
+    restarting.take(live, {"estimator": "chain"}, restart=False)
+    assert restarting._held == [["close", 6]] and live.link is restarting and live.sid in restarting.sessions
+    assert live.reopened == [({"estimator": "chain"}, False)] and restarting.owed == 2 and other.owed == 0
