@@ -11,7 +11,7 @@ from dataclasses import replace
 
 from scipy.spatial.transform import Rotation
 
-from service.estimators.chain import Chain, ChainSettings
+from service.estimators.chain import Chain, ChainSettings, HoldLog
 from service.estimators.chain_kernel import GA_START
 from service.model.hand import default_calibration
 from service.model.hand import joint_to_phalanx_angles
@@ -88,6 +88,34 @@ def test_a_reference_pose_hold_measures_each_gyro_offset(seed, path):
         err[hold is not None] = np.degrees(np.abs(est.state["filter"]["x"][:, 1] - offset))
     assert np.all(err[True] < 0.02), err
     assert np.any(err[False] > 0.2), err
+
+
+def test_a_hold_whose_halves_differ_in_rate_was_not_still_and_leaves_the_offsets_alone():
+    """The hold's log over 2 s of ticks with a constant relative rate (an offset of 0.02 rad/s) gives
+    that mean and no change between its halves; with the second half 0.5 rad/s faster (the finger moved,
+    29 deg/s) the change is 0.5 rad/s exactly (each half's mean of a step: closed form), beyond the
+    stillness limit, and the offsets and their covariance stay as they were."""
+    sess = simulate(SimConfig(motion="point", hand_motion="still", noise="offset", seed=1, duration_s=1.0,
+                              fingers=("index",)))
+    samples = samples_from_session(sess, "index")
+    est = Chain(sess.calibration.finger("index"))
+    for k in range(len(samples.t)):
+        est.update(*samples.sample(k))
+    x0, p0 = est.state["filter"]["x"].copy(), est.state["filter"]["P"].copy()
+    for extra, moved in ((0.0, False), (0.5, True)):
+        log = HoldLog(2)
+        for k in range(401):                            # 0 .. 2 s at 200 Hz
+            t = 0.005 * k
+            log.add(t, 0.005 if k else 0.0, np.full(2, 0.02 + (extra if t > 1.0 else 0.0)), np.zeros((2, 3)))
+        rate, _, change = log.mean(0.0, 2.0, 0.5)
+        np.testing.assert_allclose(change, extra, atol=1e-12)
+        np.testing.assert_allclose(rate, 0.02 + extra / 2, atol=1e-12)
+        est._hold = log
+        x, p = x0.copy(), p0.copy()
+        est._hold_offsets(x, p, (0.0, 2.0))
+        assert (np.array_equal(x, x0) and np.array_equal(p, p0)) == moved
+        if not moved:                                   # a still hold: the offsets move toward 0.02 rad/s
+            assert np.all(np.abs(x[:, 1] - 0.02) < np.abs(x0[:, 1] - 0.02))
 
 
 def _mounted(delta_rad):

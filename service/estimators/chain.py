@@ -184,7 +184,11 @@ fingers drifted 6-10 deg. The measurement's std is ``hold_rate_std_rad_s`` and t
 cross-axis errors times the mean reading (``gyro_scale_uncertainty`` |ḡ|: a hand turning during the hold
 leaks into the hinge axis). Applied at the reference before its angle update, per sensor, over the part of
 the hold this estimator saw (at least ``hold_min_s``). (Zero-rate *detection* was tried and dropped,
-item 2; this is a hold the glove app declares.)
+item 2; this is a hold the glove app declares.) A sensor whose mean rate over the hold's second half
+differs from that over its first by more than ``hold_still_max_rad_s`` was not still, and no offset is
+read from that hold: a finger that moved during a claimed hold would otherwise leave its offset wrong for
+good (the offset's random walk is slow). Still holds differ by up to 9 deg/s (the optical hand rate's
+noise, a hand not quite still), so the check catches a gross motion only.
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
@@ -255,6 +259,7 @@ class ChainSettings(EstimatorSettings):
     rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
     reference_hold_offsets: bool = Field(True, description="a reference_pose's hold [t0, t1] also measures each gyro's offset: the finger was still on its hand, so its mean relative hinge-axis rate over the hold is the offset ('The hold of a reference pose' in the module docstring)")
     hold_rate_std_rad_s: float = Field(1.0 * DEG, gt=0.0, description="std of a hold's mean relative rate as a measurement of the gyro offset, besides the gyro's scale and cross-axis errors: the optical hand rate's error over the hold (orientation jitter of 0.1-0.5 deg at both ends of a 2 s hold: about 0.35 deg/s) and a held hand's slow drift (1 deg over 2 s: 0.5 deg/s), rad/s")
+    hold_still_max_rad_s: float = Field(15.0 * DEG, gt=0.0, description="a sensor whose mean relative hinge-axis rate over the hold's second half differs from that over its first by more than this, rad/s, was not held still: no offset is read from that hold (a finger that moved during a claimed hold made its offset 4-8 deg/s wrong for good; on tuning trials 500-519 the difference of still holds, optical jitter and a hand not quite still, reached 8.9 deg/s, p5-p95 -4.3 to 3.9; a smaller motion within the hold is not caught)")
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
@@ -286,15 +291,22 @@ class HoldLog:
         self._n = n + 1
 
     def mean(self, t0: float, t1: float, min_s: float):
-        """``(mean rate (S,), mean reading (S, 3))`` over the ticks within ``[t0, t1]``, or None when
-        they span less than ``min_s``."""
+        """``(mean rate (S,), mean reading (S, 3), change (S,))`` over the ticks within ``[t0, t1]``, or
+        None when they span less than ``min_s``; ``change`` is the mean rate over the hold's second half
+        less that over its first (about 0 for a finger held still: an offset is the same in both halves,
+        and the rate's noise averages out over each)."""
         t = self._t[:self._n]
         i0 = int(np.searchsorted(t, t0 - 1e-9))
         i1 = int(np.searchsorted(t, t1 + 1e-9)) - 1
         if i1 <= i0 or t[i1] - t[i0] < min_s:
             return None
         span = t[i1] - t[i0]
-        return (self._r[i1] - self._r[i0]) / span, (self._g[i1] - self._g[i0]) / span
+        im = min(max(int(np.searchsorted(t, 0.5 * (t[i0] + t[i1]))), i0 + 1), i1 - 1) if i1 - i0 >= 2 else i0
+        if im == i0:
+            change = np.zeros(self._r.shape[1])
+        else:
+            change = (self._r[i1] - self._r[im]) / (t[i1] - t[im]) - (self._r[im] - self._r[i0]) / (t[im] - t[i0])
+        return (self._r[i1] - self._r[i0]) / span, (self._g[i1] - self._g[i0]) / span, change
 
 
 class Chain(FingerEstimator):
@@ -548,10 +560,12 @@ class Chain(FingerEstimator):
         means = self._hold.mean(float(hold_s[0]), float(hold_s[1]), s.hold_min_s)
         if means is None:
             return
-        rate, gyr = means
+        rate, gyr, change = means
         gx = self.obs.hinge_rate(gyr)
         learn = self._settings_vector[K.ST_GS_LEARN] > 0.5
         for k in range(self.n_sensors):
+            if not abs(change[k]) <= s.hold_still_max_rad_s:
+                continue                      # the finger moved during the hold: no offset to read from it
             h = np.zeros(N_STATE)
             h[BG] = 1.0
             h[GS] = gx[k] if learn else 0.0

@@ -514,6 +514,7 @@ class HandSession:
         self._dropped["clock_step"] += 1
         self._pending.clear()
         self._last_sample.clear()
+        self._references.clear()              # a hold on the old clock: not to be applied on the new one
         self._processed_t = None
         self._newest_imu_t = None
         self._next_frame_t = None
