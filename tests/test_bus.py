@@ -890,3 +890,30 @@ def test_a_worker_that_stops_cancels_the_rebuilds_under_way(monkeypatch):
     cancelled, ready, left = asyncio.run(run())
     assert cancelled == ["cancelled"] and ready and not left
     assert released == [("sslow", {**previous, "worker": None}, 7)]
+
+
+def test_a_worker_that_loses_the_server_while_it_checks_a_session_s_owner_logs_one_line(caplog):
+    """A NATS error while a worker answers ``ft.assign`` (its lease bucket unreachable) leaves the request
+    unanswered (the gateway asks again) with one log line; the answer's task used to end with the
+    exception, reported as a traceback."""
+    from nats.errors import ConnectionClosedError
+
+    from service.api.config import ServiceSettings
+    from service.bus.worker import Worker
+
+    class Unreachable:
+        async def get(self, key):
+            raise ConnectionClosedError
+
+    async def run():
+        worker = Worker("nats://unused", ServiceSettings.load(port=0), "cut-off")
+        worker.kv = Unreachable()
+        request = _Request({"session": "s"})
+        await worker._answer_assign(request)
+        return request.answers, worker._assigning, worker._traffic.is_set()
+
+    with caplog.at_level("WARNING", logger="fingertrack.bus"):
+        answers, assigning, traffic = asyncio.run(run())
+    assert answers == [] and assigning == {} and traffic
+    lines = [r for r in caplog.records if r.levelname == "WARNING"]
+    assert len(lines) == 1 and "'s'" in lines[0].getMessage() and lines[0].exc_info is None

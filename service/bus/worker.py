@@ -32,6 +32,7 @@ import logging
 import time
 import uuid
 
+from nats.errors import Error as NatsError
 from nats.js.api import KeyValueConfig, StorageType
 from nats.js.errors import KeyNotFoundError, KeyWrongLastSequenceError
 
@@ -167,11 +168,14 @@ class Worker:
                 else:
                     with self._traffic_held():
                         owner = await self.ensure_owner(name)
+            await msg.respond(pack({"owner": owner, "by": self.id, "claimed": owner == self.id and not claimed_before}))
+        except (NatsError, OSError) as err:         # reconnecting: unanswered, the gateway asks again
+            log.warning("worker %s: the ownership of session %r not checked: %s: %s", self.id, name,
+                        type(err).__name__, err)
         finally:
             entry[1] -= 1
             if entry[1] == 0:
                 del self._assigning[name]           # nobody else waits for it
-        await msg.respond(pack({"owner": owner, "by": self.id, "claimed": owner == self.id and not claimed_before}))
 
     @contextlib.contextmanager
     def _traffic_held(self):
