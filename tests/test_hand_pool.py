@@ -219,7 +219,8 @@ def test_a_data_message_is_known_by_its_head_only_when_nothing_else_could_make_i
 def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_own_and_comes_back_with_its_state():
     """Sessions a and b on one worker; b is switched to ``vector`` (per finger and sample in Python): it
     moves with its state to a worker process of its own, ``hand_worker_isolated_nice`` nicer than this
-    one, and back to the shared worker when switched to ``chain`` (its own worker then ends). Every
+    one (1 here: at the default 10 its start-up waits for every other process on a busy machine, 29 s
+    of this test under --busy 2), and back to the shared worker when switched to ``chain`` (its own worker then ends). Every
     source message of both is answered without an error, b's frames go on with increasing ``seq`` on
     each estimator in turn. a, switched to ``madgwick`` while b has the one worker of their own allowed
     (``hand_worker_isolated_max``), stays on the shared worker."""
@@ -227,7 +228,7 @@ def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_
     parts = [msgs[:len(msgs) // 2], msgs[len(msgs) // 2:3 * len(msgs) // 4], msgs[3 * len(msgs) // 4:]]
 
     async def run():
-        pool = await _pool(1, hand_worker_isolated_max=1)
+        pool = await _pool(1, hand_worker_isolated_max=1, hand_worker_isolated_nice=1)
         try:
             a, b = pool.session("a", pool.settings, pool.metrics), pool.session("b", pool.settings, pool.metrics)
             errors, stages = [], []
