@@ -112,6 +112,12 @@ def test_one_call_for_the_hand_equals_the_reference_finger_by_finger():
                 np.testing.assert_allclose(compiled._state[key], reference._state[key], rtol=0, atol=TOL, err_msg=key)
             np.testing.assert_allclose(compiled._state["P"], reference._state["P"], rtol=1e-9, atol=1e-15)
             assert compiled.last_t == t
+            # the running integrals for a reference pose's hold, kept by the one call as by each finger
+            n = compiled._hold._n
+            assert n == reference._hold._n == tick + 1
+            for key in ("_t", "_r", "_g"):
+                np.testing.assert_allclose(getattr(compiled._hold, key)[:n], getattr(reference._hold, key)[:n],
+                                           rtol=0, atol=TOL, err_msg=key)
 
 
 def _faulty_recording():
