@@ -798,6 +798,15 @@ class _Request:
         self.answers.append(unpack(data))
 
 
+def _taken_over(worker, name: str, revision: int, state: dict):
+    """A session this worker has just claimed (lease ``revision``) from the stored ``state``, not yet rebuilt."""
+    from service.bus.worker import OwnedSession
+    owned = OwnedSession(name, worker.settings, worker.metrics, revision=revision)
+    owned.restoring = state
+    worker.owned[name] = owned
+    return owned
+
+
 def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame_counter(caplog):
     """The new owner refuses the stored hello (a field this version reads otherwise, as a worker of another
     version could have stored it): the rest of the session is rebuilt, on the hello's hand, its frames go
@@ -805,7 +814,7 @@ def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame
     the log says it in one line (no traceback). The session used to restart at ``seq`` 1 (the rebuild
     raised before it set the frame counter), its frames dropped as stale at every gateway."""
     from service.api.config import ServiceSettings
-    from service.bus.worker import OwnedSession, Worker
+    from service.bus.worker import Worker
 
     settings = ServiceSettings.load(port=0)
     msgs = [m for _, m in source_messages(SimConfig(motion="grasp", hand="left", seed=5, t_m_s=1.0))]
@@ -816,9 +825,7 @@ def test_a_takeover_whose_stored_hello_the_new_owner_refuses_continues_the_frame
     async def run():
         worker = Worker("nats://unused", settings, "new-owner")
         worker.nc = _Connection()
-        owned = OwnedSession("moved", settings, worker.metrics, revision=1)
-        owned.restoring = state
-        worker.owned["moved"] = owned
+        owned = _taken_over(worker, "moved", 1, state)
         await worker._rebuild(owned)
         replies = []
         for m in data[100:]:                        # the source goes on where the previous owner stopped
@@ -849,7 +856,7 @@ def test_a_worker_that_stops_cancels_the_rebuilds_under_way(monkeypatch):
     as it was (its configuration, hello and calibration), not the half-rebuilt session's."""
     from service.api.config import ServiceSettings
     from service.bus import worker as worker_module
-    from service.bus.worker import OwnedSession, Worker
+    from service.bus.worker import Worker
 
     settings = ServiceSettings.load(port=0)
     monkeypatch.setattr(worker_module, "is_warm", lambda name, params=None: False)
@@ -877,9 +884,7 @@ def test_a_worker_that_stops_cancels_the_rebuilds_under_way(monkeypatch):
     async def run():
         worker = Worker("nats://unused", settings, "stopping")
         worker.kv = Leases()
-        owned = OwnedSession("slow", settings, worker.metrics, revision=7)
-        owned.restoring = previous
-        worker.owned["slow"] = owned
+        owned = _taken_over(worker, "slow", 7, previous)
         worker._tasks.append(asyncio.create_task(worker._rebuild_forever()))
         worker._rebuilds.append(owned)
         worker._rebuild_due.set()
