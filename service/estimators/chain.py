@@ -184,11 +184,18 @@ fingers drifted 6-10 deg. The measurement's std is ``hold_rate_std_rad_s`` and t
 cross-axis errors times the mean reading (``gyro_scale_uncertainty`` |ḡ|: a hand turning during the hold
 leaks into the hinge axis). Applied at the reference before its angle update, per sensor, over the part of
 the hold this estimator saw (at least ``hold_min_s``). (Zero-rate *detection* was tried and dropped,
-item 2; this is a hold the glove app declares.) A sensor whose mean rate over the hold's second half
-differs from that over its first by more than ``hold_still_max_rad_s`` was not still, and no offset is
-read from that hold: a finger that moved during a claimed hold would otherwise leave its offset wrong for
-good (the offset's random walk is slow). Still holds differ by up to 9 deg/s (the optical hand rate's
-noise, a hand not quite still), so the check catches a gross motion only.
+item 2; this is a hold the glove app declares.) A sensor that turned on its hand during the hold is not
+read: a finger that moved during a claimed hold would otherwise leave its offset wrong for good (the
+offset's random walk is slow). What a still finger's relative rate integrates to over the hold is its
+offset's line, ``b (t - t0)``, plus the gyro's scale and cross-axis errors times the hand's turn seen
+by the sensor, ``s · ∫ g``; what is left beyond both is how far the finger turned on its hand. So the
+integral's deviation from its mean line is fitted by that deviation of the reading's integral, ``s``
+with the prior ``gyro_scale_uncertainty`` per axis, and a sensor whose residual reaches
+``hold_still_max_rad`` moved. Still holds of tuning trials 500-599 (600 sensors on rotating and reaching
+hands) leave at most 3.2 deg (p99 2.2; 7.3 without the fit of ``s``); a finger turning 7 deg in the
+hold's last 0.3 s leaves about 6 deg less what the fit of ``s`` takes up. (A first check compared the
+mean rate over the hold's two halves against 15 deg/s: still holds differed by up to 9 deg/s there, so
+it caught gross motions only.)
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
@@ -259,11 +266,16 @@ class ChainSettings(EstimatorSettings):
     rebuild_angle_std_rad: float = Field(1.0 * DEG, gt=0.0, description="least angle std kept across a rebuild for a sensor that stayed live, rad")
     reference_hold_offsets: bool = Field(True, description="a reference_pose's hold [t0, t1] also measures each gyro's offset: the finger was still on its hand, so its mean relative hinge-axis rate over the hold is the offset ('The hold of a reference pose' in the module docstring)")
     hold_rate_std_rad_s: float = Field(1.0 * DEG, gt=0.0, description="std of a hold's mean relative rate as a measurement of the gyro offset, besides the gyro's scale and cross-axis errors: the optical hand rate's error over the hold (orientation jitter of 0.1-0.5 deg at both ends of a 2 s hold: about 0.35 deg/s) and a held hand's slow drift (1 deg over 2 s: 0.5 deg/s), rad/s")
-    hold_still_max_rad_s: float = Field(15.0 * DEG, gt=0.0, description="a sensor whose mean relative hinge-axis rate over the hold's second half differs from that over its first by more than this, rad/s, was not held still: no offset is read from that hold (a finger that moved during a claimed hold made its offset 4-8 deg/s wrong for good; on tuning trials 500-519 the difference of still holds, optical jitter and a hand not quite still, reached 8.9 deg/s, p5-p95 -4.3 to 3.9; a smaller motion within the hold is not caught)")
+    hold_still_max_rad: float = Field(4.0 * DEG, gt=0.0, description="a sensor whose relative hinge-axis rate, integrated over the hold, strays this far, rad, from its offset's line and what the gyro's scale and cross-axis errors make of the hand's turn was not held still: no offset is read from that hold ('The hold of a reference pose' in the module docstring; a finger that moved 7-12 deg in the last 0.3 s of a claimed hold made its offset 4-8 deg/s wrong for good; still holds of tuning trials 500-599 reached 3.2 deg)")
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
                                 "tested equal to (to 1e-9), about a hundred times slower")
+
+
+_HOLD_ANGLE_NOISE_RAD = 1.0 * DEG
+"""The angle's noise per tick in ``HoldLog.mean``'s fit: what a still finger's integrated relative rate
+strays from its line by (the optical hand rate's error; 0.8 deg median on tuning trials 500-599)."""
 
 
 class HoldLog:
@@ -290,23 +302,30 @@ class HoldLog:
         self._t[n] = t
         self._n = n + 1
 
-    def mean(self, t0: float, t1: float, min_s: float):
-        """``(mean rate (S,), mean reading (S, 3), change (S,))`` over the ticks within ``[t0, t1]``, or
-        None when they span less than ``min_s``; ``change`` is the mean rate over the hold's second half
-        less that over its first (about 0 for a finger held still: an offset is the same in both halves,
-        and the rate's noise averages out over each)."""
+    def mean(self, t0: float, t1: float, min_s: float, map_std: float = 0.03):
+        """``(mean rate (S,), mean reading (S, 3), moved (S,))`` over the ticks within ``[t0, t1]``, or
+        None when they span less than ``min_s``. ``moved`` is how far, rad, each sensor's integrated rate
+        strays from its mean line beyond what a linear map error ``s`` of the gyro (prior std ``map_std``
+        per axis) makes of the same deviation of its integrated reading: about 0 for a finger held still
+        (an offset is a line, the map's error of the hand's turn is fitted), the angle it turned on its
+        hand otherwise ("The hold of a reference pose" in the module docstring)."""
         t = self._t[:self._n]
         i0 = int(np.searchsorted(t, t0 - 1e-9))
         i1 = int(np.searchsorted(t, t1 + 1e-9)) - 1
         if i1 <= i0 or t[i1] - t[i0] < min_s:
             return None
-        span = t[i1] - t[i0]
-        im = min(max(int(np.searchsorted(t, 0.5 * (t[i0] + t[i1]))), i0 + 1), i1 - 1) if i1 - i0 >= 2 else i0
-        if im == i0:
-            change = np.zeros(self._r.shape[1])
-        else:
-            change = (self._r[i1] - self._r[im]) / (t[i1] - t[im]) - (self._r[im] - self._r[i0]) / (t[im] - t[i0])
-        return (self._r[i1] - self._r[i0]) / span, (self._g[i1] - self._g[i0]) / span, change
+        tt = t[i0:i1 + 1] - t[i0]
+        span = tt[-1]
+        r = self._r[i0:i1 + 1] - self._r[i0]
+        g = self._g[i0:i1 + 1] - self._g[i0]
+        r_dev = r - tt[:, None] * (r[-1] / span)                       # (n, S) beyond the offset's line
+        g_dev = g - tt[:, None, None] * (g[-1] / span)                 # (n, S, 3)
+        # ridge fit of s per sensor: (Xᵀ X / σ² + I / map_std²) s = Xᵀ y / σ², σ the angle's noise per tick
+        a = np.einsum("nsi,nsj->sij", g_dev, g_dev) / _HOLD_ANGLE_NOISE_RAD**2 + np.eye(3) / map_std**2
+        b = np.einsum("nsi,ns->si", g_dev, r_dev) / _HOLD_ANGLE_NOISE_RAD**2
+        fit = np.linalg.solve(a, b[..., None])[..., 0]
+        moved = np.abs(r_dev - np.einsum("nsi,si->ns", g_dev, fit)).max(axis=0)
+        return r[-1] / span, g[-1] / span, moved
 
 
 class Chain(FingerEstimator):
@@ -557,14 +576,14 @@ class Chain(FingerEstimator):
         s = self.settings
         if not s.reference_hold_offsets or self._hold is None:
             return
-        means = self._hold.mean(float(hold_s[0]), float(hold_s[1]), s.hold_min_s)
+        means = self._hold.mean(float(hold_s[0]), float(hold_s[1]), s.hold_min_s, max(s.gyro_scale_uncertainty, 1e-6))
         if means is None:
             return
-        rate, gyr, change = means
+        rate, gyr, moved = means
         gx = self.obs.hinge_rate(gyr)
         learn = self._settings_vector[K.ST_GS_LEARN] > 0.5
         for k in range(self.n_sensors):
-            if not abs(change[k]) <= s.hold_still_max_rad_s:
+            if not moved[k] < s.hold_still_max_rad:
                 continue                      # the finger moved during the hold: no offset to read from it
             h = np.zeros(N_STATE)
             h[BG] = 1.0
