@@ -10,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings
+from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings, HoldLog
 from service.estimators.chain_kernel import N_STATE
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
@@ -118,6 +118,61 @@ def test_one_call_for_the_hand_equals_the_reference_finger_by_finger():
             for key in ("_t", "_r", "_g"):
                 np.testing.assert_allclose(getattr(compiled._hold, key)[:n], getattr(reference._hold, key)[:n],
                                            rtol=0, atol=TOL, err_msg=key)
+
+
+def _assert_logs_equal(log, expected, label):
+    n = expected._n
+    assert log._n == n, label
+    for key in ("_t", "_r", "_g"):
+        np.testing.assert_array_equal(getattr(log, key)[:n], getattr(expected, key)[:n], err_msg=f"{label} {key}")
+
+
+def test_the_hand_calls_hold_logs_equal_each_fingers_own_to_the_last_bit_through_halvings_and_a_restack():
+    """The kernel keeps every finger's running integrals for a reference pose's hold (``HoldLog``) in one hand
+    log: bit for bit what ``HoldLog.add`` gives each finger with the same rates and readings, through the
+    halving of a full log (capacity 6: full after 6 ticks, then every 3) and a restack (a known configuration
+    replaces one finger's state: every finger's history is copied into the new hand log), with the fingers'
+    steps differing."""
+    rng = np.random.default_rng(21)
+    calib = default_calibration("right")
+    fingers, own = [], []
+    for f, geom in enumerate(calib.fingers.values()):
+        est = Chain(geom)
+        est._state, est._t_last = _random_state(rng, est), 0.01 - 0.002 * f
+        est._hold = HoldLog(est.n_sensors, capacity=6)
+        fingers.append(est)
+        own.append(HoldLog(est.n_sensors, capacity=6))
+    together = ChainHand()
+    for tick in range(14):
+        t = 0.02 + 0.005 * tick
+        if tick == 8:
+            fingers[1].known_configuration(np.array([0.3, 0.5, 0.4]), 0.05)
+        dts = [t - e._t_last for e in fingers]
+        gyr = rng.normal(0.0, 4.0, (sum(e.n_sensors for e in fingers), 3))
+        acc = rng.normal(0.0, 12.0, gyr.shape)
+        _, _, _, sensor_start = together.advance(t, fingers, gyr, acc, _random_hand(rng, ()))
+        for f, e in enumerate(fingers):
+            rows = slice(sensor_start[f], sensor_start[f + 1])
+            own[f].add(t, dts[f], e._state["rate"], gyr[rows])
+            _assert_logs_equal(e._hold, own[f], f"finger {f} at tick {tick}")
+    assert own[0]._n == 5 and own[0]._t[0] == 0.02 + 0.005 * 9          # halved at ticks 6, 9 and 12
+
+
+def test_a_batchs_hold_log_equals_tick_by_tick_to_the_last_bit_through_halvings():
+    """``HoldLog.add_many`` (``Chain.run``: the running integrals accumulated over a batch) equals ``add`` tick by
+    tick, from an empty log and a part-full one, through the halving of a full log (capacity 8)."""
+    rng = np.random.default_rng(22)
+    batched, ticks = HoldLog(2, capacity=8), HoldLog(2, capacity=8)
+    t0 = 0.0
+    for n in (5, 2, 9, 1, 13):
+        t = t0 + 0.005 * np.arange(1, n + 1)
+        dts = np.diff(t, prepend=t0) if t0 else np.concatenate([[0.0], np.diff(t)])
+        rate, gyr = rng.normal(0.0, 3.0, (n, 2)), rng.normal(0.0, 3.0, (n, 2, 3))
+        batched.add_many(t, dts, rate, gyr)
+        for k in range(n):
+            ticks.add(float(t[k]), float(dts[k]), rate[k], gyr[k])
+        _assert_logs_equal(batched, ticks, f"after {n} ticks")
+        t0 = t[-1]
 
 
 def _faulty_recording():

@@ -281,13 +281,25 @@ strays from its line by (the optical hand rate's error; 0.8 deg median on tuning
 class HoldLog:
     """Running integrals over time of each sensor's relative hinge-axis rate (S,) and gyro reading (S, 3)
     at every tick, for the mean over a ``reference_pose``'s hold. Grows to ``capacity`` ticks, then keeps
-    the newer half."""
+    the newer half.
 
-    def __init__(self, n_sensors: int, capacity: int = 4096):
-        self._t = np.empty(capacity)
-        self._r = np.zeros((capacity, n_sensors))
-        self._g = np.zeros((capacity, n_sensors, 3))
-        self._n = 0
+    Its arrays are the times ``t`` (capacity,), the integrals ``r`` (capacity, S) and ``g`` (capacity, S, 3)
+    and the count of ticks ``count`` (1,), int64: its own, or (``arrays``) views of a hand's log that
+    ``ChainHand`` keeps, which ``chain_kernel.run_hand`` advances as ``add`` does, finger by finger."""
+
+    def __init__(self, n_sensors: int, capacity: int = 4096, arrays: tuple | None = None):
+        if arrays is None:
+            arrays = np.empty(capacity), np.zeros((capacity, n_sensors)), np.zeros((capacity, n_sensors, 3)), \
+                np.zeros(1, dtype=np.int64)
+        self._t, self._r, self._g, self._count = arrays
+
+    @property
+    def _n(self) -> int:
+        return int(self._count[0])
+
+    @property
+    def capacity(self) -> int:
+        return self._t.shape[0]
 
     def add(self, t: float, dt: float, rate: np.ndarray, gyr: np.ndarray) -> None:
         """One tick at ``t`` after a step of ``dt``: ``rate`` (S,) and ``gyr`` (S, 3) the sensors' values."""
@@ -300,7 +312,30 @@ class HoldLog:
             np.add(self._r[n - 1], dt * rate, out=self._r[n])
             np.add(self._g[n - 1], dt * gyr, out=self._g[n])
         self._t[n] = t
-        self._n = n + 1
+        self._count[0] = n + 1
+
+    def add_many(self, t: np.ndarray, dts: np.ndarray, rate: np.ndarray, gyr: np.ndarray) -> None:
+        """``add`` of every tick in turn (``t``, ``dts`` (N,), ``rate`` (N, S), ``gyr`` (N, S, 3)), the sums
+        accumulated over runs of ticks (``np.add.accumulate`` adds in order: the same numbers); a full
+        log keeps its newer half between runs, where ``add`` would."""
+        k = 0
+        while k < len(t):
+            if self._n == self._t.shape[0]:
+                self.add(float(t[k]), float(dts[k]), rate[k], gyr[k])      # keeps the newer half first
+                k += 1
+                continue
+            n = self._n
+            m = min(len(t) - k, self._t.shape[0] - n)
+            self._t[n:n + m] = t[k:k + m]
+            for log, values in ((self._r, rate), (self._g, gyr)):
+                terms = dts[k:k + m].reshape((m,) + (1,) * (values.ndim - 1)) * values[k:k + m]
+                if n:
+                    terms[0] += log[n - 1]
+                else:
+                    terms[0] = log[0]       # a log's first tick keeps what it holds (nothing before it)
+                np.add.accumulate(terms, axis=0, out=log[n:n + m])
+            self._count[0] = n + m
+            k += m
 
     def mean(self, t0: float, t1: float, min_s: float, map_std: float = 0.03):
         """``(mean rate (S,), mean reading (S, 3), moved (S,))`` over the ticks within ``[t0, t1]``, or
@@ -403,8 +438,7 @@ class Chain(FingerEstimator):
         if self._hold is not None:
             # the relative rate the kernel integrates (``_init_state``'s), sample by sample
             rate = self.obs.relative_rate(np.asarray(samples.gyr, dtype=float), hand)
-            for k in range(n):
-                self._hold.add(float(t[k]), float(dts[k]), rate[k], samples.gyr[k])
+            self._hold.add_many(t, dts, rate, np.asarray(samples.gyr, dtype=float))
         b = (n,) + self.batch_shape
         return FingerTrack(t, phal.reshape(b + phal.shape[-1:]), phi.reshape(b + phi.shape[-1:]), mode.reshape(b + (ns,)))
 
@@ -856,8 +890,30 @@ class ChainHand:
         for f, e in enumerate(estimators):
             s0, s1 = sensor_start[f], sensor_start[f + 1]
             e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
+        self._stack_holds(estimators)
         self._estimators = list(estimators)
         self._states = [e._state for e in estimators]
+
+    def _stack_holds(self, estimators: list[Chain]) -> None:
+        """The fingers' logs for a reference pose's hold in one hand log the kernel advances (``HoldLog``'s
+        arrays, tick by finger and tick by sensor): each finger's history so far copied in, its
+        ``HoldLog`` then made of views of its columns."""
+        starts = self._starts[1]
+        cap = max(e._hold.capacity for e in estimators)
+        self._log_t = np.empty((cap, len(estimators)))
+        self._log_r = np.zeros((cap, starts[-1]))
+        self._log_g = np.zeros((cap, starts[-1], 3))
+        self._log_n = np.zeros(len(estimators), dtype=np.int64)
+        for f, e in enumerate(estimators):
+            s0, s1 = starts[f], starts[f + 1]
+            old, kept = e._hold, min(e._hold._n, cap)
+            n0 = old._n - kept
+            self._log_t[:kept, f] = old._t[n0:n0 + kept]
+            self._log_r[:kept, s0:s1] = old._r[n0:n0 + kept]
+            self._log_g[:kept, s0:s1] = old._g[n0:n0 + kept]
+            self._log_n[f] = kept
+            e._hold = HoldLog(s1 - s0, arrays=(self._log_t[:, f], self._log_r[:, s0:s1], self._log_g[:, s0:s1],
+                                               self._log_n[f:f + 1]))
 
     def _stacked(self, estimators: list[Chain]) -> bool:
         # the same estimators (a list compares its items by identity first; ``Chain`` has no ``__eq__``),
@@ -880,16 +936,14 @@ class ChainHand:
         K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
                    np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
                    self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode,
-                   self._cx, self._dl, self._pd, self._jp)
+                   self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n)
         for e in estimators:
             e._t_last = t
-        self._log_holds(t, dts, gyr)
-        self._keep_shared_error_finite()
         return phi, mode.tolist(), *self._starts
 
     def _log_holds(self, t: float, dts: np.ndarray, gyr: np.ndarray) -> None:
         """Each estimator's running integrals for a reference pose's hold (``HoldLog``), as its own
-        ``_advance`` keeps them."""
+        ``_advance`` keeps them (``advance_reference``; ``advance``'s kernel call does the same)."""
         starts = self._starts[1]
         for f, e in enumerate(self._estimators):
             s0, s1 = starts[f], starts[f + 1]
@@ -907,7 +961,7 @@ class ChainHand:
         return gap
 
     def _keep_shared_error_finite(self) -> None:
-        """A finger whose filter diverged in this tick (a non-finite state; ``HandSession._reset_finger``
+        """(``advance_reference``; ``advance``'s kernel call does the same.) A finger whose filter diverged in this tick (a non-finite state; ``HandSession._reset_finger``
         restarts it) may have carried the non-finite value into the shared error δ through its update.
         Kept, δ would then make every finger's estimate non-finite on every later tick (each one reset
         again and again). δ restarts from its prior instead, its cross-covariances at 0: at most the

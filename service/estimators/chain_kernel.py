@@ -89,7 +89,7 @@ def _scratch(ns, nph):
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
-             out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp):
+             out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n):
     """One tick of several fingers (a hand) in one call: finger ``f`` is ``_finger`` on its rows of the
     stacked arrays, the same arithmetic as ``run`` on that finger alone. Its sensors are rows
     ``sensor_start[f]:sensor_start[f + 1]`` of ``x`` (S, 15), ``p`` (S, 15, 15), ``rates`` (S), ``gyr``
@@ -100,7 +100,10 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     hand's motion ``hand`` (18) is shared, and so is the optical acceleration's error ``δ`` (``dl`` (3), its
     covariance ``pd`` (3, 3), every sensor's cross-covariance with it ``cx`` (S, 15, 3); ``jp``: its time
     constant, scale, floor and the time since ``δ`` was last advanced, ``chain.py``), updated in place; with the time constant 0 there is none and
-    each finger widens its accelerometers along the fit's lag error instead."""
+    each finger widens its accelerometers along the fit's lag error instead. A ``δ`` made non-finite by a
+    diverging finger restarts from its prior (``_keep_shared_error_finite``). Then every finger's log for a
+    reference pose's hold takes the tick at ``t`` (``_log_holds``: ``log_t`` (C, F), ``log_r`` (C, S),
+    ``log_g`` (C, S, 3), ``log_n`` (F), ``chain.HoldLog``)."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
     joint_tau, joint_scale, joint_floor = jp[0], jp[1], jp[2]
     joint = joint_tau > 0.0
@@ -147,6 +150,58 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
                 st[f], geo[geo_start[f]:geo_start[f + 1]], untracked[f], out_theta[s0:s1].reshape(1, 1, ns),
                 out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns),
                 cx, x, dl, pd, s0, joint and not untracked[f], ws)
+    _keep_shared_error_finite(dl, pd, cx, joint_floor)
+    _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n)
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _keep_shared_error_finite(dl, pd, cx, floor):
+    """``chain.ChainHand._keep_shared_error_finite``: a non-finite sum of ``δ`` and its covariance (a
+    finger diverged into it) restarts ``δ`` from its prior ``floor² I``, its cross-covariances at 0. The
+    sums in Python's order (``δ``'s, then the covariance's row by row)."""
+    a = 0.0
+    for c in range(3):
+        a += dl[c]
+    b = 0.0
+    for c in range(3):
+        for c2 in range(3):
+            b += pd[c, c2]
+    if math.isfinite(a + b):
+        return
+    for c in range(3):
+        dl[c] = 0.0
+        for c2 in range(3):
+            pd[c, c2] = floor * floor if c == c2 else 0.0
+    cx[:, :, :] = 0.0
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=False)      # set, or it inherits run_hand's
+def _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n):
+    """``chain.HoldLog.add`` for every finger of a hand at ``t``: finger ``f``'s ticks are column ``f`` of
+    ``log_t``, its sensors' columns ``sensor_start[f]:sensor_start[f + 1]`` of ``log_r`` and ``log_g``, its
+    count ``log_n[f]``; a full log keeps its newer half. Compiled without fused multiply-add: each sum is
+    numpy's ``r + dt * rate``, rounded twice, to the last bit."""
+    cap = log_t.shape[0]
+    for f in range(dts.shape[0]):
+        s0, s1 = sensor_start[f], sensor_start[f + 1]
+        n = log_n[f]
+        if n == cap:
+            half = n // 2
+            for i in range(half):
+                log_t[i, f] = log_t[half + i, f]
+                for s in range(s0, s1):
+                    log_r[i, s] = log_r[half + i, s]
+                    for c in range(3):
+                        log_g[i, s, c] = log_g[half + i, s, c]
+            n = half
+        if n > 0:
+            dt = dts[f]
+            for s in range(s0, s1):
+                log_r[n, s] = log_r[n - 1, s] + dt * rates[s]
+                for c in range(3):
+                    log_g[n, s, c] = log_g[n - 1, s, c] + dt * gyr[s, c]
+        log_t[n, f] = t
+        log_n[f] = n + 1
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
