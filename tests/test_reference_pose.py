@@ -12,7 +12,7 @@ from dataclasses import replace
 from scipy.spatial.transform import Rotation
 
 from service.estimators.chain import Chain, ChainSettings, HoldLog
-from service.estimators.chain_kernel import GA_START
+from service.estimators.chain_kernel import GA_START, GS
 from service.model.hand import default_calibration
 from service.model.hand import joint_to_phalanx_angles
 from clients.client import Publisher
@@ -150,6 +150,35 @@ def test_a_hold_in_which_the_finger_turned_on_its_hand_leaves_the_offsets_alone(
         assert (np.array_equal(x, x0) and np.array_equal(p, p0)) != read, name
         if read:                                        # a still finger: the offsets move toward 0.02 rad/s
             assert np.all(np.abs(x[:, 1] - 0.02) < np.abs(x0[:, 1] - 0.02)), name
+
+
+def test_the_hold_leaves_a_held_gyro_scale_state_alone():
+    """A finger on a fallback closure (one sensor silent) holds its gyro scale state: the kernel zeroes
+    its gain row, since learning the scale there is what sank an earlier attempt (item 6 of chain.py's
+    docstring). Its live sensor's offset and scale were learned together before the other fell silent, so
+    after ``inherit`` their covariance is not zero, and the hold's offset measurement moved the held
+    scale through it. A still hold now moves the offset toward its 0.02 rad/s and leaves the scale state
+    and its variance exactly as they were."""
+    sess = simulate(SimConfig(motion="point", hand_motion="still", noise="offset", seed=1, duration_s=1.0,
+                              fingers=("index",)))
+    samples = samples_from_session(sess, "index")
+    geom = sess.calibration.finger("index")
+    full = Chain(geom)
+    for k in range(len(samples.t) - 1):
+        full.update(*samples.sample(k))
+    held = Chain(replace(geom, sensors=geom.sensors[:1]), extra_couplings=[(0, 1.0)],    # index.2 silent
+                 initial_theta=joint_to_phalanx_angles(sess.joint_angles["index"][-1]))
+    held.inherit(full)
+    t, gyr, acc, hand = samples.sample(len(samples.t) - 1)
+    held.update(t, gyr[:1], acc[:1], hand)
+    x0, p0 = held.state["filter"]["x"].copy(), held.state["filter"]["P"].copy()
+    assert abs(p0[0, GS, 1]) > 1e-3 * np.sqrt(p0[0, GS, GS] * p0[0, 1, 1])
+    held._hold = _hold_log(lambda t: 0.02, lambda t: np.array([0.0, 0.0, 0.5]))
+    x, p = x0.copy(), p0.copy()
+    held._hold_offsets(x, p, (0.0, 2.0))
+    assert x[0, GS] == x0[0, GS] and p[0, GS, GS] == p0[0, GS, GS]
+    assert abs(x[0, 1] - 0.02) < abs(x0[0, 1] - 0.02) and p[0, 1, 1] < p0[0, 1, 1]
+    assert np.all(np.linalg.eigvalsh(p[0]) > -1e-15)
 
 
 def _mounted(delta_rad):

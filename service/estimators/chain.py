@@ -606,7 +606,8 @@ class Chain(FingerEstimator):
 
     def _hold_offsets(self, x: np.ndarray, P: np.ndarray, hold_s: tuple[float, float]) -> None:
         """The hold's mean relative rate of each sensor as a measurement of its offset (in place on ``x``,
-        ``P``): ``r̄ = b_g + s_g ḡ_x`` with std ``hold_rate_std_rad_s`` and ``gyro_scale_uncertainty`` |ḡ|."""
+        ``P``): ``r̄ = b_g + s_g ḡ_x`` with std ``hold_rate_std_rad_s`` and ``gyro_scale_uncertainty`` |ḡ|; a
+        scale state held (a finger on a fallback closure) is taken as known and left as it is."""
         s = self.settings
         if not s.reference_hold_offsets or self._hold is None:
             return
@@ -625,9 +626,16 @@ class Chain(FingerEstimator):
             r = s.hold_rate_std_rad_s**2 + (s.gyro_scale_uncertainty * float(np.linalg.norm(gyr[k])))**2
             y = rate[k] - h @ x[k] - (0.0 if learn else x[k, GS] * gx[k])
             ph = P[k] @ h
-            gain = ph / (h @ ph + r)
+            innovation_var = h @ ph + r
+            gain = ph / innovation_var
+            if learn:
+                P[k] -= np.outer(gain, ph)
+            else:
+                # a held scale state takes no correction (the kernel zeroes its gain row; item 6): the
+                # general covariance update P - K (PHᵀ)ᵀ - PHᵀ Kᵀ + K S Kᵀ for that gain
+                gain[GS] = 0.0
+                P[k] += innovation_var * np.outer(gain, gain) - np.outer(gain, ph) - np.outer(ph, gain)
             x[k] += gain * y
-            P[k] -= np.outer(gain, ph)
             P[k] = 0.5 * (P[k] + P[k].T)
 
     def _take_up_hinge_mounting(self, P: np.ndarray, correlated: bool = False) -> None:
