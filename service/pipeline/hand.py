@@ -536,6 +536,8 @@ class HandSession:
     def _process_ready(self) -> Iterator[HandFrame]:
         pending = self._pending
         while pending:
+            if not self._ready(min(pending)):
+                return                          # (most messages: no tick ready, no floating-point setting needed)
             frames = None
             # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
             # under one setting (never held across a ``yield``: the caller's own setting applies there)
@@ -606,13 +608,20 @@ class HandSession:
         elif not tracking and self._hand_motion is not None and self._tick_t is not None:
             hand = self._dead_reckoned_hand(t - self._tick_t)
         self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
+        again = self._advanced_together_again()
         if tracking and fits:
-            self._fit_mountings(fits, rows, raw, hand)
-        together = []
+            self._fit_mountings(fits, rows, raw, hand, again)
         fingers = self._fingers.values()
         # every finger sensor sampled in this tick and live: no finger's sensors can have changed
         settled = tick.keys() >= self._finger_sensor_ids and \
             all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)
+        if settled and again:
+            # every finger advanced together at the last tick, so each has sensors and is taken again (the
+            # loop below would find it so: ``ChainHand.takes`` of an estimator it advanced, at a later tick)
+            self._update_together(self._together_phi[1], t, hand)
+            self._apply_references(t)
+            return self._emit_frames(t)
+        together = []
         takes = ChainHand.takes
         for fs in fingers:
             if settled:
@@ -630,19 +639,35 @@ class HandSession:
         self._apply_references(t)
         return self._emit_frames(t)
 
-    def _fit_mountings(self, fits: HandMountings, rows: np.ndarray, raw: np.ndarray, hand: BaseMotion) -> None:
+    def _advanced_together_again(self) -> bool:
+        """Whether every finger was advanced by the last ``_update_together`` (one kernel call) and still
+        holds that call's angles and estimator: the steady state of a hand whose sensors are all live. (A
+        finger rebuilt since has a new ``FingerState`` or angles, a diverged one ended the record.)"""
+        together = self._together_phi
+        fingers = self._fingers.values()
+        return together is not None and len(together[1]) == len(fingers) and \
+            all(fs is g and fs.phi.base is together[0] for fs, g in zip(fingers, together[1]))
+
+    def _fit_mountings(self, fits: HandMountings, rows: np.ndarray, raw: np.ndarray, hand: BaseMotion,
+                       again: bool) -> None:
         """Each finger sensor's raw gyro sample of this tick (``raw``, its ``rows`` in the fits) into its
         flexion-axis fit, with the hand's rate from the optics and the finger's current angles
-        (``mounting.py``), every sensor in one call."""
+        (``mounting.py``), every sensor in one call. ``again``: ``_advanced_together_again``."""
         fingers = self._fingers.values()
-        together = self._together_phi
-        if together is not None and len(together[1]) == len(fingers) and \
-                all(fs is g and fs.phi.base is together[0] for fs, g in zip(fingers, together[1])):
-            phi = together[0]               # every finger's angles are still the last call's: one array already
+        if again:
+            # every finger's angles are still the last call's, in one array already; each was advanced
+            phi, started = self._together_phi[0], self._all_started(len(fingers))
         else:
             phi = np.concatenate([fs.phi for fs in fingers]).astype(float, copy=False)
-        started = np.array([fs.estimator.started for fs in fingers], dtype=np.bool_)
+            started = np.array([fs.estimator.started for fs in fingers], dtype=np.bool_)
         fits.fit(rows, raw, hand.flat, phi, started)
+
+    @staticmethod
+    @lru_cache(maxsize=8)
+    def _all_started(n: int) -> np.ndarray:
+        """``started`` of ``n`` fingers that all are (one array per count, which the kernel only reads; kept
+        writeable: a read-only array is another type to numba, another compilation)."""
+        return np.ones(n, dtype=np.bool_)
 
     def _dead_reckoned_hand(self, dt: float) -> BaseMotion:
         """While the optics are lost: the held pose turned by the hand's angular velocity as the finger
