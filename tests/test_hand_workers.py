@@ -332,6 +332,8 @@ class _Peer:
         self.thread = threading.Thread(target=self.worker.run, daemon=True)
         self.thread.start()
         self.received: list = []
+        self.writes: list[list] = []
+        """the worker's messages as its writes grouped them"""
         self._buffer = bytearray()
 
     def send(self, messages: list) -> None:
@@ -349,7 +351,8 @@ class _Peer:
             assert chunk, f"the worker ended before {what}"
             self._buffer.extend(chunk)
             while len(self._buffer) >= 4 and len(self._buffer) >= 4 + (size := self.mod.HEADER.unpack_from(self._buffer)[0]):
-                self.received.extend(msgpack.unpackb(bytes(self._buffer[4:4 + size])))
+                self.writes.append(msgpack.unpackb(bytes(self._buffer[4:4 + size])))
+                self.received.extend(self.writes[-1])
                 del self._buffer[:4 + size]
 
     def replies(self, sid: int) -> list:
@@ -437,4 +440,43 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_builds_a_moved_in_ses
         assert seqs and seqs[0] > 500 and all(x < y for x, y in zip(seqs, seqs[1:])), seqs[:5]
     finally:
         release.set()
+        peer.close()
+
+
+def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_its_message():
+    """At 1 kHz a pose completes about eleven ticks, the first of which makes the frame: the worker
+    sends that frame before it processes the others (their time was in every frame's latency). A
+    message alone in its batch: each frame in a write of its own, before the write with the message's
+    reply. Messages sent together in one batch: the earlier ones' outputs go in one write with their
+    replies (fewer writes for a busy worker), each output before its reply."""
+    peer = _Peer()
+    try:
+        config = SimConfig(motion="sequence", hand="right", noise="white", seed=7, duration_s=0.4, rate_hz=1000.0)
+        msgs = [m for _, m in source_messages(config)]
+        hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "worker-test"}
+        peer.send([["open", 1, "a", None], ["src", 1, 1, hello]])
+        peer.until(lambda: len(peer.replies(1)) == 1, "the hello answered")
+        half = len(msgs) // 2
+        for n, m in enumerate(msgs[:half], 2):      # one message per batch
+            peer.send([["src", 1, n, m]])
+            peer.until(lambda: len(peer.replies(1)) == n, f"message {n} answered")
+        alone = [w for w in peer.writes if any(x[0] == "out" for x in w)]
+        frames = [x for w in alone for x in w if x[0] == "out" and x[3][0] == "frame"]
+        assert len(frames) >= 10, len(frames)
+        for w in alone:                             # a frame (with its events) per write, never with a reply
+            assert sum(x[0] == "out" and x[3][0] == "frame" for x in w) == 1 and not any(x[0] == "rep" for x in w), w
+        # the other half in one batch: outputs and replies together, each output before its reply
+        start = len(peer.writes)
+        peer.send([["src", 1, n, m] for n, m in enumerate(msgs[half:], half + 2)])
+        peer.until(lambda: len(peer.replies(1)) == len(msgs) + 1, "the batch answered")
+        late = [x for w in peer.writes[start:] for x in w]
+        assert sum(x[0] == "out" and x[3][0] == "frame" for x in late) >= 10
+        assert any(x[0] == "rep" for w in peer.writes[start:] for x in w if any(y[0] == "out" for y in w))
+        replied = set()
+        for x in late:
+            if x[0] == "rep":
+                replied.add(x[2])
+            elif x[0] == "out":
+                assert x[2] not in replied, "an output came after its message's reply"
+    finally:
         peer.close()

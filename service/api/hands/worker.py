@@ -4,7 +4,8 @@ It owns the sessions the web process opens on it and runs their hands (``Tracked
 same ``LiveSession`` the in-process service uses). It talks to the web process over one stream socket
 (file descriptor ``FD``): frames of 4-byte big-endian length + MessagePack, each frame a list of
 messages (a batch: everything that came in at once is handled before the outputs go back in one write,
-at the latest every ``FLUSH_S`` of processing). ``SETTINGS`` is a JSON object of the few service
+at the latest every ``FLUSH_S`` of processing; the frames of a batch's last message go back as soon
+as each is made, before its later ticks). ``SETTINGS`` is a JSON object of the few service
 settings a hand needs (no secrets).
 
 Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a session number ``sid``):
@@ -149,31 +150,35 @@ class OwnedHand:
         self.sink.pending.clear()
         return outs
 
-    def check(self, data: str | bytes, binary: bool) -> tuple[list[list], bool]:
+    def check(self, data: str | bytes, binary: bool, emit=None) -> tuple[list[list], bool]:
         """A source message as it arrived (the web process only looked at its type): validated here as
         the web process validates the others (``protocol.parse_input``), then through the hand. Returns
         its error replies (``[code, detail]``, or ``[code, detail, samples]`` for an ``imu_batch``'s
-        refused samples, whose valid samples go on) and whether it was accepted (not refused whole)."""
+        refused samples, whose valid samples go on) and whether it was accepted (not refused whole).
+        ``emit``: as in ``handle_valid``."""
         try:
             raw, msg = parse_input(data, binary)
         except SamplesRefused as err:
             refused = [err.code, err.detail, err.refused]
-            return [refused, *self.handle_valid(dump_message(err.kept), err.kept)], True
+            return [refused, *self.handle_valid(dump_message(err.kept), err.kept, emit)], True
         except ProtocolError as err:
             return [[err.code, err.detail]], False
-        return self.handle_valid(raw, msg), True
+        return self.handle_valid(raw, msg, emit), True
 
-    def handle(self, raw: dict) -> list[list[str]]:
+    def handle(self, raw: dict, emit=None) -> list[list[str]]:
         """One source message through the hand; its outputs are in ``sink.pending``. Returns the error
-        replies the source gets, ``[code, detail]`` (the same as the in-process service's)."""
+        replies the source gets, ``[code, detail]`` (the same as the in-process service's). ``emit``: as
+        in ``handle_valid``."""
         try:
             msg = parse_message(raw)
         except ProtocolError as err:                # validated by the web process: only a version skew
             return [[err.code, err.detail]]
-        return self.handle_valid(raw, msg)
+        return self.handle_valid(raw, msg, emit)
 
-    def handle_valid(self, raw: dict, msg) -> list[list[str]]:
-        """A validated source message through the hand (``handle``)."""
+    def handle_valid(self, raw: dict, msg, emit=None) -> list[list[str]]:
+        """A validated source message through the hand (``handle``). ``emit``: called after each frame
+        (with its gesture events) is in ``sink.pending``, before the message's later ticks are processed
+        (a pose at 1 kHz releases about eleven ticks, the first of which makes the frame)."""
         if self.resume_angles is not None and (ref := resume_reference(self.resume_angles, raw)) is not None:
             self.resume_angles = None
             try:
@@ -185,6 +190,8 @@ class OwnedHand:
             for group in self.live.hand.outputs():
                 for out in group:
                     self.sink.put(Outgoing(out), 0.0)
+                if emit is not None:
+                    emit()
         except Exception as err:                    # bad input, or a defect (logged in one line)
             return [list(failure_reply(self.live.name, msg, err))]
         return [list(reply) for reply in drop_replies(msg, dropped)]
@@ -253,14 +260,21 @@ class Worker:
             self.send()
 
     def handle_batch(self, batch: list) -> None:
+        """The messages of a batch in order. The last one's frames go back as soon as each is made
+        (``emit``): the ticks a message completes after its frame, and the messages after it in its
+        batch, would otherwise hold it back; the others' go with the next send (a batch of many
+        messages, a busy worker: fewer writes)."""
         flushed = time.perf_counter()
-        for message in batch:
-            self.dispatch(message)
+        last = len(batch) - 1
+        for i, message in enumerate(batch):
+            self.dispatch(message, at_once=i == last)
             if time.perf_counter() - flushed > FLUSH_S:
                 self.send()
                 flushed = time.perf_counter()
 
-    def dispatch(self, message: list) -> None:
+    def dispatch(self, message: list, at_once: bool = False) -> None:
+        """One message from the web process; ``at_once``: a source message's frames are sent as soon as
+        each is made (``handle_batch``)."""
         kind, sid = message[0], message[1]
         if sid in self.opening:                     # its hand is being built: after it, in order
             self.opening[sid][2].append(message)
@@ -270,16 +284,17 @@ class Worker:
             if owned is None:
                 return
             n, raw = message[2], message[3]
-            errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw)
+            errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw, self.emitter(owned, sid, n, at_once))
             self.out.extend(owned.encoded(sid, n))
             self.out.append(["rep", sid, n, errors])
         elif kind == "chk":
             owned = self.hands.get(sid)
             if owned is None:
                 return
-            errors, accepted = owned.check(message[3], message[4])
-            self.out.extend(owned.encoded(sid, n=message[2]))
-            self.out.append(["rep", sid, message[2], errors, accepted])
+            n = message[2]
+            errors, accepted = owned.check(message[3], message[4], self.emitter(owned, sid, n, at_once))
+            self.out.extend(owned.encoded(sid, n))
+            self.out.append(["rep", sid, n, errors, accepted])
         elif kind == "fmt":
             if (owned := self.hands.get(sid)) is not None:
                 owned.binary = bool(message[2])
@@ -301,6 +316,18 @@ class Worker:
                                       if needs_compiling(name) else self.load(name))
             self.waiting.append(message)
             self.apply_waiting()
+
+    def emitter(self, owned: OwnedHand, sid: int, n: int, at_once: bool):
+        """What sends source message ``n``'s outputs made so far, with everything queued before them
+        (``None`` unless ``at_once``)."""
+        if not at_once:
+            return None
+
+        def emit() -> None:
+            self.out.extend(owned.encoded(sid, n))
+            with contextlib.suppress(OSError):      # the web process is gone: the reply's send finds it out,
+                self.send()                         # outside the hand (not as a failure of this message)
+        return emit
 
     def build(self, name: str, state: dict | None, box: list) -> threading.Thread:
         """A thread that builds a session's hand into ``box`` (its state's estimator may have to be loaded
