@@ -23,6 +23,9 @@ def pytest_configure(config):
     # service processes the tests start record what they send (sent_capture/sitecustomize.py)
     config._sent_dir = tempfile.mkdtemp(prefix="fingertrack-sent-")
     os.environ["FINGERTRACK_TEST_SENT_DIR"] = config._sent_dir
+    # no spare hand worker (a process started ahead beside every service a test starts: seconds of CPU
+    # each); the tests of the spare turn it on
+    os.environ.setdefault("FINGERTRACK_HAND_WORKER_SPARE", "false")
     os.environ["PYTHONPATH"] = os.pathsep.join([str(SENT_CAPTURE), *filter(None, [os.environ.get("PYTHONPATH")])])
     if not hasattr(config, "workerinput"):              # with pytest-xdist, once, in the controlling process
         _compile_kernels_once()

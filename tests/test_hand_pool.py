@@ -278,6 +278,57 @@ def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_
     assert b.moves == 2 and b.restarts == 0
 
 
+def test_a_session_switched_to_a_costly_estimator_takes_the_spare_worker_started_ahead_which_is_replaced():
+    """With ``hand_worker_spare``, one worker of its own is started ahead, once the shared one is ready,
+    ``hand_worker_isolated_nice`` nicer than this process; it counts in ``hand_worker_isolated_max`` (1
+    here). b, switched to ``vector``, moves into that process (no process starts for it) and its frames
+    go on there on ``vector``; with the limit reached no new spare starts. Switched back to ``chain``, b
+    returns to the shared worker, the former spare ends and a new spare starts in its place; the pool's
+    close ends it too."""
+    msgs = _glove(0.4, 8)
+    parts = [msgs[:len(msgs) // 2], msgs[len(msgs) // 2:]]
+
+    async def run():
+        pool = await _pool(1, hand_worker_spare=True, hand_worker_isolated_max=1, hand_worker_isolated_nice=1)
+        try:
+            await _until(lambda: pool.spare is not None and pool.spare.ready.is_set(), "the spare worker")
+            spare = pool.spare
+            seen = {"spare_pid": spare.pid, "spare_nice": os.getpriority(os.PRIO_PROCESS, spare.pid)}
+            b = pool.session("b", pool.settings, pool.metrics)
+            sub = Subscriber(frames_max=100_000, events_max=100_000)
+            b.subscribers.add(sub)
+            shared = b.link
+            async def answer(*reply):
+                seen.setdefault("errors", []).append(reply)
+            b.attach_source(answer)
+            await _ingest(b, HELLO)
+            await asyncio.to_thread(b.update_config, {"estimator": "vector"})
+            seen["moved_to"], seen["spare_after_move"] = b.link, pool.spare
+            for m in parts[0]:
+                await _ingest(b, m)
+            await b.settled()
+            seen["estimators"] = {f.message["status"]["estimator"] for kind, f, _ in sub.queue if kind == "frame"}
+            await asyncio.to_thread(b.update_config, {"estimator": "chain"})
+            for m in parts[1]:
+                await _ingest(b, m)
+            await b.settled()
+            seen["back_to"], seen["new_spare"] = b.link, pool.spare
+            await _until(lambda: spare.proc.returncode is not None, "the former spare to end")
+            return seen, shared, spare, b
+        finally:
+            await pool.close()
+
+    seen, shared, spare, b = asyncio.run(run())
+    assert "errors" not in seen, seen["errors"]
+    assert seen["spare_nice"] == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 1)
+    assert seen["moved_to"] is spare and spare.pid == seen["spare_pid"] and seen["spare_after_move"] is None
+    assert seen["estimators"] == {"vector"}
+    assert seen["back_to"] is shared and b.moves == 2 and b.restarts == 0
+    new = seen["new_spare"]
+    assert new is not None and new is not spare and new.isolated
+    assert new.proc is None or new.proc.returncode is not None     # ended with the pool (or never started)
+
+
 def test_a_session_moving_back_to_a_restarting_worker_drops_the_close_of_it_held_there():
     """A worker restarting when a session left it holds that session's ``close`` until its new process
     runs; if the session moves back meanwhile, its reopen must not be followed by that close (the worker

@@ -39,11 +39,15 @@ core first when it has work.
 A session switched to an estimator that runs per finger and sample through Python (every one but the
 compiled ``chain``, ``FingerEstimator.whole_hand_compiled``: 8-140 % of a core per hand, against a few %)
 runs in a worker process of its own (``hand_worker_isolate``; at most ``hand_worker_isolated_max`` at once,
-past it the session stays on its shared worker, logged): one is started for it with that estimator
-loaded, ``hand_worker_isolated_nice`` nicer than this process from its start (its start-up yields too),
-while the session goes on with its old estimator on its shared worker; then the session moves there with
-its state and every unanswered source message, as after a crash (``reopen``; the new configuration in
-the state), and the change applies there. On a machine short of cores it then cannot starve the shared
+past it the session stays on its shared worker, logged): it takes the spare worker (``hand_worker_spare``:
+one such process started ahead, once the shared workers are ready, with the default estimator loaded,
+``hand_worker_isolated_nice`` nicer than this process from its start, and replaced when taken), moves
+there at once with its state and every unanswered source message, as after a crash (``reopen``), and the
+change applies there (its worker loads the estimator's kernels first, if it has any, while the session
+goes on with its old estimator there). Without a spare (none allowed, or not started yet) one is started
+for it with that estimator loaded, as nice, while the session goes on with its old estimator on its
+shared worker; then it moves there, the new configuration in its state (a start took 9-40 s on a busy
+machine). The spare counts in ``hand_worker_isolated_max`` (a process like theirs). On a machine short of cores it then cannot starve the shared
 workers' sessions, but it may fall behind its own source, which it says: ``behind_s`` in ``GET
 /v1/sessions``, the gauge ``fingertrack_session_behind_seconds``, a log line past ``BEHIND_WARN_S``.
 Switched back to the compiled chain, the change applies in its own worker; once the session has caught
@@ -361,7 +365,10 @@ class HandPool:
         self.links = [WorkerLink(self, i) for i in range(settings.hand_workers)]
         """the shared workers"""
         self.isolated: list[WorkerLink] = []
-        """the workers of one session each (module docstring)"""
+        """the workers of one session each, and the spare (module docstring)"""
+        self.spare: WorkerLink | None = None
+        """the worker started ahead for the next session switched to a costly estimator (module docstring)"""
+        self._spare_start: asyncio.Task | None = None
         self._isolated_slots = itertools.count(settings.hand_workers)
         self.outs_per_turn = max(1, min(OUTS_PER_TURN, settings.subscriber_queue_frames // 2))
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -375,6 +382,43 @@ class HandPool:
         self.loop = asyncio.get_running_loop()
         await asyncio.gather(*(link.start() for link in self.links))
         self._watchdog = asyncio.create_task(self._watch_stalls())
+        self._replace_spare()
+
+    def _replace_spare(self) -> None:
+        """Start a spare worker (module docstring) unless there is one, none is wanted, or
+        ``hand_worker_isolated_max`` workers of their own run already."""
+        wanted = self.settings.hand_worker_isolate and self.settings.hand_worker_spare and not self.closing
+        if not wanted or self.spare is not None or len(self.isolated) >= self.settings.hand_worker_isolated_max:
+            return
+        link = self.spare = WorkerLink(self, next(self._isolated_slots), estimator=self.settings.estimator)
+        self.isolated.append(link)
+        self._spare_start = asyncio.get_running_loop().create_task(self._start_spare(link))
+
+    async def _start_spare(self, link: WorkerLink) -> None:
+        """The spare's process, once the shared workers are ready (it never slows the service's start)."""
+        await self.wait_ready()
+        try:
+            await link.start()
+        except OSError as err:
+            log.warning("the spare hand worker did not start (%s); a session switched to a costly estimator "
+                        "waits for a worker of its own to start", err)
+            if self.spare is link:
+                self.spare = None
+            await self.retire(link, replace=False)
+
+    async def _take_spare(self) -> WorkerLink | None:
+        """The spare worker, ready, for a session to move to (a new spare is started: ``_replace_spare``);
+        ``None`` without one."""
+        link, starting = self.spare, self._spare_start
+        if link is None or starting is None:
+            return None
+        self.spare = None
+        with contextlib.suppress(Exception):        # (shielded: a cancelled move must not cancel a process's start)
+            await asyncio.shield(starting)
+        if link not in self.isolated or link.proc is None:
+            return None                             # it did not start
+        self._replace_spare()
+        return link
 
     async def _watch_stalls(self) -> None:
         """A stuck worker (an endless loop, a stopped process; module docstring) is killed: its sessions
@@ -397,7 +441,11 @@ class HandPool:
         self.closing = True
         if self._watchdog is not None:
             self._watchdog.cancel()
-        await asyncio.gather(*(link.stop() for link in [*self.links, *self.isolated]))
+        if self._spare_start is not None:
+            self._spare_start.cancel()
+            await asyncio.gather(self._spare_start, return_exceptions=True)
+        # the spare has nothing to finish (and may be starting still, not reading its input yet)
+        await asyncio.gather(*(link.stop(kill=link is self.spare) for link in [*self.links, *self.isolated]))
 
     def isolates(self, spec: EstimatorSpec) -> bool:
         """Whether a session on ``spec`` runs in a worker of its own (module docstring)."""
@@ -419,14 +467,20 @@ class HandPool:
         its former worker forgets it, and a worker of its own ends. False: not moved, ``hand_worker_isolated_max``
         workers of their own run already (or the session closed meanwhile)."""
         if isolated:
-            if len(self.isolated) >= self.settings.hand_worker_isolated_max:
+            target = await self._take_spare()
+            if target is not None:
+                config = None                       # it goes on with its estimator there until the change applies
+            elif len(self.isolated) >= self.settings.hand_worker_isolated_max:
                 log.warning("session %s stays on its shared hand worker: %d sessions have a worker of their own "
                             "(hand_worker_isolated_max)", live.name, len(self.isolated))
                 return False
-            target = WorkerLink(self, next(self._isolated_slots), estimator=(config or {}).get("estimator", live.config.estimator))
-            self.isolated.append(target)
+            else:
+                target = WorkerLink(self, next(self._isolated_slots),
+                                    estimator=(config or {}).get("estimator", live.config.estimator))
+                self.isolated.append(target)
             try:
-                await target.start()
+                if target.proc is None:
+                    await target.start()
                 await asyncio.wait_for(target.ready.wait(), CONFIG_WAIT_S)
             except (OSError, asyncio.TimeoutError) as err:
                 await self.retire(target)
@@ -453,11 +507,14 @@ class HandPool:
             await self.retire(old)
         return True
 
-    async def retire(self, link: WorkerLink) -> None:
-        """A worker of one session that has left it (or never came) ends."""
+    async def retire(self, link: WorkerLink, replace: bool = True) -> None:
+        """A worker of one session that has left it (or never came) ends; a spare is started in its place
+        if there is none (``replace``)."""
         if link in self.isolated:
             self.isolated.remove(link)
             await link.stop(kill=True)
+        if replace:
+            self._replace_spare()
 
     def session(self, name: str, settings: ServiceSettings, metrics: Metrics) -> "ProcessSession":
         """A new session on the worker with the fewest sessions (from the loop or a thread of the API)."""
