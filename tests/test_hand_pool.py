@@ -348,3 +348,20 @@ def test_a_session_moving_back_to_a_restarting_worker_drops_the_close_of_it_held
     restarting.take(live, {"estimator": "chain"}, restart=False)
     assert restarting._held == [["close", 6]] and live.link is restarting and live.sid in restarting.sessions
     assert live.reopened == [({"estimator": "chain"}, False)] and restarting.owed == 2 and other.owed == 0
+
+
+def test_what_a_worker_could_not_restore_goes_to_the_session_s_source():
+    """The web process passes a worker's ``lost`` errors (``hands.worker``) to the session's source."""
+    async def run():
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        live = pool.session("s", pool.settings, pool.metrics)
+        got = []
+
+        async def answer(code, detail, *samples):
+            got.append((code, detail))
+        live.attach_source(answer)
+        pool.links[0]._dispatch(["lost", live.sid, [["invalid_message", "its calibration: sensors; send it again"]]])
+        await _until(lambda: got, "the source's error reply")
+        return got
+    assert asyncio.run(run()) == [("invalid_message", "its calibration: sensors; send it again")]

@@ -480,3 +480,27 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
                 assert x[2] not in replied, "an output came after its message's reply"
     finally:
         peer.close()
+
+
+def test_what_a_session_s_new_worker_cannot_restore_is_told_to_its_source_before_any_reply():
+    """A session opened from a state whose stored hello and calibration (each with a field of the wrong
+    type, as a state of another version could be) the worker refuses: one ``lost`` message names both, before the replies to the session's messages;
+    the refused hello still sets the hand (the frames are the left hand's) and ``seq`` goes on."""
+    peer = _Peer()
+    try:
+        hello = {"type": "hello", "protocol": 1, "hand": "left", "source": 5}
+        calibration = {"type": "calibration", "fingers": "not an object"}
+        state = {"session": "b", "seq": 40, "t": -1.0, "angles": None, "hello": hello, "calibration": calibration,
+                 "config": {"estimator": "chain", "estimator_params": {}}}
+        msgs = [m for _, m in _messages("left", 0.4, 9) if m["type"] != "hello"]
+        peer.send([["open", 2, "b", state], *[["src", 2, n, m] for n, m in enumerate(msgs, 1)]])
+        peer.until(lambda: len(peer.replies(2)) == len(msgs), "b's replies")
+        kinds = [m[0] for m in peer.received if m[0] in ("lost", "rep", "out")]
+        assert kinds[0] == "lost" and kinds.count("lost") == 1, kinds[:5]
+        lost, = [m for m in peer.received if m[0] == "lost"]
+        details = " | ".join(detail for _, detail in lost[2])
+        assert lost[1] == 2 and "its hello" in details and "its calibration" in details, lost
+        heads = [m[3] for m in peer.received if m[0] == "out" and m[3][0] == "frame"]
+        assert heads and {h[3] for h in heads} == {"left"} and heads[0][1] > 40, heads[:3]
+    finally:
+        peer.close()

@@ -45,6 +45,10 @@ Worker -> web process:
   fifth item says whether the message was accepted (not refused whole);
 * ``["cfgrep", sid, n, result, error]``: the applied configuration (or the enrolment's result), or the
   reason it was refused;
+* ``["lost", sid, errors]``: what a session's new owner could not rebuild of its state (a stored
+  hello or calibration it refuses, e.g. of another version), as error replies ``[code, detail]`` for
+  the source, before any reply to the session's messages (logged here too; the frames' ``seq`` goes
+  on and a refused hello still sets the hand; a configuration it refuses is logged, its defaults apply);
 * ``["ready", pid]`` once, when the default estimator is loaded and messages are read;
 * ``["alive"]`` every ``ALIVE_S`` while it is in a long operation it knows of (loading an estimator's
   kernels), so that the web process does not take it for stuck.
@@ -75,7 +79,7 @@ import time
 import msgpack
 
 from ...pipeline.gc_policy import serving_gc
-from ...protocol import ProtocolError, parse_input, parse_message
+from ...protocol import PROTOCOL_VERSION, ProtocolError, parse_input, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
 from ...estimators.warm import compile_command, is_warm, needs_compiling, sharing_the_interpreter, warm, warm_ahead
 from ..config import ServiceSettings
@@ -86,6 +90,7 @@ from ..sessions import LiveSession
 from ..stacks import stacks_on_signal
 from .owner import OutputSink, resume_reference
 
+log = logging.getLogger("fingertrack")
 HEADER = struct.Struct(">I")
 FLUSH_S = 0.002
 """outputs go back at least this often while a batch is being handled, s"""
@@ -122,18 +127,34 @@ class OwnedHand:
         self.drops = (0, 0)
         """the session's frames dropped for slow subscribers and source messages refused as overload, as
         the web process last said (each frame's ``status.dropped``)"""
+        self.not_restored: list[list[str]] = []
+        """what this worker could not rebuild of the session's state, as error replies for its source
+        (``["lost", ...]``)"""
         if state:
-            for raw in (state.get("hello"), state.get("calibration")):
-                if raw is not None:
-                    self.handle(raw)
+            for kind in ("hello", "calibration"):
+                if (raw := state.get(kind)) is None:
+                    continue
+                errors = self.handle(raw)
+                if errors and kind == "hello" and raw.get("hand") in ("left", "right"):
+                    # the hand at least: its calibration and angles are of that hand, and so must its frames be
+                    self.handle({"type": "hello", "protocol": PROTOCOL_VERSION, "hand": raw["hand"]})
+                for code, detail, *_ in errors:
+                    self.lost(code, f"its {kind}: {detail}; send the {kind} again")
             self.sink.pending.clear()
+            config = {k: v for k, v in (state.get("config") or {}).items() if k != "record"}
             try:
-                self.live.update_config({k: v for k, v in (state.get("config") or {}).items() if k != "record"})
-            except ValueError:
-                pass                                # e.g. an estimator unknown here: its defaults
+                self.live.update_config(config)
+            except ValueError as err:               # e.g. an estimator unknown here: its defaults (a REST
+                log.warning("session %r: its new hand worker could not restore its configuration %s: %s; the "
+                            "defaults apply", name, config, err)               # setting: logged, as on the bus
             if state.get("seq"):
                 self.sink.resume_after = (int(state["seq"]), float(state["t"]))
             self.resume_angles = state.get("angles") or None
+
+    def lost(self, code: str, what: str) -> None:
+        detail = f"the session's new hand worker (after a move or a restart) could not restore {what}"
+        log.warning("%s (session %r)", detail, self.live.name)
+        self.not_restored.append([code, detail])
 
     def encoded(self, sid: int, n: int) -> list[list]:
         """The outputs in ``sink.pending`` (then emptied) as ``out`` messages for the web process, each
@@ -354,6 +375,8 @@ class Worker:
             if isinstance(box[0], BaseException):
                 raise box[0]
             self.hands[sid] = box[0]
+            if box[0].not_restored:                 # said to the source before any reply of the new owner
+                self.out.append(["lost", sid, box[0].not_restored])
             self.handle_batch(held)
 
     @staticmethod
