@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings, HoldLog
-from service.estimators.chain_kernel import N_STATE
+from service.estimators.chain_kernel import GA_START, N_STATE
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
 from service.pipeline.hand import HandSession, PipelineSettings
@@ -194,9 +194,10 @@ def test_kernel_equals_the_reference_through_the_pipeline_on_a_faulty_recording(
     assert any(m["type"] == "reference_pose" for m in messages)
     runs = {}
     for impl in ("compiled", "reference"):
-        # the hand's shared acceleration error is ChainHand's (the compiled pipeline's one call per tick),
-        # which the reference pipeline does not take; it has its own reference test above
-        params = {"implementation": impl, "hand_acc_error_scale": 0.0, "hand_acc_error_floor_m_s2": 0.0}
+        # the hand's shared acceleration error and the gyros' angle are ChainHand's (the compiled pipeline's
+        # one call per tick), which the reference pipeline does not take; they have their own tests
+        params = {"implementation": impl, "hand_acc_error_scale": 0.0, "hand_acc_error_floor_m_s2": 0.0,
+                  "gyro_angle_rate_std_rad_s": 0.0}
         session = HandSession("right", PipelineSettings(estimator_params=params))
         frames = [f for m in messages for f in session.handle(parse_message(m)).frames]
         runs[impl] = (frames, session.counters)
@@ -439,3 +440,63 @@ def test_the_shared_error_decays_over_the_time_since_it_was_advanced_across_a_re
     switched._state = {k: v.copy() for k, v in est._state.items()}
     h._stack([switched], np.zeros(3))
     assert h._dl.tolist() == [0.0] * 3 and np.allclose(h._pd, 0.4**2 * np.eye(3), rtol=0, atol=1e-15)
+
+
+def test_a_hand_turning_across_the_hinge_tells_each_still_sensors_angle_through_its_gyros_cross_axes():
+    """A finger still on a hand turning at 2 rad/s about the finger base's y axis: each phalanx at angle θ
+    sees that rate turned by -θ, so its gyro's cross axes tell θ whatever the accelerometer says. With the
+    states 5 deg off (no mounting turn carried yet), one measurement after the tick moves each angle by the
+    Kalman gain of its variance against the measurement's, ``(0.1 / 2)² · 0.15 s / dt`` (the optical rate's
+    error, counted once per fit window): closed form, and the cross-covariance with δ by the same gain.
+    Turning about an oblique axis for 2 s of ticks (no prediction between them), the 5 deg fall as repeated
+    measurements average, to 0.46 deg. About the hinge
+    axis itself the same rate tells nothing (the angle is unobservable there), nor while
+    the finger flexes on the hand (its own rate is on the hinge axis, but the reading is not a still
+    phalanx's), nor with the optics lost: the states stay as they were."""
+    geom = default_calibration("right").finger("index")
+    est = Chain(geom)
+    s = est.settings
+    truth = np.array([0.4, 0.9])
+    dt, w_rate = 0.005, 2.0
+    hand = ChainHand()
+    p0 = np.diag(np.r_[[0.05**2], np.full(N_STATE - 1, 1e-4)])
+    p0[GA_START:GA_START + 9, GA_START:GA_START + 9] = 0.0         # no mounting turn carried yet
+    cx0 = np.full((N_STATE, 3), 1e-3)
+
+    def run(w_base, flex=0.0, untracked=False, ticks=1):
+        x = np.zeros((2, N_STATE))
+        x[:, TH] = truth + np.radians(5.0)
+        est._state = {"x": x, "P": np.stack([p0, p0]), "rate": np.zeros(2), "hand_acc": np.zeros(3)}
+        est._hand_untracked = untracked
+        hand._stack([est], np.zeros(3))
+        hand._cx[:] = cx0
+        omega = est.obs.base @ w_base                                   # R_M = I: world = metacarpus
+        motion = BaseMotion(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), omega, np.zeros(3))
+        gyr = []
+        for k, th in enumerate(truth):
+            c, sn = np.cos(th), np.sin(th)
+            seen = np.array([w_base[0] + flex, c * w_base[1] + sn * w_base[2], -sn * w_base[1] + c * w_base[2]])
+            gyr.append(est.obs.mount[k].T @ seen)                        # phalanx -> sensor frame
+        for _ in range(ticks):
+            hand._gyro_angles(np.array(gyr), motion, np.array([dt]), np.array([untracked]))
+        return hand._x.copy(), hand._p.copy(), hand._cx.copy()
+
+    x, p, cx = run(np.array([0.0, w_rate, 0.0]))
+    r = (s.gyro_angle_rate_std_rad_s / w_rate) ** 2 * s.gyro_angle_window_s / dt
+    gain = 0.05**2 / (0.05**2 + r)
+    np.testing.assert_allclose(x[:, TH] - truth, (1.0 - gain) * np.radians(5.0), rtol=1e-9)
+    np.testing.assert_allclose(p[:, TH, TH], 0.05**2 * (1.0 - gain), rtol=1e-9)
+    np.testing.assert_allclose(cx[:, TH], np.tile((1.0 - gain) * cx0[TH], (2, 1)), rtol=1e-9)
+    assert gain > 0.03                  # one tick's worth: the rate's error is counted once per fit window
+    # a hand turning about an oblique axis (part of it about the hinge): over 2 s of ticks the cross axes
+    # alone give each sensor's angle, as n measurements of variance r average: the error falls to r / (r + n P)
+    oblique = np.array([0.7, 1.4, -1.0])
+    x, p, cx = run(oblique, ticks=400)
+    r = (s.gyro_angle_rate_std_rad_s / np.hypot(oblique[1], oblique[2])) ** 2 * s.gyro_angle_window_s / dt
+    np.testing.assert_allclose(x[:, TH] - truth, np.radians(5.0) * r / (r + 400 * 0.05**2), rtol=1e-6)
+    assert np.abs(np.degrees(x[:, TH] - truth)).max() < 0.5
+    for case in (dict(w_base=np.array([w_rate, 0.0, 0.0])), dict(w_base=np.array([0.0, w_rate, 0.0]), flex=3.0),
+                 dict(w_base=np.array([0.0, w_rate, 0.0]), untracked=True)):
+        x, p, cx = run(**case)
+        np.testing.assert_array_equal(x[:, TH], truth + np.radians(5.0))
+        np.testing.assert_array_equal(p[:, TH, TH], [0.05**2] * 2)

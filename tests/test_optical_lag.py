@@ -77,7 +77,7 @@ def _still_finger_error(lag_s: float, shared: bool = False):
     their joint errors, degrees, over the reach and the return (0.3-2.3 s)."""
     session = simulate(SimConfig(noise="none", seed=3, hand_motion="fast-reach", fingers=("index", "middle"),
                                  finger_motion=sequence_motion(t_d=0.3, steps=(("rest", 0.3, 5.0),)), duration_s=2.5))
-    params = {"optical_fit_lag_s": lag_s}
+    params = {"optical_fit_lag_s": lag_s, "gyro_angle_rate_std_rad_s": 0.0}    # the lag's pull alone
     if not shared:          # the widening alone, not the hand's shared acceleration error
         params.update(hand_acc_error_scale=0.0, hand_acc_error_floor_m_s2=0.0)
     hs = HandSession(settings=PipelineSettings(estimator="chain", estimator_params=params))

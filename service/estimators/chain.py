@@ -197,6 +197,24 @@ hold's last 0.3 s leaves about 6 deg less what the fit of ``s`` takes up. (A fir
 mean rate over the hold's two halves against 15 deg/s: still holds differed by up to 9 deg/s there, so
 it caught gross motions only.)
 
+**The hand's rotation seen from the phalanx.** The gyro reads the whole phalanx's angular velocity,
+``f = R_x(θ)ᵀ w + θ̇ x`` in the phalanx frame, with ``w`` the hand's rate in the finger base frame (optics).
+Only the hinge-axis part ``f_x`` enters the prediction; the other two are ``(w_y, w_z)`` turned by ``-θ``, so
+while the hand turns across the hinge axis the gyro alone tells the sensor's angle,
+``atan2(w_z, w_y) - atan2(f_z, f_y) = θ - δ_m`` (``δ_m`` the mounting turn about the hinge axis, which the
+accelerometer sees alike), and nothing of the hand's acceleration is in it: the optics' acceleration,
+which lags on a turning hand and which the accelerometers read as a tilt, is what misleads the angle
+most there (failure mode 4 of the README's diagnosis). ``ChainHand`` takes it as one more measurement of
+each sensor after the tick's update, where the hand turns across the hinge axis faster than
+``gyro_angle_min_rate_rad_s``, the finger turns on its hand slower than ``gyro_angle_max_flexion_rad_s``,
+the optics track and no gyro of the finger is clipped; its std is the optical rate's error
+(``gyro_angle_rate_std_rad_s``) over the rate across the hinge, counted once per optical fit window
+(``gyro_angle_window_s``: the rate's error is correlated over it), and an angle further than 0.5 rad from
+the prediction is not taken. It updates the sensor's own states and their covariance with δ; δ and the
+other sensors take no gain from it (a valid, not optimal, update). A finger advanced alone (a rebuild, a
+batch, the per-finger reference) does not take it. On tuning trials it measured each rotating hand's
+sensor to 1.8 deg RMS of bias per sensor against the filter's 2.3 deg.
+
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
 on all three phalanges it would be, and is left for later. The hand kinematics are taken as given
@@ -267,11 +285,23 @@ class ChainSettings(EstimatorSettings):
     reference_hold_offsets: bool = Field(True, description="a reference_pose's hold [t0, t1] also measures each gyro's offset: the finger was still on its hand, so its mean relative hinge-axis rate over the hold is the offset ('The hold of a reference pose' in the module docstring)")
     hold_rate_std_rad_s: float = Field(1.0 * DEG, gt=0.0, description="std of a hold's mean relative rate as a measurement of the gyro offset, besides the gyro's scale and cross-axis errors: the optical hand rate's error over the hold (orientation jitter of 0.1-0.5 deg at both ends of a 2 s hold: about 0.35 deg/s) and a held hand's slow drift (1 deg over 2 s: 0.5 deg/s), rad/s")
     hold_still_max_rad: float = Field(4.0 * DEG, gt=0.0, description="a sensor whose relative hinge-axis rate, integrated over the hold, strays this far, rad, from its offset's line and what the gyro's scale and cross-axis errors make of the hand's turn was not held still: no offset is read from that hold ('The hold of a reference pose' in the module docstring; a finger that moved 7-12 deg in the last 0.3 s of a claimed hold made its offset 4-8 deg/s wrong for good; still holds of tuning trials 500-599 reached 3.2 deg)")
+    gyro_angle_rate_std_rad_s: float = Field(0.1, ge=0.0, description="the optical hand rate's error for the angle each finger gyro's cross axes tell (with ChainHand, the pipeline's one call per tick; 'The hand's rotation seen from the phalanx' in the module docstring): about twice a quadratic fit's rate error over 0.15 s of 90 Hz poses with 0.1 deg jitter (0.04 rad/s), for its lag on a turning hand; 0 turns the measurement off, rad/s")
+    gyro_angle_min_rate_rad_s: float = Field(1.0, gt=0.0, description="the measurement is taken while the hand turns across the hinge axis at least this fast (its rate about the finger base's other two axes), rad/s")
+    gyro_angle_max_flexion_rad_s: float = Field(1.0, gt=0.0, description="... and the finger turns on its hand slower than this (its hinge-axis reading less the hand's rate about it), rad/s")
+    gyro_angle_window_s: float = Field(0.15, gt=0.0, description="the optical hand rate's error is correlated over the optics' fit window (PipelineSettings.pose_window_s), so the gyro's angle counts once per window: its variance per tick is multiplied by this over the tick's step, s")
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
                                 "tested equal to (to 1e-9), about a hundred times slower")
 
+
+_GYRO_ANGLE_H = np.zeros(N_STATE)
+_GYRO_ANGLE_H[TH] = 1.0
+_GYRO_ANGLE_H[GA] = -_HINGE_ROTATION / np.sqrt(2.0)
+"""The gyro's angle ``θ - δ_m`` as a row over a sensor's states: ``G = √2 δ_m`` along the hinge rotation."""
+_GYRO_ANGLE_GATE_RAD = 0.5
+"""A gyro's angle further than this from the predicted one is not taken (a rate too small or too
+disturbed for its direction to mean anything), rad."""
 
 _HOLD_ANGLE_NOISE_RAD = 1.0 * DEG
 """The angle's noise per tick in ``HoldLog.mean``'s fit: what a still finger's integrated relative rate
@@ -899,6 +929,9 @@ class ChainHand:
             s0, s1 = sensor_start[f], sensor_start[f + 1]
             e._state = {"x": self._x[s0:s1], "P": self._p[s0:s1], "rate": self._rate[s0:s1], "hand_acc": self._hand_acc[f]}
         self._stack_holds(estimators)
+        # each sensor's mounting (sensor -> phalanx) and its finger's base frame, for the gyro's angle
+        self._mount = np.concatenate([e.obs.mount for e in estimators])
+        self._base_cat = np.concatenate([np.tile(e.obs.base, e.n_sensors) for e in estimators], axis=1)   # (3, 3 S)
         self._estimators = list(estimators)
         self._states = [e._state for e in estimators]
 
@@ -947,7 +980,51 @@ class ChainHand:
                    self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n)
         for e in estimators:
             e._t_last = t
+        self._gyro_angles(gyr, hand, dts, untracked)
         return phi, mode.tolist(), *self._starts
+
+    def _gyro_angles(self, gyr: np.ndarray, hand, dts: np.ndarray, untracked: np.ndarray) -> None:
+        """Each sensor's angle as its gyro's cross axes tell it, a measurement after the tick's update ("The
+        hand's rotation seen from the phalanx" in the module docstring): the hand's rate in the finger base
+        frame ``w`` (optics) seen from the phalanx at angle ``θ`` is ``(w_y, w_z)`` turned by ``-θ``, which the
+        gyro reads as ``(f_y, f_z)`` (phalanx frame), so ``atan2(w_z, w_y) - atan2(f_z, f_y) = θ - δ_m`` (with
+        the mounting turn about the hinge axis ``δ_m``, as the accelerometer sees it). Taken while the hand
+        turns across the hinge axis (``gyro_angle_min_rate_rad_s``), the finger is nearly still on it
+        (``gyro_angle_max_flexion_rad_s``), the optics track and no gyro of the finger is clipped; its std is
+        ``gyro_angle_rate_std_rad_s`` / |(w_y, w_z)|, its variance counted once per optical fit window (the
+        rate's error is correlated over it: ``gyro_angle_window_s / dt`` ticks). It updates the sensor's own
+        states and their covariance with δ (``C_k``); δ and the other sensors take no gain from it."""
+        s = self._estimators[0].settings
+        if s.gyro_angle_rate_std_rad_s <= 0.0:
+            return
+        w = (hand.angular_velocity @ hand.rotation @ self._base_cat).reshape(-1, 3)    # R_Bᵀ R_Mᵀ ω per sensor
+        w_yz2 = w[:, 1] ** 2 + w[:, 2] ** 2
+        turning = w_yz2 > s.gyro_angle_min_rate_rad_s ** 2
+        if not turning.any():
+            return
+        starts = self._sensor_start
+        counts = np.diff(starts)
+        clipped = (np.abs(gyr) >= s.gyro_range_rad_s * (1.0 - 1e-3)).any(axis=1)
+        finger_ok = ~untracked & (dts > 0.0) & ~np.logical_or.reduceat(clipped, starts[:-1])
+        i = np.flatnonzero(turning & np.repeat(finger_ok, counts))
+        if not i.size:
+            return
+        f = np.matmul(self._mount[i], gyr[i, :, None])[:, :, 0]                     # phalanx frame
+        w = w[i]
+        z = np.arctan2(w[:, 2], w[:, 1]) - np.arctan2(f[:, 2], f[:, 1])
+        y = np.mod(z - self._x[i] @ _GYRO_ANGLE_H + np.pi, 2.0 * np.pi) - np.pi
+        take = (np.abs(f[:, 0] - w[:, 0]) < s.gyro_angle_max_flexion_rad_s) & (np.abs(y) < _GYRO_ANGLE_GATE_RAD)
+        i, y = i[take], y[take]
+        if not i.size:
+            return
+        r = s.gyro_angle_rate_std_rad_s ** 2 / w_yz2[i] * s.gyro_angle_window_s / np.repeat(dts, counts)[i]
+        ph = self._p[i] @ _GYRO_ANGLE_H
+        gain = ph / (ph @ _GYRO_ANGLE_H + r)[:, None]
+        hc = _GYRO_ANGLE_H @ self._cx[i]
+        self._x[i] += gain * y[:, None]
+        p = self._p[i] - gain[:, :, None] * ph[:, None, :]
+        self._p[i] = 0.5 * (p + p.transpose(0, 2, 1))
+        self._cx[i] -= gain[:, :, None] * hc[:, None, :]
 
     def _log_holds(self, t: float, dts: np.ndarray, gyr: np.ndarray) -> None:
         """Each estimator's running integrals for a reference pose's hold (``HoldLog``), as its own
@@ -1010,4 +1087,5 @@ class ChainHand:
             modes += mode.tolist()
         self._log_holds(t, dts, gyr)
         self._keep_shared_error_finite()
+        self._gyro_angles(gyr, hand, dts, np.array([e._hand_untracked for e in estimators]))
         return np.concatenate(phi), modes, *self._starts
