@@ -446,28 +446,31 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_builds_a_moved_in_ses
 def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_its_message():
     """At 1 kHz a pose completes about eleven ticks, the first of which makes the frame: the worker
     sends that frame before it processes the others (their time was in every frame's latency). A
-    message alone in its batch: each frame in a write of its own, before the write with the message's
-    reply. Messages sent together in one batch: the earlier ones' outputs go in one write with their
-    replies (fewer writes for a busy worker), each output before its reply."""
+    message alone in its batch, or in a small batch (two here): each frame in a write of its own,
+    never in the write of its message's reply. Many messages in one batch: the earlier ones' outputs
+    go in one write with their replies (fewer writes for a busy worker), each output before its reply."""
     peer = _Peer()
     try:
-        config = SimConfig(motion="sequence", hand="right", noise="white", seed=7, duration_s=0.4, rate_hz=1000.0)
-        msgs = [m for _, m in source_messages(config)]
+        config = SimConfig(motion="sequence", hand="right", noise="white", seed=7, duration_s=0.6, rate_hz=1000.0)
+        msgs = list(enumerate((m for _, m in source_messages(config)), 2))
         hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "worker-test"}
         peer.send([["open", 1, "a", None], ["src", 1, 1, hello]])
         peer.until(lambda: len(peer.replies(1)) == 1, "the hello answered")
-        half = len(msgs) // 2
-        for n, m in enumerate(msgs[:half], 2):      # one message per batch
-            peer.send([["src", 1, n, m]])
-            peer.until(lambda: len(peer.replies(1)) == n, f"message {n} answered")
-        alone = [w for w in peer.writes if any(x[0] == "out" for x in w)]
-        frames = [x for w in alone for x in w if x[0] == "out" and x[3][0] == "frame"]
-        assert len(frames) >= 10, len(frames)
-        for w in alone:                             # a frame (with its events) per write, never with a reply
-            assert sum(x[0] == "out" and x[3][0] == "frame" for x in w) == 1 and not any(x[0] == "rep" for x in w), w
-        # the other half in one batch: outputs and replies together, each output before its reply
+        third = len(msgs) // 3
+        for size, part in ((1, msgs[:third]), (2, msgs[third:2 * third])):
+            start = len(peer.writes)
+            for k in range(0, len(part), size):
+                batch = part[k:k + size]
+                peer.send([["src", 1, n, m] for n, m in batch])
+                peer.until(lambda: len(peer.replies(1)) == batch[-1][0], f"message {batch[-1][0]} answered")
+            writes = peer.writes[start:]
+            assert sum(x[0] == "out" and x[3][0] == "frame" for w in writes for x in w) >= 10, size
+            for w in writes:                        # a frame (with its events) per write, never with its reply
+                outs, reps = {x[2] for x in w if x[0] == "out"}, {x[2] for x in w if x[0] == "rep"}
+                assert sum(x[0] == "out" and x[3][0] == "frame" for x in w) <= 1 and not outs & reps, (size, w)
+        # the rest in one batch: outputs and replies together, each output before its reply
         start = len(peer.writes)
-        peer.send([["src", 1, n, m] for n, m in enumerate(msgs[half:], half + 2)])
+        peer.send([["src", 1, n, m] for n, m in msgs[2 * third:]])
         peer.until(lambda: len(peer.replies(1)) == len(msgs) + 1, "the batch answered")
         late = [x for w in peer.writes[start:] for x in w]
         assert sum(x[0] == "out" and x[3][0] == "frame" for x in late) >= 10
@@ -480,7 +483,6 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
                 assert x[2] not in replied, "an output came after its message's reply"
     finally:
         peer.close()
-
 
 def test_what_a_session_s_new_worker_cannot_restore_is_told_to_its_source_before_any_reply():
     """A session opened from a state whose stored hello and calibration (each with a field of the wrong

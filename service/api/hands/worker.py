@@ -4,8 +4,8 @@ It owns the sessions the web process opens on it and runs their hands (``Tracked
 same ``LiveSession`` the in-process service uses). It talks to the web process over one stream socket
 (file descriptor ``FD``): frames of 4-byte big-endian length + MessagePack, each frame a list of
 messages (a batch: everything that came in at once is handled before the outputs go back in one write,
-at the latest every ``FLUSH_S`` of processing; the frames of a batch's last message go back as soon
-as each is made, before its later ticks). ``SETTINGS`` is a JSON object of the few service
+at the latest every ``FLUSH_S`` of processing; the frames of a small batch's messages, and of any
+batch's last message, go back as soon as each is made, before the later ticks). ``SETTINGS`` is a JSON object of the few service
 settings a hand needs (no secrets).
 
 Web process -> worker (the bus's message shapes, ``bus/subjects.py``, with a session number ``sid``):
@@ -94,6 +94,9 @@ log = logging.getLogger("fingertrack")
 HEADER = struct.Struct(">I")
 FLUSH_S = 0.002
 """outputs go back at least this often while a batch is being handled, s"""
+AT_ONCE_BATCH = 4
+"""in a batch of at most this many messages every frame goes back as soon as it is made (``handle_batch``):
+one hand at 1 kHz sends a worker 1-3 at a time, a pose first in 2 of 3 of them when the machine is busy"""
 WARM_POLL_S = 0.05
 """how often a worker compiling kernels in a separate process looks whether it has finished, s"""
 ALIVE_S = 0.2
@@ -281,14 +284,16 @@ class Worker:
             self.send()
 
     def handle_batch(self, batch: list) -> None:
-        """The messages of a batch in order. The last one's frames go back as soon as each is made
-        (``emit``): the ticks a message completes after its frame, and the messages after it in its
-        batch, would otherwise hold it back; the others' go with the next send (a batch of many
-        messages, a busy worker: fewer writes)."""
+        """The messages of a batch in order. In a batch of at most ``AT_ONCE_BATCH`` messages, and for
+        the last message of any batch, each frame goes back as soon as it is made (``emit``): the ticks a
+        message completes after its frame, and the messages after it in its batch, would otherwise hold
+        it back; the frames of a larger batch's other messages go with the next send (a busy worker
+        with many sessions: fewer writes, each a turn of the web process's loop)."""
         flushed = time.perf_counter()
         last = len(batch) - 1
+        small = len(batch) <= AT_ONCE_BATCH
         for i, message in enumerate(batch):
-            self.dispatch(message, at_once=i == last)
+            self.dispatch(message, at_once=small or i == last)
             if time.perf_counter() - flushed > FLUSH_S:
                 self.send()
                 flushed = time.perf_counter()
