@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings, HoldLog
+from service.estimators import chain_kernel as K
 from service.estimators.chain_kernel import GA_START, N_STATE
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
@@ -320,7 +321,7 @@ def test_the_shared_error_update_is_the_textbook_kalman_update_of_the_augmented_
     d = np.exp(-t / tau)
     dl, pd, cx = dl0 * d, d * d * pd0 + (1 - d * d) * q * np.eye(3), cx0[0] * d
     x_pred, _, _, rate, prev, P_pred = ref._predict_reference(ref._state, t, gyr, hand)
-    fs = t * ref.obs.hinge_rate(gyr) if est._settings_vector[-1] > 0.5 else np.zeros(1)
+    fs = t * ref.obs.hinge_rate(gyr) if est._settings_vector[K.ST_GS_LEARN] > 0.5 else np.zeros(1)
     cx[TH] = cx[TH] - t * cx[BG] - fs[0] * cx[GS]         # the angle's prediction moves its cross-covariance
     with_dl = replace(hand, acceleration=hand.acceleration + dl)
 
@@ -500,3 +501,82 @@ def test_a_hand_turning_across_the_hinge_tells_each_still_sensors_angle_through_
         x, p, cx = run(**case)
         np.testing.assert_array_equal(x[:, TH], truth + np.radians(5.0))
         np.testing.assert_array_equal(p[:, TH, TH], [0.05**2] * 2)
+
+
+def test_the_kernels_gyro_angles_equal_the_reference():
+    """``chain_kernel._gyro_angles`` (the end of the hand's one call) equals ``ChainHand._gyro_angles`` in numpy
+    on random states and cross-covariances of a whole hand turning fast across its fingers' hinge axes, the
+    fingers' phalanges nearly still on it (so that measurements are taken), with one finger's gyro clipped,
+    one with the optics lost, one just started (no step): x, P and the cross-covariances with δ to 1e-12."""
+    rng = np.random.default_rng(31)
+    calib = default_calibration("right")
+    ests = [Chain(geom) for geom in calib.fingers.values()]
+    hand = ChainHand()
+    taken = 0
+    for trial in range(6):
+        for e in ests:
+            e._state = _random_state(rng, e)
+            e._state["x"][:, GA_START:GA_START + 9] *= 0.3
+        hand._stack(ests, np.zeros(3))
+        hand._cx[:] = rng.normal(0.0, 0.01, hand._cx.shape)
+        rot = Rotation.random(random_state=rng).as_matrix()
+        omega = rot @ rng.normal(0.0, 3.0, 3)
+        motion = BaseMotion(rot, np.zeros(3), np.zeros(3), np.zeros(3), omega, np.zeros(3))
+        # each sensor reads the hand's rate seen from its phalanx at its state's angle, plus a little
+        gyr = []
+        for e in ests:
+            w = e.obs.base.T @ rot.T @ omega
+            for k, th in enumerate(e._state["x"][:, TH]):
+                c, sn = np.cos(th), np.sin(th)
+                seen = np.array([w[0], c * w[1] + sn * w[2], -sn * w[1] + c * w[2]]) + rng.normal(0.0, 0.05, 3)
+                gyr.append(e.obs.mount[k].T @ seen)
+        gyr = np.array(gyr)
+        gyr[hand._sensor_start[1], 2] = 40.0 if trial % 2 else gyr[hand._sensor_start[1], 2]     # clipped
+        dts = np.full(len(ests), 0.005)
+        dts[3] = 0.0 if trial % 3 == 0 else dts[3]
+        untracked = np.zeros(len(ests), dtype=np.bool_)
+        untracked[2] = trial % 2 == 0
+        before = hand._x.copy()
+        arrays = [hand._x.copy(), hand._p.copy(), hand._cx.copy()]
+        K._gyro_angles(motion.flat, gyr, dts, untracked, hand._sensor_start, hand._geo, hand._geo_start, hand._st,
+                       *arrays, np.empty(N_STATE))
+        hand._gyro_angles(gyr, motion, dts, untracked)
+        for a, b, key in zip(arrays, (hand._x, hand._p, hand._cx), ("x", "P", "cx")):
+            np.testing.assert_allclose(a, b, rtol=0, atol=1e-12, err_msg=f"{key} in trial {trial}")
+        taken += int(np.sum(np.any(hand._x != before, axis=1)))
+    assert taken >= 10
+
+
+def test_the_kernels_gyro_angles_equal_the_numpy_step_after_the_kernel_through_the_pipeline(monkeypatch):
+    """Through the hand pipeline on a realistic recording with a turning hand (and its faults): the frames with
+    the gyro angles in the kernel equal those with the numpy step run after a kernel call without it, to 1e-9;
+    and the step acts (the frames differ from those with it off)."""
+    messages = _faulty_recording()
+
+    def frames(params=None):
+        session = HandSession("right", PipelineSettings(estimator_params=params or {}))
+        return [f for m in messages for f in session.handle(parse_message(m)).frames]
+
+    compiled, off = frames(), frames({"gyro_angle_rate_std_rad_s": 0.0})
+    kernel_advance = ChainHand.advance
+
+    def numpy_after_the_kernel(self, t, estimators, gyr, acc, hand):
+        if not self._stacked(estimators):
+            self._stack(estimators, hand.acceleration)
+        dts = np.array([t - e._t_last for e in estimators])
+        untracked = np.array([e._hand_untracked for e in estimators])
+        kept = self._st[:, K.ST_GA_RATE_STD].copy()
+        self._st[:, K.ST_GA_RATE_STD] = 0.0                # the kernel without the step
+        out = kernel_advance(self, t, estimators, gyr, acc, hand)
+        self._st[:, K.ST_GA_RATE_STD] = kept
+        self._gyro_angles(gyr, hand, dts, untracked)
+        return out
+
+    monkeypatch.setattr(ChainHand, "advance", numpy_after_the_kernel)
+    reference = frames()
+    assert len(compiled) == len(reference) == len(off) > 150
+    for c, r in zip(compiled, reference):
+        assert c.t == r.t and c.modes == r.modes
+        for finger, phi in r.joint_angles.items():
+            np.testing.assert_allclose(c.joint_angles[finger], phi, rtol=0, atol=TOL, err_msg=f"{finger} at t={c.t}")
+    assert max(np.abs(c.joint_angles[f] - o.joint_angles[f]).max() for c, o in zip(compiled, off) for f in c.joint_angles) > 1e-4

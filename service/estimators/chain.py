@@ -980,11 +980,10 @@ class ChainHand:
                    self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n)
         for e in estimators:
             e._t_last = t
-        self._gyro_angles(gyr, hand, dts, untracked)
         return phi, mode.tolist(), *self._starts
 
     def _gyro_angles(self, gyr: np.ndarray, hand, dts: np.ndarray, untracked: np.ndarray) -> None:
-        """Each sensor's angle as its gyro's cross axes tell it, a measurement after the tick's update ("The
+        """(``advance_reference``; the kernel's ``_gyro_angles`` in ``advance``.) Each sensor's angle as its gyro's cross axes tell it, a measurement after the tick's update ("The
         hand's rotation seen from the phalanx" in the module docstring): the hand's rate in the finger base
         frame ``w`` (optics) seen from the phalanx at angle ``θ`` is ``(w_y, w_z)`` turned by ``-θ``, which the
         gyro reads as ``(f_y, f_z)`` (phalanx frame), so ``atan2(w_z, w_y) - atan2(f_z, f_y) = θ - δ_m`` (with

@@ -43,8 +43,12 @@ HAND_SIZE = 18
 # --- settings vector -------------------------------------------------------------------------
 (ST_GYRO_NOISE, ST_GYRO_WALK, ST_ACC_WALK, ST_ACC_NOISE, ST_KINEMATIC, ST_GYRO_SCALE, ST_ACC_SCALE,
  ST_GYRO_RANGE, ST_ACC_RANGE, ST_FIT_LAG, ST_UNTRACKED_NOISE, ST_CAL_WALK, ST_GS_WALK, ST_CLIPPED_STD,
- ST_GS_LEARN) = range(15)
-SETTINGS_SIZE = 15
+ ST_GS_LEARN, ST_GA_RATE_STD, ST_GA_MIN_RATE, ST_GA_MAX_FLEX, ST_GA_WINDOW) = range(19)
+SETTINGS_SIZE = 19
+GYRO_ANGLE_H = math.sqrt(0.5) / math.sqrt(2.0)
+"""The gyro's angle ``θ - δ_m`` over a sensor's states: ``θ + GYRO_ANGLE_H (G_yz - G_zy)`` (``chain._GYRO_ANGLE_H``)."""
+GYRO_ANGLE_GATE_RAD = 0.5
+"""``chain._GYRO_ANGLE_GATE_RAD``."""
 SATURATED_SIGMA_M_S2 = 1e6
 """Accelerometer std of a clipped sample (no update in effect), as in the reference."""
 SATURATION_MARGIN = 1.0 - 1e-3
@@ -56,8 +60,10 @@ def settings_vector(s) -> np.ndarray:
     return np.array([s.gyro_noise_density_rad_s_rthz, s.gyro_bias_walk_rad_s_rts, s.acc_bias_walk_m_s2_rts,
                      s.acc_noise_m_s2, s.kinematic_uncertainty, s.gyro_scale_uncertainty, s.acc_scale_uncertainty,
                      s.gyro_range_rad_s, s.acc_range_m_s2, s.optical_fit_lag_s, s.untracked_acc_noise_m_s2,
-                     s.calibration_walk_rts, s.gyro_scale_walk_rts, s.clipped_rate_std_rad_s, 1.0], dtype=float)
-    """The last entry (``ST_GS_LEARN``) is 1 where the gyro scale state learns; the estimator sets it."""
+                     s.calibration_walk_rts, s.gyro_scale_walk_rts, s.clipped_rate_std_rad_s, 1.0,
+                     s.gyro_angle_rate_std_rad_s, s.gyro_angle_min_rate_rad_s, s.gyro_angle_max_flexion_rad_s,
+                     s.gyro_angle_window_s], dtype=float)
+    """``ST_GS_LEARN`` is 1 where the gyro scale state learns; the estimator sets it."""
 
 
 def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
@@ -151,6 +157,7 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
                 out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns),
                 cx, x, dl, pd, s0, joint and not untracked[f], ws)
     _keep_shared_error_finite(dl, pd, cx, joint_floor)
+    _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ws[6])
     _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n)
 
 
@@ -173,6 +180,71 @@ def _keep_shared_error_finite(dl, pd, cx, floor):
         for c2 in range(3):
             pd[c, c2] = floor * floor if c == c2 else 0.0
     cx[:, :, :] = 0.0
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ph):
+    """``chain.ChainHand._gyro_angles`` (its numpy reference): each sensor's angle as its gyro's cross axes
+    tell it, while the hand turns across the hinge axis and the finger is nearly still on it, one scalar
+    update of the sensor's own states, covariance (symmetrised) and cross-covariance with δ. The settings
+    are the first finger's (``st[0]``); ``ph`` is work space (15)."""
+    rate_std = st[0, ST_GA_RATE_STD]
+    if rate_std <= 0.0:
+        return
+    min_rate, max_flex, window = st[0, ST_GA_MIN_RATE], st[0, ST_GA_MAX_FLEX], st[0, ST_GA_WINDOW]
+    gyro_clip = st[0, ST_GYRO_RANGE] * SATURATION_MARGIN
+    g5, g7 = GA_START + 5, GA_START + 7
+    hq = GYRO_ANGLE_H
+    two_pi = 2.0 * math.pi
+    # the hand's rate in metacarpus coordinates, R_Mᵀ ω
+    v0 = hand[0] * hand[12] + hand[3] * hand[13] + hand[6] * hand[14]
+    v1 = hand[1] * hand[12] + hand[4] * hand[13] + hand[7] * hand[14]
+    v2 = hand[2] * hand[12] + hand[5] * hand[13] + hand[8] * hand[14]
+    for f in range(dts.shape[0]):
+        s0, s1 = sensor_start[f], sensor_start[f + 1]
+        ok = not untracked[f] and dts[f] > 0.0
+        for s in range(s0, s1):
+            for c in range(3):
+                ok = ok and abs(gyr[s, c]) < gyro_clip
+        if not ok:
+            continue
+        ns = s1 - s0
+        ob = geo_start[f] + 12 * ns             # the finger's base rotation (row-major, ``geometry_vector``)
+        w0 = v0 * geo[ob] + v1 * geo[ob + 3] + v2 * geo[ob + 6]
+        w1 = v0 * geo[ob + 1] + v1 * geo[ob + 4] + v2 * geo[ob + 7]
+        w2 = v0 * geo[ob + 2] + v1 * geo[ob + 5] + v2 * geo[ob + 8]
+        w_yz2 = w1 * w1 + w2 * w2
+        if not w_yz2 > min_rate * min_rate:
+            continue
+        seen = math.atan2(w2, w1)
+        for k in range(ns):
+            s = s0 + k
+            m = geo_start[f] + 9 * k            # the sensor's mounting (sensor -> phalanx)
+            f0 = geo[m] * gyr[s, 0] + geo[m + 1] * gyr[s, 1] + geo[m + 2] * gyr[s, 2]
+            f1 = geo[m + 3] * gyr[s, 0] + geo[m + 4] * gyr[s, 1] + geo[m + 5] * gyr[s, 2]
+            f2 = geo[m + 6] * gyr[s, 0] + geo[m + 7] * gyr[s, 1] + geo[m + 8] * gyr[s, 2]
+            predicted = x[s, 0] + hq * x[s, g5] - hq * x[s, g7]
+            y = (seen - math.atan2(f2, f1) - predicted + math.pi) % two_pi - math.pi
+            if not (abs(f0 - w0) < max_flex and abs(y) < GYRO_ANGLE_GATE_RAD):
+                continue
+            r = rate_std * rate_std / w_yz2 * window / dts[f]
+            for i in range(N_STATE):
+                ph[i] = p[s, i, 0] + hq * p[s, i, g5] - hq * p[s, i, g7]
+            den = ph[0] + hq * ph[g5] - hq * ph[g7] + r
+            hc0 = cx[s, 0, 0] + hq * cx[s, g5, 0] - hq * cx[s, g7, 0]
+            hc1 = cx[s, 0, 1] + hq * cx[s, g5, 1] - hq * cx[s, g7, 1]
+            hc2 = cx[s, 0, 2] + hq * cx[s, g5, 2] - hq * cx[s, g7, 2]
+            for i in range(N_STATE):
+                gain = ph[i] / den
+                x[s, i] += gain * y
+                cx[s, i, 0] -= gain * hc0
+                cx[s, i, 1] -= gain * hc1
+                cx[s, i, 2] -= gain * hc2
+            for i in range(N_STATE):
+                for j in range(i, N_STATE):
+                    pij = 0.5 * ((p[s, i, j] - ph[i] / den * ph[j]) + (p[s, j, i] - ph[j] / den * ph[i]))
+                    p[s, i, j] = pij
+                    p[s, j, i] = pij
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=False)      # set, or it inherits run_hand's
