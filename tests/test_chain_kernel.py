@@ -13,6 +13,7 @@ import pytest
 from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings, HoldLog
 from service.estimators import chain_kernel as K
 from service.estimators.chain_kernel import GA_START, N_STATE
+from service.estimators.base import FingerSamples, samples_from_session
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
 from service.pipeline.hand import HandSession, PipelineSettings
@@ -174,6 +175,33 @@ def test_a_batchs_hold_log_equals_tick_by_tick_to_the_last_bit_through_halvings(
             ticks.add(float(t[k]), float(dts[k]), rate[k], gyr[k])
         _assert_logs_equal(batched, ticks, f"after {n} ticks")
         t0 = t[-1]
+    with pytest.raises(ValueError, match="capacity"):          # a full log keeps its newer half: even sizes only
+        HoldLog(2, capacity=5)
+
+
+def test_a_runs_hold_log_over_several_batches_equals_the_sample_by_sample_log():
+    """``Chain.run`` (``estimate``'s batch path) keeps the hold's running integrals over several batches in a
+    row as ``update`` does sample by sample: the same times, and the integrals equal but for rounding (the
+    batch's relative rate and a later batch's first step are computed apart from the kernel's)."""
+    sess = simulate(SimConfig(motion="random", hand_motion="random", noise="realistic", seed=3, duration_s=1.0,
+                              fingers=("index",)))
+    smp = samples_from_session(sess, "index")
+    geom = sess.calibration.finger("index")
+    batched, streamed = Chain(geom), Chain(geom)
+    cuts = (0, 37, 38, 120, len(smp))
+    for a, b in zip(cuts, cuts[1:]):
+        h = smp.hand
+        batched.run(FingerSamples(smp.t[a:b], smp.gyr[a:b], smp.acc[a:b], BaseMotion(
+            h.rotation[a:b], h.position[a:b], h.velocity[a:b], h.acceleration[a:b], h.angular_velocity[a:b],
+            h.angular_acceleration[a:b])))
+    for k in range(len(smp)):
+        streamed.update(*smp.sample(k))
+    n = streamed._hold._n
+    assert batched._hold._n == n == len(smp)
+    np.testing.assert_array_equal(batched._hold._t[:n], streamed._hold._t[:n])
+    for key in ("_r", "_g"):
+        np.testing.assert_allclose(getattr(batched._hold, key)[:n], getattr(streamed._hold, key)[:n], rtol=0,
+                                   atol=1e-12, err_msg=key)
 
 
 def _faulty_recording():

@@ -318,6 +318,9 @@ class HoldLog:
     ``ChainHand`` keeps, which ``chain_kernel.run_hand`` advances as ``add`` does, finger by finger."""
 
     def __init__(self, n_sensors: int, capacity: int = 4096, arrays: tuple | None = None):
+        if arrays is None and (capacity < 2 or capacity % 2):
+            raise ValueError(f"capacity: a hold log keeps the newer half when full, so an even number of ticks of "
+                             f"at least 2; got {capacity}")
         if arrays is None:
             arrays = np.empty(capacity), np.zeros((capacity, n_sensors)), np.zeros((capacity, n_sensors, 3)), \
                 np.zeros(1, dtype=np.int64)
@@ -938,7 +941,8 @@ class ChainHand:
     def _stack_holds(self, estimators: list[Chain]) -> None:
         """The fingers' logs for a reference pose's hold in one hand log the kernel advances (``HoldLog``'s
         arrays, tick by finger and tick by sensor): each finger's history so far copied in, its
-        ``HoldLog`` then made of views of its columns."""
+        ``HoldLog`` then made of views of its columns. The hand's log has the fingers' largest capacity (every
+        finger's is ``HoldLog``'s default: a finger made with a smaller one would halve later here than alone)."""
         starts = self._starts[1]
         cap = max(e._hold.capacity for e in estimators)
         self._log_t = np.empty((cap, len(estimators)))
