@@ -157,8 +157,9 @@ def test_the_hold_leaves_a_held_gyro_scale_state_alone():
     its gain row, since learning the scale there is what sank an earlier attempt (item 6 of chain.py's
     docstring). Its live sensor's offset and scale were learned together before the other fell silent, so
     after ``inherit`` their covariance is not zero, and the hold's offset measurement moved the held
-    scale through it. A still hold now moves the offset toward its 0.02 rad/s and leaves the scale state
-    and its variance exactly as they were."""
+    scale through it, and so did the reference's angle update through ``P[θ, GS]``. A still hold now moves
+    the offset toward its 0.02 rad/s with the Joseph-form covariance of that gain, and the whole reference
+    pose leaves the scale state and its variance exactly as they were."""
     sess = simulate(SimConfig(motion="point", hand_motion="still", noise="offset", seed=1, duration_s=1.0,
                               fingers=("index",)))
     samples = samples_from_session(sess, "index")
@@ -178,7 +179,20 @@ def test_the_hold_leaves_a_held_gyro_scale_state_alone():
     held._hold_offsets(x, p, (0.0, 2.0))
     assert x[0, GS] == x0[0, GS] and p[0, GS, GS] == p0[0, GS, GS]
     assert abs(x[0, 1] - 0.02) < abs(x0[0, 1] - 0.02) and p[0, 1, 1] < p0[0, 1, 1]
-    assert np.all(np.linalg.eigvalsh(p[0]) > -1e-15)
+    # the covariance of a gain with its scale row zeroed is the Joseph form (I - K h) P (I - K h)ᵀ + K r Kᵀ
+    h = np.zeros(len(x0[0]))
+    h[1] = 1.0
+    r = held.settings.hold_rate_std_rad_s**2 + (held.settings.gyro_scale_uncertainty * 0.5) ** 2
+    k = p0[0] @ h / (h @ p0[0] @ h + r)
+    k[GS] = 0.0
+    i_kh = np.eye(len(h)) - np.outer(k, h)
+    np.testing.assert_allclose(p[0], i_kh @ p0[0] @ i_kh.T + r * np.outer(k, k), rtol=0, atol=1e-15)
+    # the whole reference pose (the hold, then the angle update through P[θ, GS]) leaves it alone too
+    held._state = {**held._state, "x": x0.copy(), "P": p0.copy()}
+    held.known_configuration(joint_to_phalanx_angles(sess.joint_angles["index"][-1]) + 0.1, 0.05, hold_s=(0.0, 2.0))
+    x, p = held.state["filter"]["x"], held.state["filter"]["P"]
+    assert x[0, GS] == x0[0, GS] and p[0, GS, GS] == p0[0, GS, GS]
+    assert abs(x[0, 0] - x0[0, 0]) > 1e-3                      # the angle did move
 
 
 def _mounted(delta_rad):
