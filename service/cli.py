@@ -549,7 +549,10 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", required=True, help="output recording, JSON Lines")
     sim.set_defaults(func=_cmd_simulate)
 
-    est = sub.add_parser("estimate", help="run a recording through an estimator and write joint angles as CSV")
+    est = sub.add_parser("estimate", help="run a recording through an estimator and write joint angles as CSV (offline: "
+                                          "the hand's motion from all poses at once, each finger alone, so chain takes "
+                                          "neither the hand's shared acceleration error nor the gyros' angle that "
+                                          "the live pipeline and replay give it; their frames differ)")
     est.add_argument("recording", nargs="?", help="protocol-v1 recording, JSON Lines")
     _estimator_arguments(est)
     est.add_argument("--list", action="store_true", help="list the estimators, one per line, name first")

@@ -217,8 +217,12 @@ the optics track and no gyro of the finger is clipped; its std is the optical ra
 (``gyro_angle_window_s``: the rate's error is correlated over it), and an angle further than 0.5 rad from
 the prediction is not taken. It updates the sensor's own states and their covariance with δ; δ and the
 other sensors take no gain from it (a valid, not optimal, update). A finger advanced alone (a rebuild, a
-batch, the per-finger reference) does not take it. On tuning trials it measured each rotating hand's
-sensor to 1.8 deg RMS of bias per sensor against the filter's 2.3 deg.
+batch, the per-finger reference) does not take it. It comes after the tick's angles are read out, so a
+correction shows in the next frame. Not modelled yet (a review's leads): a finger on a fallback closure
+holds its gyro scale state, but this measurement still moves it through ``P[θ, GS]``; a tick longer than
+the window counts as more than one window; the gyro's own cross-axis offsets, scale and cross-axis errors
+and the mounting's tilt do not average out over windows as the noise model assumes. On tuning trials it
+measured each rotating hand's sensor to 1.8 deg RMS of bias per sensor against the filter's 2.3 deg.
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
 2) the coupling is what determines the MCP angle, so there is no redundancy to soften; with sensors
@@ -297,7 +301,9 @@ class ChainSettings(EstimatorSettings):
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
-                                "tested equal to (to 1e-9), about a hundred times slower")
+                                "tested equal to (to 1e-9), about a hundred times slower, finger by finger, so without "
+                                "the hand's shared acceleration error and the gyros' angle (their numpy reference is "
+                                "ChainHand.advance_reference)")
 
 
 _GYRO_ANGLE_H = np.zeros(N_STATE)
