@@ -12,7 +12,7 @@ import pytest
 
 from service.estimators.chain import BG, TH, Chain, ChainHand, ChainSettings, HoldLog
 from service.estimators import chain_kernel as K
-from service.estimators.chain_kernel import GA_START, N_STATE
+from service.estimators.chain_kernel import GA_START, GS, N_STATE
 from service.estimators.base import FingerSamples, samples_from_session
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
@@ -535,12 +535,16 @@ def test_the_kernels_gyro_angles_equal_the_reference():
     """``chain_kernel._gyro_angles`` (the end of the hand's one call) equals ``ChainHand._gyro_angles`` in numpy
     on random states and cross-covariances of a whole hand turning fast across its fingers' hinge axes, the
     fingers' phalanges nearly still on it (so that measurements are taken), with one finger's gyro clipped,
-    one with the optics lost, one just started (no step): x, P and the cross-covariances with δ to 1e-12."""
+    one with the optics lost, one just started (no step), one on a fallback closure (a sensor silent: its gyro
+    scale state held, which the measurement must leave as it is): x, P and the cross-covariances with δ to
+    1e-12."""
     rng = np.random.default_rng(31)
     calib = default_calibration("right")
-    ests = [Chain(geom) for geom in calib.fingers.values()]
+    ests = [Chain(replace(geom, sensors=geom.sensors[1:]), extra_couplings=((0, 1.0),)) if name == "ring"
+            else Chain(geom) for name, geom in calib.fingers.items()]
+    ring = list(calib.fingers).index("ring")
     hand = ChainHand()
-    taken = 0
+    taken = held_taken = 0
     for trial in range(6):
         for e in ests:
             e._state = _random_state(rng, e)
@@ -564,15 +568,20 @@ def test_the_kernels_gyro_angles_equal_the_reference():
         dts[3] = 0.0 if trial % 3 == 0 else dts[3]
         untracked = np.zeros(len(ests), dtype=np.bool_)
         untracked[2] = trial % 2 == 0
-        before = hand._x.copy()
+        before, p_before, cx_before = hand._x.copy(), hand._p.copy(), hand._cx.copy()
         arrays = [hand._x.copy(), hand._p.copy(), hand._cx.copy()]
         K._gyro_angles(motion.flat, gyr, dts, untracked, hand._sensor_start, hand._geo, hand._geo_start, hand._st,
                        *arrays, np.empty(N_STATE))
         hand._gyro_angles(gyr, motion, dts, untracked)
         for a, b, key in zip(arrays, (hand._x, hand._p, hand._cx), ("x", "P", "cx")):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12, err_msg=f"{key} in trial {trial}")
-        taken += int(np.sum(np.any(hand._x != before, axis=1)))
-    assert taken >= 10
+        moved = np.any(hand._x != before, axis=1)
+        taken += int(np.sum(moved))
+        r = hand._sensor_start[ring]                        # the held scale: exactly as it was
+        held_taken += bool(moved[r])
+        assert hand._x[r, GS] == before[r, GS] and hand._p[r, GS, GS] == p_before[r, GS, GS]
+        assert np.array_equal(hand._cx[r, GS], cx_before[r, GS])
+    assert taken >= 10 and held_taken >= 2
 
 
 def test_the_kernels_gyro_angles_equal_the_numpy_step_after_the_kernel_through_the_pipeline(monkeypatch):

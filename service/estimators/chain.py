@@ -1035,10 +1035,18 @@ class ChainHand:
             return
         r = s.gyro_angle_rate_std_rad_s ** 2 / w_yz2[i] * s.gyro_angle_window_s / np.repeat(dts, counts)[i]
         ph = self._p[i] @ _GYRO_ANGLE_H
-        gain = ph / (ph @ _GYRO_ANGLE_H + r)[:, None]
+        s_cov = ph @ _GYRO_ANGLE_H + r
+        gain = ph / s_cov[:, None]
+        held = np.repeat(self._st[:, K.ST_GS_LEARN] <= 0.5, counts)[i]     # a finger on a fallback holds s_g
+        gain[held, GS] = 0.0
         hc = _GYRO_ANGLE_H @ self._cx[i]
         self._x[i] += gain * y[:, None]
         p = self._p[i] - gain[:, :, None] * ph[:, None, :]
+        if held.any():
+            # the gain's scale row zeroed: the general form P - K phᵀ - ph Kᵀ + S K Kᵀ (valid for any gain)
+            g, q = gain[held], ph[held]
+            p[held] = self._p[i][held] - g[:, :, None] * q[:, None, :] - q[:, :, None] * g[:, None, :] \
+                + s_cov[held, None, None] * g[:, :, None] * g[:, None, :]
         self._p[i] = 0.5 * (p + p.transpose(0, 2, 1))
         self._cx[i] -= gain[:, :, None] * hc[:, None, :]
 

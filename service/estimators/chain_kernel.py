@@ -217,6 +217,7 @@ def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x,
         if not w_yz2 > min_rate * min_rate:
             continue
         seen = math.atan2(w2, w1)
+        learn = st[f, ST_GS_LEARN] > 0.5          # a finger on a fallback holds its gyro scale states
         for k in range(ns):
             s = s0 + k
             m = geo_start[f] + 9 * k            # the sensor's mounting (sensor -> phalanx)
@@ -235,14 +236,21 @@ def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x,
             hc1 = cx[s, 0, 1] + hq * cx[s, g5, 1] - hq * cx[s, g7, 1]
             hc2 = cx[s, 0, 2] + hq * cx[s, g5, 2] - hq * cx[s, g7, 2]
             for i in range(N_STATE):
-                gain = ph[i] / den
+                gain = 0.0 if i == GS and not learn else ph[i] / den
                 x[s, i] += gain * y
                 cx[s, i, 0] -= gain * hc0
                 cx[s, i, 1] -= gain * hc1
                 cx[s, i, 2] -= gain * hc2
             for i in range(N_STATE):
+                gi = 0.0 if i == GS and not learn else ph[i] / den
                 for j in range(i, N_STATE):
-                    pij = 0.5 * ((p[s, i, j] - ph[i] / den * ph[j]) + (p[s, j, i] - ph[j] / den * ph[i]))
+                    if learn:
+                        pij = 0.5 * ((p[s, i, j] - ph[i] / den * ph[j]) + (p[s, j, i] - ph[j] / den * ph[i]))
+                    else:
+                        # the scale's gain zeroed: the general form P - K phᵀ - ph Kᵀ + S K Kᵀ
+                        gj = 0.0 if j == GS else ph[j] / den
+                        pij = 0.5 * ((p[s, i, j] - gi * ph[j] - ph[i] * gj + den * gi * gj)
+                                     + (p[s, j, i] - gj * ph[i] - ph[j] * gi + den * gj * gi))
                     p[s, i, j] = pij
                     p[s, j, i] = pij
 
