@@ -350,8 +350,10 @@ def test_a_session_moving_back_to_a_restarting_worker_drops_the_close_of_it_held
     assert live.reopened == [({"estimator": "chain"}, False)] and restarting.owed == 2 and other.owed == 0
 
 
-def test_what_a_worker_could_not_restore_goes_to_the_session_s_source():
-    """The web process passes a worker's ``lost`` errors (``hands.worker``) to the session's source."""
+def test_what_a_worker_could_not_restore_goes_to_the_session_s_source_with_its_next_reply():
+    """The web process passes a worker's ``lost`` errors (``hands.worker``) to the session's source with
+    the next reply (as on the bus: to the source connected then, also when the session moved while its
+    source was away), before that reply's own errors."""
     async def run():
         pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
         pool.loop = asyncio.get_running_loop()
@@ -360,8 +362,15 @@ def test_what_a_worker_could_not_restore_goes_to_the_session_s_source():
 
         async def answer(code, detail, *samples):
             got.append((code, detail))
-        live.attach_source(answer)
         pool.links[0]._dispatch(["lost", live.sid, [["invalid_message", "its calibration: sensors; send it again"]]])
-        await _until(lambda: got, "the source's error reply")
-        return got
-    assert asyncio.run(run()) == [("invalid_message", "its calibration: sensors; send it again")]
+        live.attach_source(answer)                  # a source connecting after the move
+        await asyncio.sleep(0)
+        told_before_a_reply = list(got)
+        live._pending[1] = ("imu", ["src", b""], time.perf_counter(), None)
+        live.link.owed += 1
+        pool.links[0]._dispatch(["rep", live.sid, 1, [["duplicate", "the same sensor and time"]]])
+        await _until(lambda: len(got) == 2, "the source's error replies")
+        return told_before_a_reply, got
+    before, got = asyncio.run(run())
+    assert before == []
+    assert got == [("invalid_message", "its calibration: sensors; send it again"), ("duplicate", "the same sensor and time")]

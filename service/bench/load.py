@@ -404,7 +404,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
     with contextlib.ExitStack() as stack:
         readings: list = []                        # the workers' CPU seconds at the streaming window's ends
         if bus_workers is None:
-            extra = {**limits, **({} if hand_workers is None else {"hand_workers": hand_workers})}
+            # no spare hand worker: no estimator is switched, and its start would fall into the measured window
+            extra = {**limits, "hand_worker_spare": False, **({} if hand_workers is None else {"hand_workers": hand_workers})}
             svc = stack.enter_context(service_process(extra_settings=extra))
             urls = [svc.url]
 

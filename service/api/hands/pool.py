@@ -260,8 +260,8 @@ class WorkerLink:
             live.on_reply(message[2], message[3], message[4] if len(message) > 4 else None)
         elif kind == "cfgrep":
             live.on_config_reply(message[2], message[3], message[4])
-        elif kind == "lost":
-            live.on_errors(message[2])
+        elif kind == "lost":                        # said with the next reply (to the source then connected)
+            live.lost.extend(message[2])
 
     async def _watch(self, proc: asyncio.subprocess.Process) -> None:
         """When the process ends (unless the service is closing): its sessions move to the live worker
@@ -581,6 +581,9 @@ class ProcessSession(LiveSession):
         """the current source connection's hello was accepted (before it, a message that is not a hello
         gets ``expected_hello``, or its decoding error: every message is decoded here)"""
         self._config_n = itertools.count(1)
+        self.lost: list[list] = []
+        """what the session's new worker could not restore of its state (``["lost", ...]``), for its source
+        with the next reply"""
         self._config_waits: dict[int, tuple[threading.Event, list, list]] = {}   # n -> (answered, result, request)
         link.sessions[sid] = self
         self._to_worker(["open", sid, name, None])
@@ -766,15 +769,13 @@ class ProcessSession(LiveSession):
             self.link.owed -= 1
         if entry is not None and entry[0] == "calibration" and not errors:
             self.calibration = entry[3]
-        self.on_errors(errors)
-        self._replied.set()
-
-    def on_errors(self, errors: list) -> None:
-        """Error replies for the source (after those queued before them)."""
+        if self.lost:                               # first what its new worker could not restore (as on the bus)
+            errors, self.lost = self.lost + list(errors), []
         if errors and self._source_error is not None:
             self._errors.extend(errors)
             if self._error_task is None or self._error_task.done():
                 self._error_task = asyncio.get_running_loop().create_task(self._send_errors())
+        self._replied.set()
 
     async def _send_errors(self) -> None:
         while self._errors:
