@@ -218,9 +218,9 @@ the optics track and no gyro of the finger is clipped; its std is the optical ra
 the prediction is not taken. It updates the sensor's own states and their covariance with δ; δ and the
 other sensors take no gain from it (a valid, not optimal, update). A finger advanced alone (a rebuild, a
 batch, the per-finger reference) does not take it. It comes after the tick's angles are read out, so a
-correction shows in the next frame. Not modelled yet (a review's leads): a finger on a fallback closure
-holds its gyro scale state, but this measurement still moves it through ``P[θ, GS]``; a tick longer than
-the window counts as more than one window; the gyro's own cross-axis offsets, scale and cross-axis errors
+correction shows in the next frame. A finger on a fallback closure holds its gyro scale state: the
+measurement's gain on it is zeroed (the general covariance form). Not modelled yet (a review's leads): a
+tick longer than the window counts as more than one window; the gyro's own cross-axis offsets, scale and cross-axis errors
 and the mounting's tilt do not average out over windows as the noise model assumes. On tuning trials it
 measured each rotating hand's sensor to 1.8 deg RMS of bias per sensor against the filter's 2.3 deg.
 
