@@ -208,6 +208,48 @@ class GestureRule:
         return min(c.score(x, s) for c in self.conditions)
 
 
+_QUANTITY_INDEX = {name: i for i, name in enumerate(QUANTITIES)}
+
+
+def _quantities(x: Features) -> tuple[float, ...] | None:
+    """Every quantity of ``QUANTITIES`` on ``x``, in its order, each computed as its entry there (the
+    same operations in the same order: the same numbers); None for a frame without one of the five
+    fingers (``_judge`` then asks the rules, whose answer may depend on which quantities they read)."""
+    c = x.curl
+    if len(c) < 5 or not c.keys() >= _FINGERS:
+        return None
+    ci, cm, cr, cl = c["index"], c["middle"], c["ring"], c["little"]
+    others = _mean([cm, cr, cl])
+    return (min(ci, cm, cr, cl), max(ci, cm, cr, cl), ci, c["thumb"], min(cm, cr, cl), others, x.pinch_distance_m,
+            x.others_curl_rate, others + PINCH_LOOKAHEAD_S * x.others_curl_rate,
+            ci + PINCH_LOOKAHEAD_S * x.index_curl_rate)
+
+
+_FINGERS = frozenset(FINGER_ORDER)
+_ZEROS = (0.0,) * len(FINGER_ORDER)
+"""A missing finger's curl in ``history`` (``dict.get``'s default, one per finger)."""
+
+
+def _rule_table(s: "GestureSettings") -> tuple:
+    """``RULES`` with ``s``'s thresholds, in priority order: per gesture its name, its enter and its stay
+    conditions as ``(quantity index, above, threshold)`` and its score's terms as ``(quantity index,
+    ideal, enter threshold)`` (``Condition.holds``, ``Condition.score``)."""
+    return tuple(
+        (g, tuple((_QUANTITY_INDEX[c.quantity], c.above, getattr(s, c.enter)) for c in RULES[g].conditions),
+         tuple((_QUANTITY_INDEX[c.quantity], c.above, getattr(s, c.exit)) for c in RULES[g].conditions if c.exit is not None),
+         tuple((_QUANTITY_INDEX[c.quantity], c.ideal, getattr(s, c.enter)) for c in RULES[g].conditions))
+        for g in GESTURES)
+
+
+def _all_hold(q: tuple[float, ...], conditions: tuple) -> bool:
+    """Whether every ``(quantity index, above, threshold)`` holds on the quantities ``q`` (``Condition.holds``)."""
+    for i, above, threshold in conditions:
+        v = q[i]
+        if not (v >= threshold if above else v <= threshold):
+            return False
+    return True
+
+
 RULES: dict[str, GestureRule] = {
     "grasp": GestureRule("grasp", (Condition("long_curl_min", True, "grasp_curl_enter", "grasp_curl_exit", 1.0),)),
     "point": GestureRule("point", (Condition("index_curl", False, "point_index_enter", "point_index_exit", 0.0),
@@ -239,6 +281,8 @@ class GestureRecognizer:
     _tips_rate: float = 0.0
     _handover_since: float | None = None
     _frame_ray: tuple = (None, None)
+    _table: tuple | None = None
+    """``(settings, _rule_table(settings))`` of the settings last used."""
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
     """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
 
@@ -267,6 +311,40 @@ class GestureRecognizer:
         return ev
 
     def update(self, frame) -> tuple[GestureStateDict, list[GestureDict]]:
+        """The frame's gesture annotation and the events it caused (module docstring)."""
+        return self._update(frame, self._judge)
+
+    def update_reference(self, frame) -> tuple[GestureStateDict, list[GestureDict]]:
+        """``update`` with every rule evaluated by its ``GestureRule`` (``enters``, ``stays``, ``score``
+        through ``QUANTITIES``): the definition ``update``'s rule table is tested equal to."""
+        return self._update(frame, self._judge_reference)
+
+    def _judge_reference(self, x: Features, s: GestureSettings) -> tuple[list[tuple[str, float]], bool, bool]:
+        """The rules on ``x``: the gestures whose enter condition holds with their scores (priority
+        order), whether the pinch's holds, and whether the active gesture's stay condition holds."""
+        candidates = [(g, RULES[g].score(x, s)) for g in GESTURES if RULES[g].enters(x, s)]
+        pinch = any(g == HANDOVER[1] for g, _ in candidates)
+        return candidates, pinch, self.active is None or RULES[self.active].stays(x, s)
+
+    def _judge(self, x: Features, s: GestureSettings) -> tuple[list[tuple[str, float]], bool, bool]:
+        """``_judge_reference`` from each quantity computed once (``_quantities``) and the rules'
+        thresholds read once per settings object (``_rule_table``), without a call per condition."""
+        q = _quantities(x)
+        if q is None:
+            return self._judge_reference(x, s)
+        kept = self._table
+        if kept is None or kept[0] is not s:
+            kept = self._table = (s, _rule_table(s))
+        candidates, pinch, stays = [], False, True
+        for g, enter, stay, score in kept[1]:
+            if _all_hold(q, enter):
+                candidates.append((g, min([_band(q[i], ideal, threshold) for i, ideal, threshold in score])))
+                pinch = pinch or g == HANDOVER[1]
+            if g == self.active:
+                stays = _all_hold(q, stay)
+        return candidates, pinch, stays
+
+    def _update(self, frame, judge) -> tuple[GestureStateDict, list[GestureDict]]:
         s = self.settings
         x = self.features(frame)
         t = frame.t
@@ -279,11 +357,11 @@ class GestureRecognizer:
             self._tips_rate += k * ((x.pinch_distance_m - self._previous[3]) / dt - self._tips_rate)
         self._previous = (t, others, x.curl["index"], x.pinch_distance_m)
         x.others_curl_rate, x.index_curl_rate = self._rate, self._index_rate
-        self.history.append((t, tuple(x.curl.get(f, 0.0) for f in FINGER_ORDER), x.pinch_distance_m, self._rate,
+        self.history.append((t, tuple(map(x.curl.get, FINGER_ORDER, _ZEROS)), x.pinch_distance_m, self._rate,
                              self._index_rate))
         events: list[GestureDict] = []
         # candidates for starting: the highest-priority enter condition that holds
-        candidates = [(g, RULES[g].score(x, s)) for g in GESTURES if RULES[g].enters(x, s)]
+        candidates, pinch_enters, stays = judge(x, s)
         best = candidates[0] if candidates else None
         higher = best is not None and self.active is not None and GESTURES.index(best[0]) < GESTURES.index(self.active)
         if best is not None and (self.active is None or higher):
@@ -294,12 +372,11 @@ class GestureRecognizer:
         # end the active gesture: its stay condition failed long enough, or a higher one takes over,
         # or (a grasp) it hands over to a pinch the hand has settled into
         if self.active is not None:
-            stays = RULES[self.active].stays(x, s)
             if stays:
                 self._failing_since = None
             elif self._failing_since is None:
                 self._failing_since = t
-            if self.active == HANDOVER[0] and not stays and RULES[HANDOVER[1]].enters(x, s) \
+            if self.active == HANDOVER[0] and not stays and pinch_enters \
                     and abs(self._rate) <= s.handover_rate_max and abs(self._index_rate) <= s.handover_rate_max \
                     and self._tips_rate <= s.handover_tips_parting_max_m_s:
                 if self._handover_since is None:

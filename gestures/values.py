@@ -103,20 +103,35 @@ _ROWS_CACHE: dict = {}
 
 
 def _layout(joint_angles, curl_full_long_rad: float, curl_full_thumb_rad: float):
-    """The kernel's finger layout of a frame (finger names, angle ends, full curls, long-finger rows),
-    kept per distinct layout."""
-    key = (tuple((f, len(phi)) for f, phi in joint_angles.items()), curl_full_long_rad, curl_full_thumb_rad)
+    """The kernel's finger layout of a frame (finger names, angle ends, full curls, long-finger rows, the
+    number of angles), kept per distinct layout."""
+    key = (tuple(joint_angles), tuple(map(len, joint_angles.values())), curl_full_long_rad, curl_full_thumb_rad)
     layout = _ROWS_CACHE.get(key)
     if layout is None:
-        names = [f for f, _ in key[0]]
-        ends = np.cumsum([n for _, n in key[0]]).astype(np.int64)
+        names = list(key[0])
+        ends = np.cumsum(key[1]).astype(np.int64)
         full = np.array([curl_full_thumb_rad if f == "thumb" else curl_full_long_rad for f in names])
         row_of = {f: k for k, f in enumerate(names)}
         long_rows = np.array([row_of[f] for f in LONG], dtype=np.int64)     # KeyError as the reference
-        layout = _ROWS_CACHE[key] = (names, ends, full, long_rows)
+        layout = _ROWS_CACHE[key] = (names, ends, full, long_rows, sum(key[1]))
         if len(_ROWS_CACHE) > 64:                # bounded: settings change rarely
             _ROWS_CACHE.pop(next(iter(_ROWS_CACHE)))
     return layout
+
+
+def _flat_angles(joint_angles, n: int) -> np.ndarray:
+    """Every finger's angles in one float64 array of ``n``, finger after finger: one ``concatenate`` of the
+    arrays as they are when that already gives it (the pipeline's float64 vectors), else each made a
+    float64 vector first."""
+    if not joint_angles:
+        return np.zeros(0)
+    try:
+        phi = np.concatenate(tuple(joint_angles.values()))
+    except ValueError:
+        phi = None
+    if phi is None or phi.dtype != np.float64 or phi.shape != (n,):
+        phi = np.concatenate([np.asarray(p, dtype=np.float64).ravel() for p in joint_angles.values()])
+    return phi
 
 
 def frame_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float) -> Values:
@@ -124,9 +139,8 @@ def frame_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thum
     ``JointPoses`` (its positions array is read as it is) or any mapping of joint name to
     ``(position, orientation)``. A frame without the long fingers or the joints raises ``KeyError``
     like the reference."""
-    names, ends, full, long_rows = _layout(joint_angles, curl_full_long_rad, curl_full_thumb_rad)
-    phi = np.concatenate([np.asarray(p, dtype=np.float64).ravel() for p in joint_angles.values()]) \
-        if joint_angles else np.zeros(0)
+    names, ends, full, long_rows, n_angles = _layout(joint_angles, curl_full_long_rad, curl_full_thumb_rad)
+    phi = _flat_angles(joint_angles, n_angles)
     positions = getattr(joints, "positions", None)        # the pipeline's JointPoses: rows in JOINT_NAMES order
     if isinstance(positions, np.ndarray) and positions.shape == (len(JOINT_NAMES), 3) and positions.dtype == np.float64:
         rows = _RAY_ROWS

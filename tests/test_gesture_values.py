@@ -110,11 +110,85 @@ def test_recorded_frames_equal_the_reference_and_the_recogniser_output_is_unchan
     def reference(joint_angles, joints, long_rad, thumb_rad):
         return reference_values(joint_angles, joints, long_rad, thumb_rad)
 
+    ruled = GestureRecognizer()               # every rule asked through its GestureRule (no rule table)
+    assert [ruled.update_reference(f) for f in frames] == fast_out
     monkeypatch.setattr(rec_module, "frame_values", reference)
     slow = GestureRecognizer()
     slow_out = [slow.update(f) for f in frames]
     assert fast_out == slow_out
     assert {e["gesture"] for _, events in slow_out for e in events} >= {"point", "grasp"}
+
+
+def _random_frames(rng, n: int, fingers=("thumb", "index", "middle", "ring", "little")):
+    """Frames that move between fists, points, pinches and open hands (each reached in 40 frames and
+    held for 8, with noise), the tips now close now apart, two late ones with a NaN angle: every
+    rule's conditions on both sides, and a grasp that hands over to a pinch or just ends."""
+    calib = default_calibration("right")
+    poses = np.array([(0.9, 0.9, 0.9, 0.9, 0.6), (0.05, 0.8, 0.8, 0.8, 0.5), (0.35, 0.2, 0.2, 0.2, 0.4),   # curls:
+                      (0.05, 0.05, 0.05, 0.05, 0.1), (0.4, 0.55, 0.6, 0.65, 0.5)])  # index, middle, ring, little, thumb
+    full = np.array([S.curl_full_long_rad] * 4 + [S.curl_full_thumb_rad])
+    column = {f: k for k, f in enumerate(("index", "middle", "ring", "little", "thumb"))}
+    quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(JOINT_NAMES), 1))
+    tip_t, tip_i = JOINT_NAMES.index("thumb_tip"), JOINT_NAMES.index("index_tip")
+    frames, start, target = [], poses[3], poses[3]
+    for k in range(n):
+        if k % 48 == 0:
+            pick = rng.integers(len(poses))
+            start, target = target, poses[pick]
+            apart = (0.01, 0.028, 0.05)[rng.integers(3)] if pick != 2 else (0.005, 0.01, 0.028)[rng.integers(3)]
+            offset = rng.normal(0.0, 0.004, 3) + [apart, 0.0, 0.0]     # (held: the tips' rate settles)
+        curls = start + (target - start) * min(1.0, (k % 48) / 40)
+        angles = {}
+        for f in fingers:
+            n_ph = calib.finger(f).n_phalanges
+            angles[f] = np.full(n_ph, curls[column[f]] * full[column[f]] / n_ph) + rng.normal(0.0, 0.005, n_ph)
+        if k in (n - 30, n - 10):             # (a NaN stays in the low-passed rates: late in the sequence)
+            angles["index"][1] = np.nan
+        positions = rng.normal(0.0, 0.05, (len(JOINT_NAMES), 3))
+        positions[tip_t] = positions[tip_i] + offset
+        frames.append(HandFrame(k / 90, k, "right", angles, {}, np.eye(3), np.zeros(3), JointPoses(positions, quats), {}))
+    return frames
+
+
+def _outcome(update, frame):
+    try:
+        return update(frame)
+    except KeyError as e:
+        return "KeyError", str(e)
+
+
+def test_the_rule_table_equals_the_rules_on_random_frames():
+    """``update`` (each quantity computed once, the thresholds from a table per settings object) against
+    ``update_reference`` (every condition through ``GestureRule``): the same annotations, events and
+    state, with the settings changed midway (enrolled thresholds), NaN angles, and frames without a
+    thumb (the quantities then left to the rules, which raise ``KeyError`` where they read its curl)."""
+    rng = np.random.default_rng(11)
+    enrolled = GestureSettings(grasp_curl_enter=0.55, pinch_enter_m=0.03, pinch_exit_m=0.04, open_curl_enter=0.2,
+                               pinch_others_curl_max=0.7, start_dwell_s=0.03)
+    for fingers in (("thumb", "index", "middle", "ring", "little"), ("index", "middle", "ring", "little")):
+        frames = _random_frames(rng, 1000, fingers)
+        fast, ruled = GestureRecognizer(), GestureRecognizer()
+        out_fast, out_ruled = [], []
+        for k, f in enumerate(frames):
+            if k == 500:
+                fast.settings = ruled.settings = enrolled
+            out_fast.append(_outcome(fast.update, f))
+            out_ruled.append(_outcome(ruled.update_reference, f))
+        assert repr(out_fast) == repr(out_ruled)        # (a float's repr is exact; NaN is written as NaN)
+        assert repr(fast.history) == repr(ruled.history) and fast.active == ruled.active
+        started = {e["gesture"] for out in out_ruled if out[0] != "KeyError" for e in out[1] if e["event"] == "start"}
+        if "thumb" in fingers:
+            assert started == {"grasp", "point", "pinch", "open"}
+        else:
+            assert ("KeyError", "'thumb'") in out_ruled and started >= {"grasp", "point"}
+    # each quantity as QUANTITIES defines it, NaN included
+    for k in range(200):
+        curl = dict(zip(rec_module.FINGER_ORDER, rng.uniform(-0.2, 1.2, 5)))
+        if k % 7 == 0:
+            curl["ring"] = np.nan
+        x = rec_module.Features(curl, float(rng.uniform(0.0, 0.1)), 0.5, float(rng.normal()), float(rng.normal()))
+        q = rec_module._quantities(x)
+        assert np.array_equal(q, [f(x) for f in rec_module.QUANTITIES.values()], equal_nan=True)
 
 
 def test_a_truth_frame_with_plain_joints_gives_the_pipeline_values():
