@@ -2,6 +2,7 @@
 and scipy) on a jittery pose stream with occlusions short and long (the held pose after pruning),
 queries between, at and beyond the poses, and few poses in the fit window."""
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from service.model.kinematics import BaseMotion
@@ -26,7 +27,7 @@ def _compare(track, t):
 
 def test_compiled_optical_track_equals_the_reference():
     rng = np.random.default_rng(5)
-    track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=64)
+    track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=64, reference=True)
     seen = {0: 0, 1: 0, 2: 0}
     t, rot, pos = 0.0, Rotation.random(random_state=rng), rng.normal(0.0, 0.3, 3)
     omega, vel = rng.normal(0.0, 2.0, 3), rng.normal(0.0, 0.5, 3)
@@ -42,3 +43,5 @@ def test_compiled_optical_track_equals_the_reference():
         for query in (t - 0.03, t - 0.011, t, t + 0.004):
             seen[_compare(track, query)] += 1
     assert seen[0] >= 1 and seen[1] > 100 and seen[2] > 1000
+    with pytest.raises(ValueError, match="reference=True"):
+        OpticalTrack().at_reference(0.0)            # the pipeline's tracks keep no poses for it

@@ -95,9 +95,10 @@ class OpticalTrack:
       rates, and ``at`` reports it.
     """
 
-    def __init__(self, window_s: float = 0.15, timeout_s: float = 0.1, max_poses: int = 512):
+    def __init__(self, window_s: float = 0.15, timeout_s: float = 0.1, max_poses: int = 512, reference: bool = False):
         self.window_s = window_s
         self.timeout_s = timeout_s
+        self.reference = reference          # the poses kept for ``at_reference`` too (its tests; the pipeline reads ``at``)
         self._poses: deque = deque(maxlen=max_poses)      # (t, valid, position, quaternion xyzw)
         self.latest_t: float | None = None
         self.latest_valid_t: float | None = None
@@ -119,16 +120,22 @@ class OpticalTrack:
             raise ValueError(f"pose time must increase: {t} after {self.latest_t}")
         self.latest_t = t
         if valid:
-            self._poses.append((t, True, np.asarray(position, dtype=float), np.asarray(orientation_xyzw, dtype=float)))
             self.latest_valid_t = t
+        horizon = t - max(4 * self.window_s, 2 * self.timeout_s)
+        if self.reference:
+            self._add_reference(t, position, orientation_xyzw, valid, horizon)
+        self._add_array(t, position, orientation_xyzw, valid, horizon)
+
+    def _add_reference(self, t: float, position, orientation_xyzw, valid: bool, horizon: float) -> None:
+        """``add`` on the deque ``at_reference`` reads."""
+        if valid:
+            self._poses.append((t, True, np.asarray(position, dtype=float), np.asarray(orientation_xyzw, dtype=float)))
         else:
             self._poses.append((t, False, None, None))
-        horizon = t - max(4 * self.window_s, 2 * self.timeout_s)
         while len(self._poses) > 2 and self._poses[1][0] < horizon:
             old = self._poses.popleft()
             if old[1]:
                 self._pruned_valid = old       # still the held pose during a long occlusion
-        self._add_array(t, position, orientation_xyzw, valid, horizon)
 
     def _add_array(self, t: float, position, orientation_xyzw, valid: bool, horizon: float) -> None:
         """``add`` on the arrays, step for step as on the deque (its ``maxlen`` drops silently)."""
@@ -182,7 +189,10 @@ class OpticalTrack:
         return motion, status == optical_kernel.TRACKING
 
     def at_reference(self, t: float) -> tuple[BaseMotion | None, bool]:
-        """``at`` in numpy and scipy (the reference of the compiled kernel)."""
+        """``at`` in numpy and scipy (the reference of the compiled kernel), for a track made with
+        ``reference=True``."""
+        if not self.reference:
+            raise ValueError("at_reference needs a track that keeps its poses for it: OpticalTrack(..., reference=True)")
 
         poses = self._relevant(t)
         valid = [p for p in poses if p[1]] or ([self._pruned_valid] if self._pruned_valid is not None else [])
