@@ -10,7 +10,7 @@ import time
 
 from clients.glove import source_messages
 from service.api.config import ServiceSettings
-from service.api.hands.pool import LAG_EVIDENCE, HandPool
+from service.api.hands.pool import CAUGHT_UP, LAG_EVIDENCE, HandPool, WorkerLink
 from service.api.metrics import Metrics
 from service.api.sessions import Subscriber
 from service.protocol import parse_message
@@ -278,55 +278,112 @@ def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_
     assert b.moves == 2 and b.restarts == 0
 
 
-def test_a_session_switched_to_a_costly_estimator_takes_the_spare_worker_started_ahead_which_is_replaced():
-    """With ``hand_worker_spare``, one worker of its own is started ahead, once the shared one is ready,
-    ``hand_worker_isolated_nice`` nicer than this process; it counts in ``hand_worker_isolated_max`` (1
-    here). b, switched to ``vector``, moves into that process (no process starts for it) and its frames
-    go on there on ``vector``; with the limit reached no new spare starts. Switched back to ``chain``, b
-    returns to the shared worker, the former spare ends and a new spare starts in its place; the pool's
-    close ends it too."""
+def test_the_spare_worker_at_the_default_limit_is_kept_through_a_given_up_move_taken_and_replaced_late():
+    """With ``hand_worker_spare`` and the default ``hand_worker_isolated_max`` (2), one shared worker:
+    the spare's process starts only once the shared worker is ready, ``hand_worker_isolated_nice`` nicer
+    than this process. A move to it given up while it starts (``call``'s timeout) leaves it the spare
+    (no orphan holding a slot). b, switched to ``vector`` with messages in flight, moves into it and its
+    frames go on there on ``vector``; a new spare starts (replaced at the default limit) only once b runs
+    ``vector`` there and has caught up (not beside b's worker while it catches up). b, switched back to
+    ``chain``, returns to the shared worker and its worker ends; the pool's close ends every worker (the
+    new spare's start too: this test does not wait for it)."""
     msgs = _glove(0.4, 8)
     parts = [msgs[:len(msgs) // 2], msgs[len(msgs) // 2:]]
 
     async def run():
-        pool = await _pool(1, hand_worker_spare=True, hand_worker_isolated_max=1, hand_worker_isolated_nice=1)
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1, hand_worker_spare=True,
+                                             hand_worker_isolated_nice=1), Metrics())
+        await pool.start()
+        seen = {"isolated_max": pool.settings.hand_worker_isolated_max}
         try:
-            await _until(lambda: pool.spare is not None and pool.spare.ready.is_set(), "the spare worker")
-            spare = pool.spare
-            seen = {"spare_pid": spare.pid, "spare_nice": os.getpriority(os.PRIO_PROCESS, spare.pid)}
+            shared, first = pool.links[0], pool.spare
+            started, replaced = [], []
+
+            async def start_first():                # when the spare's process is started
+                started.append(shared.ready.is_set())
+                await type(first).start(first)
+            first.start = start_first
             b = pool.session("b", pool.settings, pool.metrics)
+            a = pool.session("a", pool.settings, pool.metrics)
+            given_up = asyncio.create_task(pool.move(a, isolated=True, config={"estimator": "vector"}))
+            await asyncio.sleep(0)                  # the move waits for the spare, which waits for the shared worker
+            seen["waiting"] = pool.spare is None and not shared.ready.is_set()
+            given_up.cancel()
+            await asyncio.gather(given_up, return_exceptions=True)
+            await _until(lambda: first.ready.is_set(), "the spare worker")
+            assert pool.spare is first and pool.isolated == [first] and a.link is shared, \
+                "a move given up while the spare started left it without a session, and no spare"
+            seen.update(started=started, spare_nice=os.getpriority(os.PRIO_PROCESS, first.pid))
+
+            def replace_spare(original=pool._replace_spare):    # what b's state is when a new spare is started
+                if pool.spare is None and len(pool.isolated) < pool.settings.hand_worker_isolated_max:
+                    replaced.append((b.link is first, b.config.estimator, len(b._pending)))
+                original()
+            pool._replace_spare = replace_spare
             sub = Subscriber(frames_max=100_000, events_max=100_000)
             b.subscribers.add(sub)
-            shared = b.link
+
             async def answer(*reply):
                 seen.setdefault("errors", []).append(reply)
-            b.attach_source(answer)
-            await _ingest(b, HELLO)
+            for live in (a, b):
+                live.attach_source(answer)
+                await _ingest(live, HELLO)
+            for m in parts[0][:40]:
+                await _ingest(b, m)                 # in flight when it moves
+            seen["in_flight"] = len(b._pending)
             await asyncio.to_thread(b.update_config, {"estimator": "vector"})
-            seen["moved_to"], seen["spare_after_move"] = b.link, pool.spare
-            for m in parts[0]:
+            seen["moved_to"] = b.link
+            sub.queue.clear()                       # the frames of the messages in flight came before the change
+            for m in parts[0][40:]:
                 await _ingest(b, m)
             await b.settled()
             seen["estimators"] = {f.message["status"]["estimator"] for kind, f, _ in sub.queue if kind == "frame"}
+            await asyncio.gather(*pool._replacing)
+            second = pool.spare
+            assert second is not None, "no new spare after b took the spare and caught up"
+            seen["replaced"] = list(replaced)
             await asyncio.to_thread(b.update_config, {"estimator": "chain"})
             for m in parts[1]:
                 await _ingest(b, m)
             await b.settled()
-            seen["back_to"], seen["new_spare"] = b.link, pool.spare
-            await _until(lambda: spare.proc.returncode is not None, "the former spare to end")
-            return seen, shared, spare, b
+            seen["back_to"], seen["spare_then"], seen["isolated_then"] = b.link, pool.spare, list(pool.isolated)
+            await _until(lambda: first.proc.returncode is not None, "b's former worker to end")
+            return seen, shared, first, second, a, b
         finally:
             await pool.close()
 
-    seen, shared, spare, b = asyncio.run(run())
-    assert "errors" not in seen, seen["errors"]
+    seen, shared, first, second, a, b = asyncio.run(run())
+    assert seen["isolated_max"] == 2 and "errors" not in seen, seen.get("errors")
+    assert seen["started"] == [True]                # not before the shared worker was ready
+    assert seen["waiting"]
     assert seen["spare_nice"] == min(19, os.getpriority(os.PRIO_PROCESS, 0) + 1)
-    assert seen["moved_to"] is spare and spare.pid == seen["spare_pid"] and seen["spare_after_move"] is None
-    assert seen["estimators"] == {"vector"}
-    assert seen["back_to"] is shared and b.moves == 2 and b.restarts == 0
-    new = seen["new_spare"]
-    assert new is not None and new is not spare and new.isolated
-    assert new.proc is None or new.proc.returncode is not None     # ended with the pool (or never started)
+    assert seen["in_flight"] > CAUGHT_UP
+    assert seen["moved_to"] is first and seen["estimators"] == {"vector"}
+    assert second is not first and second.isolated
+    assert seen["replaced"] == [(True, "vector", seen["replaced"][0][2])] and seen["replaced"][0][2] <= CAUGHT_UP
+    assert seen["back_to"] is shared and b.moves == 2 and b.restarts == 0 and a.link is shared and a.moves == 0
+    assert seen["spare_then"] is second and seen["isolated_then"] == [second]
+    for link in (first, second):                    # ended with the pool (or, the new spare, never started)
+        assert link.proc is None or link.proc.returncode is not None
+
+
+def test_no_spare_worker_starts_past_the_limit_nor_once_the_pool_closes():
+    """With two sessions in workers of their own (the default ``hand_worker_isolated_max``) no spare
+    starts; one of those workers ending while the pool closes (its session left it) starts none in its
+    place either: ``close`` has already stopped every worker it knows of, a spare started then would
+    outlive it. (Workers not started: no process is needed for the rule.)"""
+    async def run():
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1, hand_worker_spare=True), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        own = [WorkerLink(pool, slot, estimator="vector") for slot in (1, 2)]
+        pool.isolated.extend(own)
+        pool._replace_spare()
+        at_limit = pool.spare, pool._spare_start
+        pool.closing = True
+        await pool.retire(own[0])                   # never started: its stop waits for nothing
+        return pool.settings.hand_worker_isolated_max, at_limit, (pool.spare, pool._spare_start), pool.isolated, own
+    limit, at_limit, closing, isolated, own = asyncio.run(run())
+    assert limit == 2 and at_limit == (None, None) and closing == (None, None) and isolated == own[1:]
 
 
 def test_a_session_moving_back_to_a_restarting_worker_drops_the_close_of_it_held_there():

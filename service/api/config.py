@@ -111,8 +111,8 @@ class ServiceSettings(BaseSettings):
                                           "(hand_worker_isolate) at once, the spare (hand_worker_spare) counted, about 200 MB each; past it a session switched "
                                           "to a costly estimator stays on its shared worker (logged)")
     hand_worker_spare: bool = Field(True, description="keep one hand worker process started ahead (once the shared "
-                                    "ones are ready, hand_worker_isolated_nice nicer than the web process, replaced when "
-                                    "taken; it counts in hand_worker_isolated_max) for the next session switched to a "
+                                    "ones are ready, hand_worker_isolated_nice nicer than the web process, replaced once "
+                                    "the session that took it runs its new estimator there and has caught up; it counts in hand_worker_isolated_max) for the next session switched to a "
                                     "costly estimator (hand_worker_isolate): it moves at once instead of waiting for a "
                                     "process to start (9-40 s on a busy machine)")
     hand_worker_isolated_nice: int = Field(10, ge=0, le=19, description="a session's own hand worker (hand_worker_isolate) "

@@ -41,7 +41,9 @@ compiled ``chain``, ``FingerEstimator.whole_hand_compiled``: 8-140 % of a core p
 runs in a worker process of its own (``hand_worker_isolate``; at most ``hand_worker_isolated_max`` at once,
 past it the session stays on its shared worker, logged): it takes the spare worker (``hand_worker_spare``:
 one such process started ahead, once the shared workers are ready, with the default estimator loaded,
-``hand_worker_isolated_nice`` nicer than this process from its start, and replaced when taken), moves
+``hand_worker_isolated_nice`` nicer than this process from its start, and replaced once the session that
+took it runs its new estimator there and has caught up, so that the new one's start does not compete with
+that session's worker while it catches up; a move given up while the spare starts leaves it the spare), moves
 there at once with its state and every unanswered source message, as after a crash (``reopen``), and the
 change applies there (its worker loads the estimator's kernels first, if it has any, while the session
 goes on with its old estimator there). Without a spare (none allowed, or not started yet) one is started
@@ -373,6 +375,8 @@ class HandPool:
         self.spare: WorkerLink | None = None
         """the worker started ahead for the next session switched to a costly estimator (module docstring)"""
         self._spare_start: asyncio.Task | None = None
+        self._replacing: set[asyncio.Task] = set()
+        """the waits to start a new spare after one was taken (``_replace_when_settled``)"""
         self._isolated_slots = itertools.count(settings.hand_workers)
         self.outs_per_turn = max(1, min(OUTS_PER_TURN, settings.subscriber_queue_frames // 2))
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -411,18 +415,38 @@ class HandPool:
             await self.retire(link, replace=False)
 
     async def _take_spare(self) -> WorkerLink | None:
-        """The spare worker, ready, for a session to move to (a new spare is started: ``_replace_spare``);
-        ``None`` without one."""
+        """The spare worker, started, for a session to move to (its replacement starts later:
+        ``_replace_when_settled``); ``None`` without one. A move given up while the spare starts (``call``'s
+        timeout) leaves it the spare (or ends it, if another has taken its place meanwhile): no process
+        holds a slot for no session."""
         link, starting = self.spare, self._spare_start
         if link is None or starting is None:
             return None
         self.spare = None
-        with contextlib.suppress(Exception):        # (shielded: a cancelled move must not cancel a process's start)
-            await asyncio.shield(starting)
+        try:
+            with contextlib.suppress(Exception):    # (shielded: a cancelled move must not cancel a process's start)
+                await asyncio.shield(starting)
+        except asyncio.CancelledError:
+            if not self.closing and link in self.isolated:    # (closing: ``close`` ends it)
+                if self.spare is None:
+                    self.spare = link
+                else:
+                    self.loop.create_task(self.retire(link, replace=False))
+            raise
         if link not in self.isolated or link.proc is None:
             return None                             # it did not start
-        self._replace_spare()
         return link
+
+    async def _replace_when_settled(self, live: "ProcessSession", link: WorkerLink, estimator: str) -> None:
+        """A new spare (``_replace_spare``) once the session that took the spare ``link`` runs there on
+        ``estimator`` (the change applied) and has caught up (``CAUGHT_UP``), once it has left that worker,
+        or after ``CATCH_UP_WAIT_S`` at the latest: the new spare's start (seconds of CPU) does not compete
+        with that session's worker while it catches up."""
+        deadline = time.monotonic() + CATCH_UP_WAIT_S
+        while (live.link is link and live.sid in link.sessions and time.monotonic() < deadline
+               and not (live.config.estimator == estimator and len(live._pending) <= CAUGHT_UP)):
+            await asyncio.sleep(0.05)
+        self._replace_spare()
 
     async def _watch_stalls(self) -> None:
         """A stuck worker (an endless loop, a stopped process; module docstring) is killed: its sessions
@@ -445,6 +469,8 @@ class HandPool:
         self.closing = True
         if self._watchdog is not None:
             self._watchdog.cancel()
+        for task in self._replacing:
+            task.cancel()
         if self._spare_start is not None:
             self._spare_start.cancel()
             await asyncio.gather(self._spare_start, return_exceptions=True)
@@ -471,12 +497,14 @@ class HandPool:
         its former worker forgets it, and a worker of its own ends. False: not moved, ``hand_worker_isolated_max``
         workers of their own run already (or the session closed meanwhile)."""
         if isolated:
+            wanted = (config or {}).get("estimator", live.config.estimator)
             target = await self._take_spare()
-            if target is not None:
+            spare = target is not None
+            if spare:
                 config = None                       # it goes on with its estimator there until the change applies
             elif len(self.isolated) >= self.settings.hand_worker_isolated_max:
-                log.warning("session %s stays on its shared hand worker: %d sessions have a worker of their own "
-                            "(hand_worker_isolated_max)", live.name, len(self.isolated))
+                log.warning("session %s stays on its shared hand worker: %d hand workers of their own run "
+                            "(hand_worker_isolated_max, a spare being taken counted)", live.name, len(self.isolated))
                 return False
             else:
                 target = WorkerLink(self, next(self._isolated_slots),
@@ -506,6 +534,10 @@ class HandPool:
                 await self.retire(target)
             return False
         target.take(live, config, restart=False)
+        if isolated and spare:
+            replacing = asyncio.get_running_loop().create_task(self._replace_when_settled(live, target, wanted))
+            self._replacing.add(replacing)
+            replacing.add_done_callback(self._replacing.discard)
         old.send(["close", live.sid])
         if old.isolated:
             await self.retire(old)
