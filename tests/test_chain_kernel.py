@@ -536,8 +536,8 @@ def test_the_kernels_gyro_angles_equal_the_reference():
     on random states and cross-covariances of a whole hand turning fast across its fingers' hinge axes, the
     fingers' phalanges nearly still on it (so that measurements are taken), with one finger's gyro clipped,
     one with the optics lost, one just started (no step), one on a fallback closure (a sensor silent: its gyro
-    scale state held, which the measurement must leave as it is): x, P and the cross-covariances with δ to
-    1e-12."""
+    scale state held, which the measurement must leave as it is), with and without cross-axis offsets taken
+    off the readings: x, P and the cross-covariances with δ to 1e-12."""
     rng = np.random.default_rng(31)
     calib = default_calibration("right")
     ests = [Chain(replace(geom, sensors=geom.sensors[1:]), extra_couplings=((0, 1.0),)) if name == "ring"
@@ -551,6 +551,7 @@ def test_the_kernels_gyro_angles_equal_the_reference():
             e._state["x"][:, GA_START:GA_START + 9] *= 0.3
         hand._stack(ests, np.zeros(3))
         hand._cx[:] = rng.normal(0.0, 0.01, hand._cx.shape)
+        hand.cross_offsets = rng.normal(0.0, 0.05, (hand._x.shape[0], 2)) if trial % 2 else None
         rot = Rotation.random(random_state=rng).as_matrix()
         omega = rot @ rng.normal(0.0, 3.0, 3)
         motion = BaseMotion(rot, np.zeros(3), np.zeros(3), np.zeros(3), omega, np.zeros(3))
@@ -571,7 +572,7 @@ def test_the_kernels_gyro_angles_equal_the_reference():
         before, p_before, cx_before = hand._x.copy(), hand._p.copy(), hand._cx.copy()
         arrays = [hand._x.copy(), hand._p.copy(), hand._cx.copy()]
         K._gyro_angles(motion.flat, gyr, dts, untracked, hand._sensor_start, hand._geo, hand._geo_start, hand._st,
-                       *arrays, np.empty(N_STATE))
+                       *arrays, np.empty(N_STATE), hand._cross_offsets())
         hand._gyro_angles(gyr, motion, dts, untracked)
         for a, b, key in zip(arrays, (hand._x, hand._p, hand._cx), ("x", "P", "cx")):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-12, err_msg=f"{key} in trial {trial}")
@@ -582,6 +583,56 @@ def test_the_kernels_gyro_angles_equal_the_reference():
         assert hand._x[r, GS] == before[r, GS] and hand._p[r, GS, GS] == p_before[r, GS, GS]
         assert np.array_equal(hand._cx[r, GS], cx_before[r, GS])
     assert taken >= 10 and held_taken >= 2
+
+
+def test_the_gyros_cross_axis_offsets_bias_its_angle_unless_taken_off():
+    """A still finger on a hand turning at 1.7 rad/s across the hinge, its gyros reading cross-axis offsets of
+    4 and 3 deg/s across the rate (phalanx frame; MPU-9250 ±5 deg/s): the cross axes then tell the angle
+    turned by about |b| / |w| (2.3 and 1.7 deg), and 400 ticks of that measurement
+    settle on it, not on the angle (closed form: the state moves from its start toward the measured angle by
+    ``n P / (r + n P)``). With the offsets taken off (``ChainHand.cross_offsets``, as the pipeline sets them
+    from the flexion-axis fit) the same ticks settle on the angle, to 0.5 deg."""
+    geom = default_calibration("right").finger("index")
+    truth = np.array([0.4, 0.9])
+    w_base, dt, ticks = np.array([0.7, 1.4, -1.0]), 0.005, 400
+    p0 = np.diag(np.r_[[0.05**2], np.full(N_STATE - 1, 1e-4)])
+    p0[GA_START:GA_START + 9, GA_START:GA_START + 9] = 0.0         # no mounting turn carried yet
+    seen = []
+    for th in truth:
+        c, sn = np.cos(th), np.sin(th)
+        seen.append([w_base[0], c * w_base[1] + sn * w_base[2], -sn * w_base[1] + c * w_base[2]])
+    seen = np.array(seen)
+    # (b_y, b_z) per sensor in the phalanx frame, 4 and -3 deg/s across the rate each phalanx sees
+    across = np.c_[-seen[:, 2], seen[:, 1]] / np.hypot(seen[:, 1], seen[:, 2])[:, None]
+    b = np.radians([[4.0], [-3.0]]) * across
+
+    def settle(taken_off):
+        est = Chain(geom)
+        x = np.zeros((2, N_STATE))
+        x[:, TH] = truth + np.radians(5.0)
+        est._state = {"x": x, "P": np.stack([p0, p0]), "rate": np.zeros(2), "hand_acc": np.zeros(3)}
+        est._hand_untracked = False
+        hand = ChainHand()
+        hand._stack([est], np.zeros(3))
+        hand.cross_offsets = b.copy() if taken_off else None
+        omega = est.obs.base @ w_base                                   # R_M = I: world = metacarpus
+        motion = BaseMotion(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), omega, np.zeros(3))
+        reading = seen + np.c_[np.zeros(2), b]
+        gyr = np.array([est.obs.mount[k].T @ reading[k] for k in range(2)])   # phalanx -> sensor frame
+        for _ in range(ticks):
+            hand._gyro_angles(gyr, motion, np.array([dt]), np.array([False]))
+        return hand._x[:, TH] - truth, reading
+
+    s = ChainSettings()
+    r = (s.gyro_angle_rate_std_rad_s / np.hypot(w_base[1], w_base[2])) ** 2 * s.gyro_angle_window_s / dt
+    keep = r / (r + ticks * 0.05**2)                     # what is left of the start's distance to the measured angle
+    error, reading = settle(False)
+    bias = np.arctan2(seen[:, 2], seen[:, 1]) - np.arctan2(reading[:, 2], reading[:, 1])   # measured angle - truth
+    np.testing.assert_allclose(error, bias + (np.radians(5.0) - bias) * keep, rtol=1e-6)
+    assert np.all(np.abs(np.degrees(error)) > 1.5)
+    error, _ = settle(True)
+    np.testing.assert_allclose(error, np.radians(5.0) * keep, rtol=1e-6)
+    assert np.abs(np.degrees(error)).max() < 0.5
 
 
 def test_the_kernels_gyro_angles_equal_the_numpy_step_after_the_kernel_through_the_pipeline(monkeypatch):
@@ -694,13 +745,17 @@ def test_the_gyro_angle_of_a_sensor_turned_on_its_phalanx_is_the_angle_less_the_
 
 
 def test_the_default_live_pipeline_takes_the_gyro_angle():
-    """The hand's one call in the live pipeline (the default settings) takes the gyro's angle: on a hand
-    turning across the hinges its frames differ from those with the measurement off (a call left out of the
-    hand's path would leave them equal)."""
+    """The hand's one call in the live pipeline (the default settings) takes the gyro's angle, with the gyros'
+    cross-axis offsets taken off: on a hand turning across the hinges its frames differ from those with the
+    measurement off and from those with the offsets left on (a call left out of the hand's path, or the
+    offsets not passed to it, would leave them equal)."""
     session = simulate(SimConfig(noise="both", seed=2, hand_motion="random", fingers=("index",), duration_s=1.5))
     messages = [parse_message(m) for m in session.messages(include_truth=False)]
     out = {}
-    for std in (0.1, 0.0):
-        hs = HandSession("right", PipelineSettings(estimator_params={"gyro_angle_rate_std_rad_s": std}))
-        out[std] = np.array([f.joint_angles["index"] for m in messages for f in hs.handle(m).frames])
-    assert out[0.1].shape == out[0.0].shape and np.abs(out[0.1] - out[0.0]).max() > 1e-3
+    for key, params in (("on", {}), ("off", {"gyro_angle_rate_std_rad_s": 0.0}),
+                        ("offsets left on", {"gyro_angle_cross_offsets": False})):
+        hs = HandSession("right", PipelineSettings(estimator_params=params))
+        out[key] = np.array([f.joint_angles["index"] for m in messages for f in hs.handle(m).frames])
+    assert out["on"].shape == out["off"].shape and np.abs(out["on"] - out["off"]).max() > 1e-3
+    # and it takes the gyros' cross-axis offsets off as the flexion-axis fit finds them
+    assert np.abs(out["on"] - out["offsets left on"]).max() > 1e-4

@@ -19,8 +19,8 @@ from service.sim.session import SimConfig, simulate
 def test_a_known_tilt_is_recovered_from_noise_free_gyro_samples(calibrated):
     """Readings made exactly (rotations, not their first-order form) from a sensor tilted by ``ε`` (about
     the phalanx's y and z axes) behind a calibrated mounting, with gyro offsets, a flexing finger and a
-    turning hand: the fit finds ``ε`` (to second order in it), and its correction turns the raw
-    readings back into the phalanx frame."""
+    turning hand: the fit finds ``ε`` (to second order in it) and the cross axes' offsets, and its
+    correction turns the raw readings back into the phalanx frame."""
     rng = np.random.default_rng(7)
     eps = np.radians([3.0, -4.0])
     tilt = Rotation.from_rotvec([0.0, *eps]).as_matrix()
@@ -37,6 +37,9 @@ def test_a_known_tilt_is_recovered_from_noise_free_gyro_samples(calibrated):
         used += fit.add(raw, theta, w_base)
     assert used > 2000
     np.testing.assert_allclose(fit.tilt_rad, eps, atol=np.radians(0.1))
+    # the same regression's constant terms are the cross axes' offsets in the calibrated phalanx frame
+    # (the tilt turns the rates, not the offsets): 3-4 deg/s found to 0.2 deg/s (the prior says 0)
+    np.testing.assert_allclose(fit.cross_offsets, (calibrated @ offset)[1:], atol=np.radians(0.2))
     omega_p = np.array([2.0, -1.0, 0.5])
     np.testing.assert_allclose(calibrated @ np.array(fit.correct(mount.T @ omega_p)), omega_p, atol=0.01)
 
@@ -180,6 +183,8 @@ def _assert_same_fits(kernel, reference):
         np.testing.assert_allclose(kernel.correction(sid), reference.correction(sid), rtol=0, atol=TOL, err_msg=sid)
         assert kernel.quiet_samples(sid) == reference.quiet_samples(sid), sid
         np.testing.assert_allclose(kernel.cross_axis(sid), reference.cross_axis(sid), rtol=0, atol=TOL, err_msg=sid)
+    rows = np.array([j for j, _, _ in reference.places.values()] + [-1], dtype=np.int64)
+    np.testing.assert_allclose(kernel.cross_offsets(rows), reference.cross_offsets(rows), rtol=0, atol=TOL)
 
 
 def test_the_compiled_fits_equal_the_reference_on_random_ticks():

@@ -219,9 +219,15 @@ the prediction is not taken. It updates the sensor's own states and their covari
 other sensors take no gain from it (a valid, not optimal, update). A finger advanced alone (a rebuild, a
 batch, the per-finger reference) does not take it. It comes after the tick's angles are read out, so a
 correction shows in the next frame. A finger on a fallback closure holds its gyro scale state: the
-measurement's gain on it is zeroed (the general covariance form). Not modelled yet (a review's leads): a
-tick longer than the window counts as more than one window; the gyro's own cross-axis offsets, scale and cross-axis errors
-and the mounting's tilt do not average out over windows as the noise model assumes. On tuning trials it
+measurement's gain on it is zeroed (the general covariance form). The gyro's cross axes carry their
+offsets (MPU-9250 ±5 deg/s), which turn the angle they tell by about ``|b| / |w_yz|`` (1-3 deg at 1-3 rad/s)
+and do not average out over windows; the pipeline's flexion-axis fit solves its regression of the cross
+axes' residuals on ``[ω_x, 1]`` for them anyway (``service/pipeline/mounting.py``), so with
+``gyro_angle_cross_offsets`` they are taken off the cross axes' reading first (``ChainHand.cross_offsets``,
+set by the pipeline each tick from the fit). Not modelled yet (a review's leads): a tick longer than the
+window counts as more than one window; the gyro's scale and cross-axis errors and the mounting's tilt do
+not average out over windows as the noise model assumes; the fit's sums weigh an old sample as much as a
+new one, so a temperature drift of the offsets (±0.24 deg/s/K) is followed ever more slowly. On tuning trials it
 measured each rotating hand's sensor to 1.8 deg RMS of bias per sensor against the filter's 2.3 deg.
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
@@ -298,6 +304,7 @@ class ChainSettings(EstimatorSettings):
     gyro_angle_min_rate_rad_s: float = Field(1.0, gt=0.0, description="the measurement is taken while the hand turns across the hinge axis at least this fast (its rate about the finger base's other two axes), rad/s")
     gyro_angle_max_flexion_rad_s: float = Field(1.0, gt=0.0, description="... and the finger turns on its hand slower than this (its hinge-axis reading less the hand's rate about it), rad/s")
     gyro_angle_window_s: float = Field(0.15, gt=0.0, description="the optical hand rate's error is correlated over the optics' fit window (PipelineSettings.pose_window_s), so the gyro's angle counts once per window: its variance per tick is multiplied by this over the tick's step, s")
+    gyro_angle_cross_offsets: bool = Field(True, description="take each gyro's cross-axis offsets, as the pipeline's flexion-axis fit estimates them (service/pipeline/mounting.py), off its cross axes' reading for the gyro's angle (MPU-9250 offsets ±5 deg/s: b/|w| is 1-3 deg of angle at a hand rate of 1-3 rad/s across the hinge)")
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
@@ -899,6 +906,12 @@ class ChainHand:
         self._states: list[dict] = []
         self._dl: np.ndarray | None = None
         self._t_dl: float | None = None     # the time δ was last advanced to
+        self.cross_offsets: np.ndarray | None = None
+        """Each stacked sensor's gyro cross-axis offsets ``(b_y, b_z)`` in its phalanx frame (S, 2), rad/s, as
+        the pipeline's flexion-axis fit estimates them (``HandMountings.cross_offsets``; it sets them where
+        ``gyro_angle_cross_offsets``), taken off the cross axes' reading for the gyro's angle; None (or
+        another shape): none taken off."""
+        self._no_offsets = np.zeros((0, 2))
 
     @staticmethod
     def takes(estimator, t: float) -> bool:
@@ -994,7 +1007,8 @@ class ChainHand:
         K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
                    np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
                    self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode,
-                   self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n)
+                   self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n,
+                   self._cross_offsets())
         for e in estimators:
             e._t_last = t
         return phi, mode.tolist(), *self._starts
@@ -1026,6 +1040,7 @@ class ChainHand:
         if not i.size:
             return
         f = np.matmul(self._mount[i], gyr[i, :, None])[:, :, 0]                     # phalanx frame
+        f[:, 1:] -= self._cross_offsets()[i]
         w = w[i]
         z = np.arctan2(w[:, 2], w[:, 1]) - np.arctan2(f[:, 2], f[:, 1])
         y = np.mod(z - self._x[i] @ _GYRO_ANGLE_H + np.pi, 2.0 * np.pi) - np.pi
@@ -1049,6 +1064,16 @@ class ChainHand:
                 + s_cov[held, None, None] * g[:, :, None] * g[:, None, :]
         self._p[i] = 0.5 * (p + p.transpose(0, 2, 1))
         self._cx[i] -= gain[:, :, None] * hc[:, None, :]
+
+    def _cross_offsets(self) -> np.ndarray:
+        """``cross_offsets`` where it fits the stacked sensors, else zeros."""
+        n = int(self._sensor_start[-1])
+        b = self.cross_offsets
+        if b is not None and b.shape == (n, 2):
+            return b
+        if self._no_offsets.shape[0] != n:
+            self._no_offsets = np.zeros((n, 2))
+        return self._no_offsets
 
     def _log_holds(self, t: float, dts: np.ndarray, gyr: np.ndarray) -> None:
         """Each estimator's running integrals for a reference pose's hold (``HoldLog``), as its own

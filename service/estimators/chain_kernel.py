@@ -95,7 +95,7 @@ def _scratch(ns, nph):
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
-             out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n):
+             out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off):
     """One tick of several fingers (a hand) in one call: finger ``f`` is ``_finger`` on its rows of the
     stacked arrays, the same arithmetic as ``run`` on that finger alone. Its sensors are rows
     ``sensor_start[f]:sensor_start[f + 1]`` of ``x`` (S, 15), ``p`` (S, 15, 15), ``rates`` (S), ``gyr``
@@ -109,7 +109,8 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     each finger widens its accelerometers along the fit's lag error instead. A ``δ`` made non-finite by a
     diverging finger restarts from its prior (``_keep_shared_error_finite``). Then every finger's log for a
     reference pose's hold takes the tick at ``t`` (``_log_holds``: ``log_t`` (C, F), ``log_r`` (C, S),
-    ``log_g`` (C, S, 3), ``log_n`` (F), ``chain.HoldLog``)."""
+    ``log_g`` (C, S, 3), ``log_n`` (F), ``chain.HoldLog``). ``ga_off`` (S, 2): each gyro's cross-axis offsets
+    (phalanx frame) taken off its reading for the gyro's angle (``ChainHand.cross_offsets``)."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
     joint_tau, joint_scale, joint_floor = jp[0], jp[1], jp[2]
     joint = joint_tau > 0.0
@@ -157,7 +158,7 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
                 out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns),
                 cx, x, dl, pd, s0, joint and not untracked[f], ws)
     _keep_shared_error_finite(dl, pd, cx, joint_floor)
-    _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ws[6])
+    _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ws[6], ga_off)
     _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n)
 
 
@@ -183,7 +184,7 @@ def _keep_shared_error_finite(dl, pd, cx, floor):
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
-def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ph):
+def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ph, ga_off):
     """``chain.ChainHand._gyro_angles`` (its numpy reference): each sensor's angle as its gyro's cross axes
     tell it, while the hand turns across the hinge axis and the finger is nearly still on it, one scalar
     update of the sensor's own states, covariance (symmetrised) and cross-covariance with δ. The settings
@@ -222,8 +223,8 @@ def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x,
             s = s0 + k
             m = geo_start[f] + 9 * k            # the sensor's mounting (sensor -> phalanx)
             f0 = geo[m] * gyr[s, 0] + geo[m + 1] * gyr[s, 1] + geo[m + 2] * gyr[s, 2]
-            f1 = geo[m + 3] * gyr[s, 0] + geo[m + 4] * gyr[s, 1] + geo[m + 5] * gyr[s, 2]
-            f2 = geo[m + 6] * gyr[s, 0] + geo[m + 7] * gyr[s, 1] + geo[m + 8] * gyr[s, 2]
+            f1 = geo[m + 3] * gyr[s, 0] + geo[m + 4] * gyr[s, 1] + geo[m + 5] * gyr[s, 2] - ga_off[s, 0]
+            f2 = geo[m + 6] * gyr[s, 0] + geo[m + 7] * gyr[s, 1] + geo[m + 8] * gyr[s, 2] - ga_off[s, 1]
             predicted = x[s, 0] + hq * x[s, g5] - hq * x[s, g7]
             y = (seen - math.atan2(f2, f1) - predicted + math.pi) % two_pi - math.pi
             if not (abs(f0 - w0) < max_flex and abs(y) < GYRO_ANGLE_GATE_RAD):

@@ -752,6 +752,9 @@ class HandSession:
         else:
             readings = np.array([self._last_reading(s) for s in layout.sensors])
             gyr, acc = readings[:, 0], readings[:, 1]
+        fits = self._mount_fits
+        self._together.cross_offsets = layout.cross_offsets(fits) \
+            if fits and fingers[0].estimator.settings.gyro_angle_cross_offsets else None
         phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
         finite = math.isfinite(sum(phi.tolist()))
         names = layout.mode_names.get(tuple(modes))
@@ -876,6 +879,15 @@ class _TogetherLayout:
     def __post_init__(self):
         self.rows_gyr = None if self.rows is None else 2 * self.rows
         self.rows_acc = None if self.rows is None else 2 * self.rows + 1
+        self._fits = self._fit_rows = self._offsets = None
+
+    def cross_offsets(self, fits) -> np.ndarray:
+        """The sensors' gyro cross-axis offsets (S, 2) as their flexion-axis fits ``fits`` estimate them now
+        (``HandMountings.cross_offsets``), in one array kept per layout and rewritten each call."""
+        if self._fits is not fits:
+            self._fits, self._fit_rows = fits, fits.rows(tuple(self.sensors))
+            self._offsets = np.zeros((len(self.sensors), 2))
+        return fits.cross_offsets(self._fit_rows, self._offsets)
 
 
 @lru_cache(maxsize=64)

@@ -184,6 +184,14 @@ class HingeAxisFit:
         self.correction = rot if self._straight else self.mount.T @ rot @ self.mount
         return True
 
+    @property
+    def cross_offsets(self) -> np.ndarray:
+        """``(b_y, b_z)``: the gyro's cross-axis offsets (calibrated phalanx frame) as the regression of the
+        cross-axis residuals on ``[ω_x, 1]`` solves them with the tilt (its prior ``0 ± offset_std``), rad/s."""
+        det = self._a00 * self._a11 - self._a01 * self._a01
+        return np.array([(self._a00 * self._by1 - self._a01 * self._by0) / det,
+                         (self._a00 * self._bz1 - self._a01 * self._bz0) / det])
+
     def _add_quiet(self, gyr, hand_rate_base) -> bool:
         """A sample of a finger still on its hand into the cross-axis fit (module docstring): its
         hinge-axis reading (turned by the current correction, phalanx frame) less the hand's rate about
@@ -359,6 +367,15 @@ class HandMountings:
     def quiet_samples(self, sensor_id: str) -> int:
         return int(self.state[self.places[sensor_id][0], K.QUIET_SAMPLES])
 
+    def cross_offsets(self, idx: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``(b_y, b_z)`` (k, 2) of the sensors in state rows ``idx`` (``rows``; -1: zeros), into ``out`` if
+        given: the gyro's cross-axis offsets in the calibrated phalanx frame as the tilt fit's regression on
+        ``[ω_x, 1]`` solves them with the tilt (``HingeAxisFit.cross_offsets``), rad/s."""
+        if out is None:
+            out = np.empty((len(idx), 2))
+        K.cross_offsets(self.state, idx, out)
+        return out
+
 
 class HandMountingsReference(HandMountings):
     """``HandMountings`` with one ``HingeAxisFit`` per sensor, sample by sample in Python: the reference
@@ -418,4 +435,10 @@ class HandMountingsReference(HandMountings):
 
     def quiet_samples(self, sensor_id):
         return self._fits[self.places[sensor_id][0]].quiet_samples
+
+    def cross_offsets(self, idx, out=None):
+        b = np.array([self._fits[j].cross_offsets if j >= 0 else np.zeros(2) for j in idx.tolist()]).reshape(-1, 2)
+        if out is not None:
+            out[...] = b
+        return b if out is None else out
 

@@ -123,6 +123,21 @@ def correct(state, idx, raw, out, st):
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+def cross_offsets(state, idx, out):
+    """``out[r] = (b_y, b_z)`` of the sensor in row ``idx[r]`` (0 where -1): the tilt fit's normal equations
+    solved for their constant terms, the cross axes' offsets (``HingeAxisFit.cross_offsets``)."""
+    for r in range(idx.shape[0]):
+        j = idx[r]
+        if j < 0:
+            out[r, 0] = out[r, 1] = 0.0
+            continue
+        a00, a01 = state[j, A00], state[j, A01]
+        det = a00 * state[j, A11] - a01 * a01
+        out[r, 0] = (a00 * state[j, BY1] - a01 * state[j, BY0]) / det
+        out[r, 1] = (a00 * state[j, BZ1] - a01 * state[j, BZ0]) / det
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
     """A sample of a finger still on its hand into its sensor's cross-axis fit (``HingeAxisFit._add_quiet``):
     the raw gyro ``g`` turned by the current correction into the phalanx frame, ``f = M C g``, and the
