@@ -282,7 +282,9 @@ class GestureRecognizer:
     _handover_since: float | None = None
     _frame_ray: tuple = (None, None)
     _table: tuple | None = None
-    """``(settings, _rule_table(settings))`` of the settings last used."""
+    """``(settings, _rule_table(settings))`` of the settings object last used (``GestureSettings`` is frozen:
+    other thresholds are another object, which rebuilds the table; one changed in place behind pydantic's
+    back would not)."""
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
     """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
 

@@ -119,35 +119,69 @@ def test_recorded_frames_equal_the_reference_and_the_recogniser_output_is_unchan
     assert {e["gesture"] for _, events in slow_out for e in events} >= {"point", "grasp"}
 
 
+_SCRIPT = (   # curls (index, middle, ring, little, thumb), tip distance m, frames to reach the pose, frames held,
+    #            and the frame from which the tips are 5 mm apart instead (None: never)
+    ((0.05, 0.05, 0.05, 0.05, 0.1), 0.05, 20, 20, None),      # open
+    ((0.9, 0.9, 0.9, 0.9, 0.6), 0.05, 40, 10, None),          # grasp
+    ((0.35, 0.2, 0.2, 0.2, 0.4), 0.005, 40, 20, None),        # closing tips while it opens slowly: handed over to a pinch
+    ((0.05, 0.05, 0.05, 0.05, 0.6), 0.05, 30, 15, None),      # open but for the thumb
+    ((0.95, 0.2, 0.2, 0.2, 0.4), 0.05, 40, 25, 50),           # the tips close with the index curled past a pinch
+    ((0.1, 0.0, 0.0, 0.0, 0.4), 0.05, 30, 10, None),          # the others straight ...
+    ((0.1, 0.35, 0.35, 0.35, 0.4), 0.05, 12, 15, 3),          # ... closing fast as the tips close: a pinch once they slow
+    ((0.05, 0.8, 0.8, 0.8, 0.5), 0.05, 40, 10, None),         # point
+)
+_POSES = ((0.9, 0.9, 0.9, 0.9, 0.6), (0.05, 0.8, 0.8, 0.8, 0.5), (0.35, 0.2, 0.2, 0.2, 0.4),
+          (0.05, 0.05, 0.05, 0.05, 0.1), (0.4, 0.55, 0.6, 0.65, 0.5))
+
+
 def _random_frames(rng, n: int, fingers=("thumb", "index", "middle", "ring", "little")):
-    """Frames that move between fists, points, pinches and open hands (each reached in 40 frames and
-    held for 8, with noise), the tips now close now apart, two late ones with a NaN angle: every
-    rule's conditions on both sides, and a grasp that hands over to a pinch or just ends."""
+    """Frames that move between poses (``_SCRIPT``, then poses of ``_POSES`` at random, each reached in
+    40 frames and held for 8), with noise, the tips now close now apart, two late ones with a NaN angle:
+    every enter condition of every rule the only one that fails on some frames, and a grasp handed over
+    to a pinch."""
     calib = default_calibration("right")
-    poses = np.array([(0.9, 0.9, 0.9, 0.9, 0.6), (0.05, 0.8, 0.8, 0.8, 0.5), (0.35, 0.2, 0.2, 0.2, 0.4),   # curls:
-                      (0.05, 0.05, 0.05, 0.05, 0.1), (0.4, 0.55, 0.6, 0.65, 0.5)])  # index, middle, ring, little, thumb
     full = np.array([S.curl_full_long_rad] * 4 + [S.curl_full_thumb_rad])
     column = {f: k for k, f in enumerate(("index", "middle", "ring", "little", "thumb"))}
     quats = np.tile([0.0, 0.0, 0.0, 1.0], (len(JOINT_NAMES), 1))
     tip_t, tip_i = JOINT_NAMES.index("thumb_tip"), JOINT_NAMES.index("index_tip")
-    frames, start, target = [], poses[3], poses[3]
-    for k in range(n):
-        if k % 48 == 0:
-            pick = rng.integers(len(poses))
-            start, target = target, poses[pick]
+    frames, curls = [], np.array(_POSES[3])
+    segments = list(_SCRIPT)
+    while len(frames) < n:
+        if not segments:
+            pick = rng.integers(len(_POSES))
             apart = (0.01, 0.028, 0.05)[rng.integers(3)] if pick != 2 else (0.005, 0.01, 0.028)[rng.integers(3)]
-            offset = rng.normal(0.0, 0.004, 3) + [apart, 0.0, 0.0]     # (held: the tips' rate settles)
-        curls = start + (target - start) * min(1.0, (k % 48) / 40)
-        angles = {}
-        for f in fingers:
-            n_ph = calib.finger(f).n_phalanges
-            angles[f] = np.full(n_ph, curls[column[f]] * full[column[f]] / n_ph) + rng.normal(0.0, 0.005, n_ph)
-        if k in (n - 30, n - 10):             # (a NaN stays in the low-passed rates: late in the sequence)
-            angles["index"][1] = np.nan
-        positions = rng.normal(0.0, 0.05, (len(JOINT_NAMES), 3))
-        positions[tip_t] = positions[tip_i] + offset
-        frames.append(HandFrame(k / 90, k, "right", angles, {}, np.eye(3), np.zeros(3), JointPoses(positions, quats), {}))
-    return frames
+            segments.append((_POSES[pick], apart, 40, 8, None))
+        target, apart, ramp, hold, closes_at = segments.pop(0)
+        start, target = curls, np.array(target)
+        jitter = rng.normal(0.0, 0.002, 3)                         # (held: the tips' rate settles)
+        for j in range(ramp + hold):
+            k = len(frames)
+            offset = jitter + [apart if closes_at is None or j < closes_at else 0.005, 0.0, 0.0]
+            curls = start + (target - start) * min(1.0, (j + 1) / ramp)
+            angles = {}
+            for f in fingers:
+                n_ph = calib.finger(f).n_phalanges
+                angles[f] = np.full(n_ph, curls[column[f]] * full[column[f]] / n_ph) + rng.normal(0.0, 0.005, n_ph)
+            if k in (n - 30, n - 10):             # (a NaN stays in the low-passed rates: late in the sequence)
+                angles["index"][1] = np.nan
+            positions = rng.normal(0.0, 0.05, (len(JOINT_NAMES), 3))
+            positions[tip_t] = positions[tip_i] + offset
+            frames.append(HandFrame(k / 90, k, "right", angles, {}, np.eye(3), np.zeros(3), JointPoses(positions, quats), {}))
+    return frames[:n]
+
+
+def _alone_failing(history, settings_of) -> dict:
+    """How many frames of a recogniser's ``history`` each enter condition ``(gesture, index)`` was the only
+    one of its rule to fail on (``settings_of(k)``: the settings of frame ``k``)."""
+    counts = {}
+    for k, entry in enumerate(history):
+        x = rec_module.Features.from_history(entry)
+        for g, rule in rec_module.RULES.items():
+            s = settings_of(k)
+            failing = [i for i, c in enumerate(rule.conditions) if not c.holds(x, getattr(s, c.enter))]
+            if len(failing) == 1:
+                counts[(g, failing[0])] = counts.get((g, failing[0]), 0) + 1
+    return counts
 
 
 def _outcome(update, frame):
@@ -161,7 +195,9 @@ def test_the_rule_table_equals_the_rules_on_random_frames():
     """``update`` (each quantity computed once, the thresholds from a table per settings object) against
     ``update_reference`` (every condition through ``GestureRule``): the same annotations, events and
     state, with the settings changed midway (enrolled thresholds), NaN angles, and frames without a
-    thumb (the quantities then left to the rules, which raise ``KeyError`` where they read its curl)."""
+    thumb (the quantities then left to the rules, which raise ``KeyError`` where they read its curl). The
+    frames make every enter condition the only failing one of its rule somewhere (checked through the
+    rules themselves), and hand a grasp over to a pinch."""
     rng = np.random.default_rng(11)
     enrolled = GestureSettings(grasp_curl_enter=0.55, pinch_enter_m=0.03, pinch_exit_m=0.04, open_curl_enter=0.2,
                                pinch_others_curl_max=0.7, start_dwell_s=0.03)
@@ -179,6 +215,11 @@ def test_the_rule_table_equals_the_rules_on_random_frames():
         started = {e["gesture"] for out in out_ruled if out[0] != "KeyError" for e in out[1] if e["event"] == "start"}
         if "thumb" in fingers:
             assert started == {"grasp", "point", "pinch", "open"}
+            handovers = [k for k, (_, events) in enumerate(out_ruled)
+                         if [(e["gesture"], e["event"]) for e in events] == [("grasp", "end"), ("pinch", "start")]]
+            assert handovers
+            alone = _alone_failing(ruled.history, lambda k: GestureSettings() if k < 500 else enrolled)
+            assert {(g, i) for g, rule in rec_module.RULES.items() for i in range(len(rule.conditions))} <= alone.keys()
         else:
             assert ("KeyError", "'thumb'") in out_ruled and started >= {"grasp", "point"}
     # each quantity as QUANTITIES defines it, NaN included

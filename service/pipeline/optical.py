@@ -119,12 +119,12 @@ class OpticalTrack:
         if self.latest_t is not None and t <= self.latest_t:
             raise ValueError(f"pose time must increase: {t} after {self.latest_t}")
         self.latest_t = t
-        if valid:
-            self.latest_valid_t = t
         horizon = t - max(4 * self.window_s, 2 * self.timeout_s)
         if self.reference:
             self._add_reference(t, position, orientation_xyzw, valid, horizon)
         self._add_array(t, position, orientation_xyzw, valid, horizon)
+        if valid:
+            self.latest_valid_t = t          # once the pose is stored (a position that is no vector is not)
 
     def _add_reference(self, t: float, position, orientation_xyzw, valid: bool, horizon: float) -> None:
         """``add`` on the deque ``at_reference`` reads."""
