@@ -378,12 +378,69 @@ def test_no_spare_worker_starts_past_the_limit_nor_once_the_pool_closes():
         own = [WorkerLink(pool, slot, estimator="vector") for slot in (1, 2)]
         pool.isolated.extend(own)
         pool._replace_spare()
-        at_limit = pool.spare, pool._spare_start
+        at_limit = pool.spare
         pool.closing = True
         await pool.retire(own[0])                   # never started: its stop waits for nothing
-        return pool.settings.hand_worker_isolated_max, at_limit, (pool.spare, pool._spare_start), pool.isolated, own
+        return pool.settings.hand_worker_isolated_max, at_limit, pool.spare, pool.isolated, own
     limit, at_limit, closing, isolated, own = asyncio.run(run())
-    assert limit == 2 and at_limit == (None, None) and closing == (None, None) and isolated == own[1:]
+    assert limit == 2 and at_limit is None and closing is None and isolated == own[1:]
+
+
+def test_the_spare_is_replaced_once_its_session_runs_its_new_estimator_and_has_caught_up_or_has_left_it():
+    """The rule for starting a new spare after one was taken (``HandPool.settled_in``): not while the
+    session there still runs its old estimator, nor while it has more than ``CAUGHT_UP`` source messages
+    unanswered; yes once both hold, or once it has left that worker or closed."""
+    from types import SimpleNamespace
+
+    pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+    taken, other = WorkerLink(pool, 1, estimator="chain"), WorkerLink(pool, 2, estimator="chain")
+    live = SimpleNamespace(link=taken, sid=7, config=SimpleNamespace(estimator="chain"),
+                           _pending=dict.fromkeys(range(40)))
+    taken.sessions[7] = live
+
+    def rule(estimator="chain", pending=40, link=taken, there=True):
+        live.config.estimator, live._pending, live.link = estimator, dict.fromkeys(range(pending)), link
+        if not there:
+            taken.sessions.pop(7, None)
+        return HandPool.settled_in(live, taken, "vector")
+    assert not rule("chain", 0)                     # the change has not applied yet
+    assert not rule("vector", CAUGHT_UP + 1)        # it has, but the session has not caught up
+    assert rule("vector", CAUGHT_UP) and rule("vector", 0)
+    assert rule("chain", 40, link=other)            # it left that worker
+    assert rule("chain", 40, there=False)           # it closed
+
+
+def test_a_spare_after_the_service_started_does_not_wait_for_a_restarting_shared_worker(monkeypatch):
+    """The first spare starts once the shared workers are ready (it never slows the service's start); a
+    later one (a replacement) starts while a shared worker restarts: a switch may be waiting for it.
+    (No process: the workers' start is recorded instead.)"""
+    from service.api.hands import pool as pool_module
+
+    started = []
+
+    async def start(link):
+        started.append((link.slot, [x.ready.is_set() for x in link.pool.links]))
+    monkeypatch.setattr(pool_module.WorkerLink, "start", start)
+
+    async def run():
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1, hand_worker_spare=True), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        shared = pool.links[0]
+        pool._replace_spare()
+        first = pool.spare
+        for _ in range(5):
+            await asyncio.sleep(0)
+        before_ready = list(started)
+        shared.ready.set()
+        await asyncio.wait_for(first.starting, 60.0)
+        shared.ready.clear()                        # the shared worker restarts (a crash)
+        pool.spare = None                           # the spare was taken by a move,
+        await pool.retire(first)                    # and its session left it: a new spare starts
+        await asyncio.wait_for(pool.spare.starting, 60.0)
+        return before_ready, started, first.slot, pool.spare.slot
+    before_ready, started, first, second = asyncio.run(run())
+    assert before_ready == []
+    assert started == [(first, [True]), (second, [False])]
 
 
 def test_a_session_moving_back_to_a_restarting_worker_drops_the_close_of_it_held_there():

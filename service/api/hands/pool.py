@@ -147,6 +147,8 @@ class WorkerLink:
         self._restarting = False
         self._flush_scheduled = False
         self._tasks: list[asyncio.Task] = []
+        self.starting: asyncio.Task | None = None
+        """a spare's start (``HandPool._start_spare``), which a move taking it waits for"""
         self.heard = time.monotonic()
         """when the worker last sent anything, or began to owe answers (monotonic s)"""
         self._owing_from_flush = False
@@ -374,7 +376,8 @@ class HandPool:
         """the workers of one session each, and the spare (module docstring)"""
         self.spare: WorkerLink | None = None
         """the worker started ahead for the next session switched to a costly estimator (module docstring)"""
-        self._spare_start: asyncio.Task | None = None
+        self._ready_once = False
+        """the shared workers have all been ready once (the service has started)"""
         self._replacing: set[asyncio.Task] = set()
         """the waits to start a new spare after one was taken (``_replace_when_settled``)"""
         self._isolated_slots = itertools.count(settings.hand_workers)
@@ -400,11 +403,14 @@ class HandPool:
             return
         link = self.spare = WorkerLink(self, next(self._isolated_slots), estimator=self.settings.estimator)
         self.isolated.append(link)
-        self._spare_start = asyncio.get_running_loop().create_task(self._start_spare(link))
+        link.starting = asyncio.get_running_loop().create_task(self._start_spare(link))
 
     async def _start_spare(self, link: WorkerLink) -> None:
-        """The spare's process, once the shared workers are ready (it never slows the service's start)."""
-        await self.wait_ready()
+        """The spare's process, once the shared workers have been ready (it never slows the service's
+        start; later, a shared worker's restart does not hold it back: a switch may be waiting for it)."""
+        if not self._ready_once:
+            await self.wait_ready()
+            self._ready_once = True
         try:
             await link.start()
         except OSError as err:
@@ -419,7 +425,8 @@ class HandPool:
         ``_replace_when_settled``); ``None`` without one. A move given up while the spare starts (``call``'s
         timeout) leaves it the spare (or ends it, if another has taken its place meanwhile): no process
         holds a slot for no session."""
-        link, starting = self.spare, self._spare_start
+        link = self.spare
+        starting = None if link is None else link.starting
         if link is None or starting is None:
             return None
         self.spare = None
@@ -443,10 +450,17 @@ class HandPool:
         or after ``CATCH_UP_WAIT_S`` at the latest: the new spare's start (seconds of CPU) does not compete
         with that session's worker while it catches up."""
         deadline = time.monotonic() + CATCH_UP_WAIT_S
-        while (live.link is link and live.sid in link.sessions and time.monotonic() < deadline
-               and not (live.config.estimator == estimator and len(live._pending) <= CAUGHT_UP)):
+        while time.monotonic() < deadline and not self.settled_in(live, link, estimator):
             await asyncio.sleep(0.05)
         self._replace_spare()
+
+    @staticmethod
+    def settled_in(live: "ProcessSession", link: WorkerLink, estimator: str) -> bool:
+        """Whether ``live``, moved to the spare ``link`` for ``estimator``, runs it there and has caught up
+        (at most ``CAUGHT_UP`` source messages unanswered), or has left that worker (or closed)."""
+        if live.link is not link or live.sid not in link.sessions:
+            return True
+        return live.config.estimator == estimator and len(live._pending) <= CAUGHT_UP
 
     async def _watch_stalls(self) -> None:
         """A stuck worker (an endless loop, a stopped process; module docstring) is killed: its sessions
@@ -471,9 +485,10 @@ class HandPool:
             self._watchdog.cancel()
         for task in self._replacing:
             task.cancel()
-        if self._spare_start is not None:
-            self._spare_start.cancel()
-            await asyncio.gather(self._spare_start, return_exceptions=True)
+        starts = [link.starting for link in self.isolated if link.starting is not None]
+        for task in starts:
+            task.cancel()
+        await asyncio.gather(*starts, return_exceptions=True)
         # the spare has nothing to finish (and may be starting still, not reading its input yet)
         await asyncio.gather(*(link.stop(kill=link is self.spare) for link in [*self.links, *self.isolated]))
 
