@@ -586,13 +586,19 @@ def test_the_kernels_gyro_angles_equal_the_reference():
 
 
 def test_the_gyros_cross_axis_offsets_bias_its_angle_unless_taken_off():
-    """A still finger on a hand turning at 1.7 rad/s across the hinge, its gyros reading cross-axis offsets of
-    4 and 3 deg/s across the rate (phalanx frame; MPU-9250 ±5 deg/s): the cross axes then tell the angle
+    """A still finger on a hand turning at 1.7 rad/s across the hinge, its sensors turned on their phalanges
+    (as its calibration states), its gyros reading cross-axis offsets of 4 and 3 deg/s across the rate
+    (phalanx frame; MPU-9250 ±5 deg/s): the cross axes then tell the angle
     turned by about |b| / |w| (2.3 and 1.7 deg), and 400 ticks of that measurement
     settle on it, not on the angle (closed form: the state moves from its start toward the measured angle by
     ``n P / (r + n P)``). With the offsets taken off (``ChainHand.cross_offsets``, as the pipeline sets them
-    from the flexion-axis fit) the same ticks settle on the angle, to 0.5 deg."""
-    geom = default_calibration("right").finger("index")
+    from the flexion-axis fit) the same ticks settle on the angle, to 0.5 deg (taken off in the sensor's frame,
+    before the mounting, they would not)."""
+    index = default_calibration("right").finger("index")
+    # sensors turned on their phalanges as the calibration states: the offsets are in the phalanx frame the
+    # mounting turns the reading into, not in the sensor's own
+    turned = (Rotation.from_rotvec([0.3, -0.2, 0.5]), Rotation.from_rotvec([-0.4, 0.1, 0.2]))
+    geom = replace(index, sensors=tuple(replace(sp, mounting=tuple(r.as_quat())) for sp, r in zip(index.sensors, turned)))
     truth = np.array([0.4, 0.9])
     w_base, dt, ticks = np.array([0.7, 1.4, -1.0]), 0.005, 400
     p0 = np.diag(np.r_[[0.05**2], np.full(N_STATE - 1, 1e-4)])
@@ -748,14 +754,21 @@ def test_the_default_live_pipeline_takes_the_gyro_angle():
     """The hand's one call in the live pipeline (the default settings) takes the gyro's angle, with the gyros'
     cross-axis offsets taken off: on a hand turning across the hinges its frames differ from those with the
     measurement off and from those with the offsets left on (a call left out of the hand's path, or the
-    offsets not passed to it, would leave them equal)."""
+    offsets not passed to it, would leave them equal), each stacked sensor given its own fit's offsets."""
     session = simulate(SimConfig(noise="both", seed=2, hand_motion="random", fingers=("index",), duration_s=1.5))
     messages = [parse_message(m) for m in session.messages(include_truth=False)]
-    out = {}
+    out, sessions = {}, {}
     for key, params in (("on", {}), ("off", {"gyro_angle_rate_std_rad_s": 0.0}),
                         ("offsets left on", {"gyro_angle_cross_offsets": False})):
-        hs = HandSession("right", PipelineSettings(estimator_params=params))
+        hs = sessions[key] = HandSession("right", PipelineSettings(estimator_params=params))
         out[key] = np.array([f.joint_angles["index"] for m in messages for f in hs.handle(m).frames])
     assert out["on"].shape == out["off"].shape and np.abs(out["on"] - out["off"]).max() > 1e-3
+    # each stacked sensor gets its own fit's offsets (they differ from sensor to sensor by now)
+    hs = sessions["on"]
+    ids = tuple(sp.id for e in hs._together._estimators for sp in e.geom.sensors)
+    fits = hs._mount_fits
+    own = np.concatenate([fits.cross_offsets(fits.rows((sid,))) for sid in ids])
+    np.testing.assert_array_equal(hs._together.cross_offsets, own)
+    assert len(ids) == 2 and np.abs(own[0] - own[1]).min() > 1e-4
     # and it takes the gyros' cross-axis offsets off as the flexion-axis fit finds them
     assert np.abs(out["on"] - out["offsets left on"]).max() > 1e-4

@@ -220,14 +220,18 @@ other sensors take no gain from it (a valid, not optimal, update). A finger adva
 batch, the per-finger reference) does not take it. It comes after the tick's angles are read out, so a
 correction shows in the next frame. A finger on a fallback closure holds its gyro scale state: the
 measurement's gain on it is zeroed (the general covariance form). The gyro's cross axes carry their
-offsets (MPU-9250 ±5 deg/s), which turn the angle they tell by about ``|b| / |w_yz|`` (1-3 deg at 1-3 rad/s)
-and do not average out over windows; the pipeline's flexion-axis fit solves its regression of the cross
-axes' residuals on ``[ω_x, 1]`` for them anyway (``service/pipeline/mounting.py``), so with
+offsets (MPU-9250 ±5 deg/s, 2.9 deg/s RMS per axis), which turn the angle they tell by about
+``|b| / |w_yz|`` (typically 1-3 deg at 1-3 rad/s, up to 7 deg at the bound and the least rate taken) and do
+not average out over windows; the pipeline's flexion-axis fit has the cross axes' residuals regressed on
+``[ω_x, 1]`` (``service/pipeline/mounting.py``), whose constant terms estimate them, so with
 ``gyro_angle_cross_offsets`` they are taken off the cross axes' reading first (``ChainHand.cross_offsets``,
-set by the pipeline each tick from the fit). Not modelled yet (a review's leads): a tick longer than the
-window counts as more than one window; the gyro's scale and cross-axis errors and the mounting's tilt do
-not average out over windows as the noise model assumes; the fit's sums weigh an old sample as much as a
-new one, so a temperature drift of the offsets (±0.24 deg/s/K) is followed ever more slowly. On tuning trials it
+set by the pipeline each tick from the fit). Not modelled yet (a review's leads): the estimate's own error
+(it learns from fast flexions only and weighs every sample alike, clipped ones included: 0.8-1.8 deg/s RMS
+left after 12 s on two tuning trials, one sensor worse than none taken off) is not in the measurement's
+noise; a tick longer than the window counts as more than one window; the gyro's scale and cross-axis
+errors and the mounting's tilt do not average out over windows as the noise model assumes; the fit's sums
+weigh an old sample as much as a new one, so a temperature drift of the offsets (±0.24 deg/s/K) is followed
+ever more slowly. On tuning trials it
 measured each rotating hand's sensor to 1.8 deg RMS of bias per sensor against the filter's 2.3 deg.
 
 Not used: the coupling as a soft constraint. With the default placement (sensors on phalanges 1 and
@@ -304,7 +308,7 @@ class ChainSettings(EstimatorSettings):
     gyro_angle_min_rate_rad_s: float = Field(1.0, gt=0.0, description="the measurement is taken while the hand turns across the hinge axis at least this fast (its rate about the finger base's other two axes), rad/s")
     gyro_angle_max_flexion_rad_s: float = Field(1.0, gt=0.0, description="... and the finger turns on its hand slower than this (its hinge-axis reading less the hand's rate about it), rad/s")
     gyro_angle_window_s: float = Field(0.15, gt=0.0, description="the optical hand rate's error is correlated over the optics' fit window (PipelineSettings.pose_window_s), so the gyro's angle counts once per window: its variance per tick is multiplied by this over the tick's step, s")
-    gyro_angle_cross_offsets: bool = Field(True, description="take each gyro's cross-axis offsets, as the pipeline's flexion-axis fit estimates them (service/pipeline/mounting.py), off its cross axes' reading for the gyro's angle (MPU-9250 offsets ±5 deg/s: b/|w| is 1-3 deg of angle at a hand rate of 1-3 rad/s across the hinge)")
+    gyro_angle_cross_offsets: bool = Field(True, description="take each gyro's cross-axis offsets, as the pipeline's flexion-axis fit estimates them (service/pipeline/mounting.py), off its cross axes' reading for the gyro's angle (MPU-9250 offsets ±5 deg/s: b/|w| is typically 1-3 deg of angle at a hand rate of 1-3 rad/s across the hinge, up to 7 deg at the bound)")
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
@@ -907,7 +911,8 @@ class ChainHand:
         self._dl: np.ndarray | None = None
         self._t_dl: float | None = None     # the time δ was last advanced to
         self.cross_offsets: np.ndarray | None = None
-        """Each stacked sensor's gyro cross-axis offsets ``(b_y, b_z)`` in its phalanx frame (S, 2), rad/s, as
+        """Each stacked sensor's gyro cross-axis offsets ``(b_y, b_z)`` (S, 2), rad/s, in the frame of the reading
+        this call gets (the pipeline's corrected reading turned by the mounting), as
         the pipeline's flexion-axis fit estimates them (``HandMountings.cross_offsets``; it sets them where
         ``gyro_angle_cross_offsets``), taken off the cross axes' reading for the gyro's angle; None (or
         another shape): none taken off."""

@@ -110,7 +110,7 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     diverging finger restarts from its prior (``_keep_shared_error_finite``). Then every finger's log for a
     reference pose's hold takes the tick at ``t`` (``_log_holds``: ``log_t`` (C, F), ``log_r`` (C, S),
     ``log_g`` (C, S, 3), ``log_n`` (F), ``chain.HoldLog``). ``ga_off`` (S, 2): each gyro's cross-axis offsets
-    (phalanx frame) taken off its reading for the gyro's angle (``ChainHand.cross_offsets``)."""
+    (in the frame of its reading turned by the mounting) taken off it for the gyro's angle (``ChainHand.cross_offsets``)."""
     hand1 = hand.reshape(1, 1, HAND_SIZE)
     joint_tau, joint_scale, joint_floor = jp[0], jp[1], jp[2]
     joint = joint_tau > 0.0

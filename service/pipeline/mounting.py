@@ -186,8 +186,14 @@ class HingeAxisFit:
 
     @property
     def cross_offsets(self) -> np.ndarray:
-        """``(b_y, b_z)``: the gyro's cross-axis offsets (calibrated phalanx frame) as the regression of the
-        cross-axis residuals on ``[ω_x, 1]`` solves them with the tilt (its prior ``0 ± offset_std``), rad/s."""
+        """``(b_y, b_z)``: the gyro's cross-axis offsets as the regression of the cross-axis residuals on
+        ``[ω_x, 1]`` solves them with the tilt (its prior ``0 ± offset_std``), rad/s; in the frame of the
+        corrected reading ``R(ε) M g`` that the estimators read (to first order ``b_y + ε_z b_x`` and
+        ``b_z - ε_y b_x`` of the calibrated phalanx frame's offsets: the regressor ``ω_x`` is the raw reading,
+        ``b_x`` in it). Only fast flexions teach it (``min_rate_rad_s``), every sample weighs alike, and a
+        clipped sample enters it too, so it is seconds to minutes from exact (a review measured 0.8-1.8 deg/s
+        RMS left after 12 s of tuning trials 521-522 against 3.0-3.3 with none taken off; one sensor 5.2 against
+        3.3)."""
         det = self._a00 * self._a11 - self._a01 * self._a01
         return np.array([(self._a00 * self._by1 - self._a01 * self._by0) / det,
                          (self._a00 * self._bz1 - self._a01 * self._bz0) / det])
@@ -369,8 +375,8 @@ class HandMountings:
 
     def cross_offsets(self, idx: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(b_y, b_z)`` (k, 2) of the sensors in state rows ``idx`` (``rows``; -1: zeros), into ``out`` if
-        given: the gyro's cross-axis offsets in the calibrated phalanx frame as the tilt fit's regression on
-        ``[ω_x, 1]`` solves them with the tilt (``HingeAxisFit.cross_offsets``), rad/s."""
+        given: the gyro's cross-axis offsets in the frame of the corrected reading as the tilt fit's regression
+        on ``[ω_x, 1]`` solves them with the tilt (``HingeAxisFit.cross_offsets``), rad/s."""
         if out is None:
             out = np.empty((len(idx), 2))
         K.cross_offsets(self.state, idx, out)
