@@ -886,6 +886,33 @@ def test_kernels_compile_in_a_process_at_a_lower_priority_and_load_with_the_inte
     assert sys.getswitchinterval() == before
 
 
+def test_without_a_kernel_cache_no_separate_process_compiles_what_this_one_compiles_again(monkeypatch):
+    """A separate compile fills the on-disk cache; without a cache (``JIT_CACHE`` false: no writable
+    folder) its work would be lost and the warming process compiles everything again (a read-only
+    service's start took twice the CPU), so none is started. With a cache and the kernels not in it, it is."""
+    import asyncio
+    import service
+    from service.estimators import warm
+    started = []
+    monkeypatch.setattr(warm, "compile_command", lambda name, params=None: started.append(name) or [sys.executable, "-c", ""])
+    monkeypatch.setattr(warm, "warm", lambda name, params=None: None)     # this process's own part: not the subject
+    monkeypatch.setattr(warm, "_on_disk", lambda kernels: False)          # nothing in the cache
+    monkeypatch.setattr(warm, "_WARM", set())
+    monkeypatch.setattr(service, "JIT_CACHE", False)
+    assert not warm.needs_compiling("chain")
+    warm.warm_ahead("chain")
+    warm._WARM.clear()
+    asyncio.run(warm.warm_off_loop("chain"))
+    assert started == []
+    monkeypatch.setattr(service, "JIT_CACHE", True)
+    warm._WARM.clear()
+    assert warm.needs_compiling("chain")
+    warm.warm_ahead("chain")
+    warm._WARM.clear()
+    asyncio.run(warm.warm_off_loop("chain"))
+    assert started == ["chain", "chain"]
+
+
 # -- item 7: errors a person can act on ------------------------------------------------------------------------
 
 def _cli(*args, env=None):

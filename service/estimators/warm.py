@@ -11,7 +11,8 @@ The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the ge
 ``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
 cache (the usual case after the first run, and in the container image) the separate process is skipped:
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
-start-up.
+start-up. Without an on-disk cache (no writable folder: ``service.JIT_CACHE`` false) it is skipped too: its compile
+would be lost, and this process compiles the kernels anyway.
 
 Beside live sessions two things must not take their time: the separate process runs at a lower
 priority than the web process (``--background``, niceness ``COMPILE_NICE``, the hand workers' default:
@@ -133,11 +134,20 @@ def _to_warm(name: str) -> list[str]:
     return names
 
 
+def _compile_apart(names: list[str]) -> bool:
+    """Whether the separate process should compile the kernels of ``names`` first: some are not in the
+    on-disk cache, and there is one (``JIT_CACHE``). Without a cache (no writable folder) its compile would
+    be lost and this process would compile them all again: a read-only service's start and a switch took
+    twice the CPU."""
+    from .. import JIT_CACHE
+    return JIT_CACHE and not _on_disk(tuple(k for n in names for k in _kernels(n)))
+
+
 def needs_compiling(name: str) -> bool:
     """Whether warming ``name`` in this process needs the separate process first: some of its kernels
-    (or the pipeline's, not yet warm here) are not in the on-disk cache."""
+    (or the pipeline's, not yet warm here) are not in the on-disk cache (``_compile_apart``)."""
     names = _to_warm(name)
-    return bool(names) and not _on_disk(tuple(k for n in names for k in _kernels(n)))
+    return bool(names) and _compile_apart(names)
 
 
 def warm(name: str, params: dict | None = None) -> None:
@@ -188,7 +198,7 @@ async def warm_off_loop(name: str, params: dict | None = None) -> None:
     names = _to_warm(name)
     if not names:
         return
-    if not _on_disk(tuple(k for n in names for k in _kernels(n))):
+    if _compile_apart(names):
         try:
             proc = await asyncio.create_subprocess_exec(*compile_command(names[-1], params),
                                                         stdout=asyncio.subprocess.DEVNULL,
@@ -212,7 +222,7 @@ def warm_ahead(name: str, params: dict | None = None) -> None:
     names = _to_warm(name)
     if not names:
         return
-    if not _on_disk(tuple(k for n in names for k in _kernels(n))):
+    if _compile_apart(names):
         try:
             subprocess.run(compile_command(names[-1], params), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                            check=False)
