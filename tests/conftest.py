@@ -102,6 +102,19 @@ def signal_handlers_are_left_as_found():
                           "put back", RuntimeWarning, stacklevel=1)
 
 
+@pytest.fixture(scope="module")
+def one_hand_worker():
+    """For a test module whose services (in-process ``ServerThread``s and the service processes its tests
+    start) run one session at a time, or several that need not be on different processes: one hand worker
+    per service instead of the default two (``FINGERTRACK_HAND_WORKERS=1``; settings a test gives
+    explicitly still win). The second worker started with every service, loaded the default estimator
+    (about 3 s of CPU) and got no session. Several workers, sessions spread over them and moved between
+    them are the subject of the hand worker tests, which ask for the workers they need."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("FINGERTRACK_HAND_WORKERS", "1")
+        yield
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)

@@ -19,6 +19,8 @@ from service.bench.process import ServiceProcess
 from service.cli import main
 from service.protocol import ProtocolError, parse_line
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, VIEWER, ADMIN = "src-token-r", "view-token-r", "admin-token-r"
 
 
@@ -287,7 +289,8 @@ def test_a_hung_service_leaves_its_stacks_in_the_log_and_no_process_behind(tmp_p
     import time
     from service.bench.process import descendants, service_process
     log = tmp_path / "service.log"
-    with service_process(log_path=log) as svc:
+    # two hand workers (not one_hand_worker's one): one of them stopped, the other still answering
+    with service_process(log_path=log, env={"FINGERTRACK_HAND_WORKERS": "2"}) as svc:
         workers = descendants(svc.pid)
         assert len(workers) == 2
         # a worker that cannot run (stopped) neither answers nor sees its web process end: left alone

@@ -10,6 +10,8 @@ from clients.client import Publisher, Refused, Subscription, service_url
 from service.api.config import ServiceSettings
 from service.api.server import ServerThread
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, ADMIN = "src-token-1", "admin-token-1"
 
 

@@ -9,8 +9,12 @@ import sys
 import tomllib
 from pathlib import Path
 
+import pytest
+
 from service.api.config import ServiceSettings
 from service.api.server import free_port
+
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
 
 ROOT = Path(__file__).resolve().parents[1]
 BLOCKER = """

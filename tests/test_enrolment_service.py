@@ -13,6 +13,8 @@ from service.api.server import ServerThread
 from service.sim.gesture_script import Subject, Trial, enrolment_steps
 from service.sim.session import SimConfig
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, VIEWER, ADMIN = "src-token-e", "view-token-e", "admin-token-e"
 
 

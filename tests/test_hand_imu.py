@@ -12,6 +12,8 @@ from service.protocol import ProtocolError, parse_message
 from service.sim.errors import OpticalModel
 from service.sim.session import SimConfig, simulate
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 G = np.array([0.0, -9.81, 0.0])
 
 

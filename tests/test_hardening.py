@@ -28,6 +28,8 @@ from service.protocol.messages import Imu, ImuBatch, ImuSample, Pose, SamplesRef
 from service.protocol.wire import encode
 from service.sim.session import SimConfig
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, SOURCE2, VIEWER, ADMIN = "src-token-1", "src-token-2", "view-token-1", "admin-token-1"
 HELLO = {"type": "hello", "protocol": 1, "hand": "right"}
 
@@ -860,6 +862,8 @@ def test_switching_to_a_compiled_estimator_warms_it_off_the_loop(server):
     answered = 0
     while worker.is_alive():
         answered += rest(server.url, "GET", "/health")[0] == 200
+        worker.join(0.05)                   # asked again 20 times a second, not back to back (a core's worth of
+                                            # requests for as long as the compile took)
     worker.join()
     assert result["put"][0] == 200 and result["put"][1]["estimator"] == "inertial"
     assert answered >= 1
@@ -972,7 +976,7 @@ def test_serve_and_its_hand_workers_write_their_stacks_on_sigusr1_and_go_on(tmp_
     log = tmp_path / "service.log"
     with service_process(log_path=log) as svc:
         workers = descendants(svc.pid)
-        assert len(workers) == 2                         # the default hand workers
+        assert len(workers) == 1                         # one_hand_worker's one
         for pid, where in ((svc.pid, "service/cli.py"), (workers[0], "hands/worker.py")):
             before = log.read_text().count("most recent call first")
             os.kill(pid, signal.SIGUSR1)                 # without a handler: the default action ends the process

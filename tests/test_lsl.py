@@ -21,6 +21,8 @@ from service.cli import main
 from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, VIEWER, ADMIN = "src-lsl-1", "view-lsl-1", "admin-lsl-1"
 
 

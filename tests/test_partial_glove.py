@@ -16,6 +16,8 @@ from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig, simulate, write_recording
 from test_service import ADMIN, SOURCE, VIEWER, _wait_for, _wait_for_last_frame
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 BARE = ("thumb", "ring", "little")
 
 

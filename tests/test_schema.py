@@ -22,6 +22,8 @@ from service.protocol.schema import documents, dump
 from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, VIEWER, ADMIN = "src-schema-1", "view-schema-1", "admin-schema-1"
 
 

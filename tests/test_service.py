@@ -17,6 +17,8 @@ from service.protocol import parse_line
 from service.sim.motions import sequence_motion
 from service.sim.session import SimConfig, simulate
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 SOURCE, VIEWER, ADMIN = "src-token-1", "view-token-1", "admin-token-1"
 STEPS = (("point", 0.8), ("grasp", 0.8), ("rest", 0.8))
 

@@ -30,6 +30,8 @@ from service.protocol import parse_message
 
 from test_service import ADMIN, SOURCE, VIEWER, _stream_and_collect
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 UNITY = Path(__file__).resolve().parents[1] / "clients" / "unity"
 MIRROR_Z = np.diag([1.0, 1.0, -1.0])
 

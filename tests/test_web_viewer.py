@@ -23,6 +23,8 @@ from service.sim.session import SimConfig, simulate
 
 from test_service import ADMIN, SOURCE, VIEWER, _stream_and_collect
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 CHECK = Path(__file__).resolve().parent / "web_viewer_check.mjs"
 OPENXR_JOINTS = {"palm", "wrist"} | {f"thumb_{j}" for j in ("metacarpal", "proximal", "distal", "tip")} | {
     f"{f}_{j}" for f in ("index", "middle", "ring", "little") for j in ("metacarpal", "proximal", "intermediate", "distal", "tip")}

@@ -22,6 +22,8 @@ from service.sim.session import SimConfig
 from cdp import Browser, find_chromium
 from test_service import ADMIN, SOURCE, VIEWER
 
+pytestmark = pytest.mark.usefixtures("one_hand_worker")     # conftest: one hand worker per service
+
 # Counts each canvas's redraws (every draw starts with clearRect) and finished /v1/sessions requests.
 INSTRUMENT = """
 window.__draws = {};
@@ -64,7 +66,8 @@ def chromium():
 
 
 @pytest.fixture(scope="module")
-def server():
+def server(chromium):
+    """Started only where there is a browser to open it (the tests' skip starts no service)."""
     settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN)
     with ServerThread(settings) as srv:
         yield srv
