@@ -236,16 +236,18 @@ def fast_fields_only(raw: dict) -> bool:
                                and all(type(s) is dict and s.keys() <= _SAMPLE_KEYS for s in samples))
 
 
-def parse_input(data: str | bytes, binary: bool = False) -> tuple[object, object]:
+def parse_input(data: str | bytes, binary: bool = False, value: bool = True) -> tuple[object, object]:
     """``(decoded value, validated message)`` of one message as it arrives: ``decode`` then
     ``parse_message``, with the same results and the same ``ProtocolError`` for bad input. JSON
     samples and poses are read into compiled structs that the pydantic models accept as theirs
     (``protocol.fast``, the value by ``orjson``) where that path accepts them; else by ``orjson`` and
     pydantic; any other message, and any text ``orjson`` refuses or whose message fails validation,
-    goes through the standard path, whose value or error is the answer (``FAST_KEYS``)."""
+    goes through the standard path, whose value or error is the answer (``FAST_KEYS``). ``value=False``:
+    the caller needs no decoded value where the compiled structs read the message (``None`` in its
+    place: the text is not decoded a second time)."""
     if not binary:
         if (msg := _fast.read(data)) is not None:
-            return orjson.loads(data), msg
+            return (orjson.loads(data) if value else None), msg
         try:
             raw = orjson.loads(data)
         except orjson.JSONDecodeError:

@@ -180,8 +180,8 @@ class OwnedHand:
         its error replies (``[code, detail]``, or ``[code, detail, samples]`` for an ``imu_batch``'s
         refused samples, whose valid samples go on) and whether it was accepted (not refused whole).
         ``emit``: as in ``handle_valid``."""
-        try:
-            raw, msg = parse_input(data, binary)
+        try:                                        # the decoded value only for a session taken over (``handle_valid``)
+            raw, msg = parse_input(data, binary, value=self.resume_angles is not None)
         except SamplesRefused as err:
             refused = [err.code, err.detail, err.refused]
             return [refused, *self.handle_valid(dump_message(err.kept), err.kept, emit)], True
