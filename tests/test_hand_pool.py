@@ -488,3 +488,89 @@ def test_what_a_worker_could_not_restore_goes_to_the_session_s_source_with_its_n
     before, got = asyncio.run(run())
     assert before == []
     assert got == [("invalid_message", "its calibration: sensors; send it again"), ("duplicate", "the same sensor and time")]
+
+
+def test_the_link_reader_passes_on_every_message_in_order_a_few_frames_per_turn_and_finishes_after_the_last():
+    """``_LinkReader`` (the web process's end of a worker's socket): batches split anywhere across reads
+    are dispatched in order; at most ``outs_per_turn`` frames and events go before the loop's next turn
+    (reading paused meanwhile, so that the subscribers' senders go first), and a batch after frames waits
+    for that turn too; every read counts as a sign of life; once the connection is lost, what arrived
+    before is dispatched, then ``finished`` is done."""
+    from types import SimpleNamespace
+
+    from service.api.hands.pool import _LinkReader
+    from service.api.hands.worker import frame
+
+    batches = [[["rep", 1, 1, []], *[["out", 1, 2, ["frame", k, 0.0, "right"], "{}", None] for k in range(5)],
+                ["rep", 1, 2, []]],
+               [["rep", 1, 3, []]], [["out", 1, 4, ["gesture", None, None, None], "{}", None]], [["rep", 1, 4, []]]]
+    data = b"".join(frame(batch) for batch in batches)
+
+    async def run():
+        got, heard, turns = [], [], []
+        link = SimpleNamespace(pool=SimpleNamespace(outs_per_turn=2), _dispatch=got.append,
+                               _hear=lambda: heard.append(1), slot=0)
+        calls = []
+        transport = SimpleNamespace(pause_reading=lambda: calls.append("pause"),
+                                    resume_reading=lambda: calls.append("resume"), close=lambda: None)
+        reader = _LinkReader(link)
+        reader.connection_made(transport)
+        for i in range(0, len(data), 7):           # reads of 7 bytes, all in one turn of the loop
+            reader.data_received(data[i:i + 7])
+        outs_in_first_turn = sum(1 for m in got if m[0] == "out")
+        assert reader.unread() and calls == ["pause"]
+        assert len(heard) == -(-len(data) // 7)
+        reader.connection_lost(None)                # lost while messages still wait
+        while not reader.finished.done():
+            turns.append(sum(1 for m in got if m[0] == "out"))
+            await asyncio.sleep(0)
+        return got, outs_in_first_turn, turns, reader.unread(), calls
+    got, first, turns, unread, calls = asyncio.run(run())
+    assert got == [m for batch in batches for m in batch]
+    assert first == 2                               # outs_per_turn, then the senders' turn
+    assert all(b - a <= 2 for a, b in zip([first, *turns], turns)), turns
+    assert not unread and calls == ["pause"]        # lost: reading is not resumed
+
+
+def test_a_greeted_data_message_is_forwarded_by_the_reader_as_the_processor_would_send_it_and_nothing_else():
+    """``ProcessSession.forward`` (the ingest route's reader while its processor waits for work): a JSON
+    data message of a greeted source goes to the worker as ``ingest`` sends it (the same message, number
+    and count of unanswered messages); not before the hello, not a message of another type, not
+    MessagePack, not while the session records, not past ``WINDOW`` unanswered messages."""
+    import json
+
+    from service.api.hands.pool import WINDOW, ProcessSession
+    from service.api.sessions import Recorder
+
+    batch = json.dumps({"type": "imu_batch", "samples": [{"t": 0.0, "id": "index.1", "gyr": [0, 0, 0],
+                                                          "acc": [0, 9.81, 0]}]}, separators=(",", ":"))
+
+    async def run(tmp):
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        link = pool.links[0]                        # no process: what it is sent stays in its queue
+        sent = []
+        link.send = sent.append
+        live = ProcessSession("s", pool.settings, pool.metrics, link, 1)
+        live.attach_source(None)
+        refused = [live.forward({"type": "websocket.receive", "text": batch})]       # before the hello
+        await _ingest(live, HELLO)
+        forwarded = live.forward({"type": "websocket.receive", "text": batch})
+        by_processor = live.parse_input(batch, False)
+        await live.ingest(*by_processor)
+        refused += [live.forward({"type": "websocket.receive", "text": '{"type":"sync","id":1}'}),
+                    live.forward({"type": "websocket.receive", "bytes": batch.encode()})]
+        live.recorder = Recorder(tmp / "r.jsonl", 1.0)
+        refused.append(live.forward({"type": "websocket.receive", "text": batch}))
+        live.recorder.close()
+        live.recorder = None
+        live._pending.update(dict.fromkeys(range(100, 100 + WINDOW)))
+        refused.append(live.forward({"type": "websocket.receive", "text": batch}))
+        return sent, refused, forwarded
+    import tempfile
+    from pathlib import Path
+    with tempfile.TemporaryDirectory() as tmp:
+        sent, refused, forwarded = asyncio.run(run(Path(tmp)))
+    assert forwarded and refused == [False] * 5
+    chk = [m for m in sent if m[0] == "chk"]
+    assert chk == [["chk", 1, 2, batch, False], ["chk", 1, 3, batch, False]]   # numbered after the hello (1)

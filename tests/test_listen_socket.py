@@ -35,3 +35,31 @@ def test_accepted_connections_have_nagle_s_algorithm_off():
     served, client = asyncio.run(main())
     assert client, "the client side (asyncio's own connection) is the reference"
     assert served
+
+
+def test_the_websocket_protocol_pauses_reading_only_once_its_queue_holds_queue_high_messages():
+    """``DrainingWebSocket``: uvicorn paused reading after every received message and resumed it when the
+    app took it (two changes of the loop's selector per message); here reading pauses once ``QUEUE_HIGH``
+    messages wait for the app, and resumes once it has taken them all."""
+    from types import SimpleNamespace
+
+    from service.api.server import DrainingWebSocket
+
+    async def main():
+        calls = []
+        proto = DrainingWebSocket.__new__(DrainingWebSocket)
+        proto.queue, proto.read_paused, proto.close_sent = asyncio.Queue(), False, False
+        proto.transport = SimpleNamespace(pause_reading=lambda: calls.append("pause"),
+                                          resume_reading=lambda: calls.append("resume"))
+        seen = []
+        for k in range(DrainingWebSocket.QUEUE_HIGH + 3):
+            proto.curr_msg_data_type, proto.frames = "text", [str(k).encode()]
+            proto.send_receive_event_to_app()
+            seen.append(list(calls))
+        got = [(await proto.receive())["text"] for _ in range(DrainingWebSocket.QUEUE_HIGH + 3)]
+        return seen, calls, got, proto.read_paused
+    seen, calls, got, paused = asyncio.run(main())
+    high = DrainingWebSocket.QUEUE_HIGH
+    assert seen[high - 2] == [] and seen[high - 1] == ["pause"] and seen[-1] == ["pause"]
+    assert calls == ["pause", "resume"] and not paused
+    assert got == [str(k) for k in range(high + 3)]

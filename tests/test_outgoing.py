@@ -98,3 +98,23 @@ def test_the_service_replies_are_built_in_their_declared_order():
     assert list(server_hello("s", waiting=True)) == list(ServerHelloDict.__annotations__)
     assert list(server_hello("s")) == [k for k in ServerHelloDict.__annotations__ if k != "waiting"]
     assert _shape_problems(server_hello("s"), ServerHelloDict) == []
+
+
+def test_a_session_s_cached_series_count_as_labels_does_and_start_again_after_the_session_is_forgotten():
+    """``Metrics.of_session``: the per-message series looked up once count into the same series as
+    ``labels``; a frame series appears only once used; after ``forget_session`` (a removed session) the
+    name's next session counts from zero."""
+    from service.api.metrics import Metrics
+
+    metrics = Metrics()
+    metrics.of_session("a").messages_in.inc()
+    metrics.of_session("a").messages_in.inc()
+    text = metrics.render().decode()
+    assert 'fingertrack_messages_in_total{session="a"} 2.0' in text and 'messages_out_total{session="a"}' not in text
+    metrics.of_session("a").messages_out.inc()
+    metrics.of_session("a").latency.observe(0.001)
+    metrics.forget_session("a")
+    assert 'session="a"' not in metrics.render().decode()
+    metrics.of_session("a").messages_in.inc()
+    text = metrics.render().decode()
+    assert 'fingertrack_messages_in_total{session="a"} 1.0' in text and 'messages_out_total{session="a"}' not in text

@@ -3,7 +3,9 @@ rule when the service cannot keep up with the source.
 
 The ingest route reads its WebSocket all the time into an ``IngestBacklog`` while a second task
 processes the messages in order, so the connection's keepalive pings and pongs pass however far
-processing lags. (A route that stopped reading while it was busy left the source's pong behind
+processing lags; while the processor waits for work with nothing queued, the reader hands a greeted
+source's JSON data message of a session whose hand runs in a worker on itself, as the processor would
+(``LiveSession.forward``: one task's wake less per message). (A route that stopped reading while it was busy left the source's pong behind
 unread data: after ``ping_timeout_s`` the connection was closed with 1011 and everything the source
 had sent and the service not yet read was lost without a word.)
 
@@ -50,6 +52,7 @@ class IngestBacklog:
         self._messages = 0                   # received messages in _items (the rest: replies, the end)
         self._reply_bytes = 0
         self._ready = asyncio.Event()
+        self._waiting = False                # the processor waits in ``get`` for the next item
         self.overloaded = False
         """True from the moment the backlog was full until it drained to half."""
 
@@ -96,10 +99,19 @@ class IngestBacklog:
         self._items.append((None, 0))
         self._ready.set()
 
+    def idle(self) -> bool:
+        """Nothing waits here and the processor waits for the next item: a message handled at once now
+        keeps its place in the order."""
+        return self._waiting and not self._items
+
     async def get(self):
         while not self._items:
             self._ready.clear()
-            await self._ready.wait()
+            self._waiting = True
+            try:
+                await self._ready.wait()
+            finally:
+                self._waiting = False
         item, size = self._items.popleft()
         if size < 0:                         # a reply in a refused message's place
             self._reply_bytes += size

@@ -33,8 +33,19 @@ class Metrics:
                                  buckets=(0.0005, 0.001, 0.0015, 0.002, 0.0025, 0.003, 0.0035, 0.004, 0.0045, 0.005,
                                           0.006, 0.0075, 0.01, 0.015, 0.02, 0.05, 0.1, 0.5))
 
+        self._series: dict[str, SessionSeries] = {}
+
+    def of_session(self, name: str) -> SessionSeries:
+        """The session's per-message series, looked up once (``labels`` on every message cost more than
+        the count itself) until ``forget_session``."""
+        series = self._series.get(name)
+        if series is None:
+            series = self._series[name] = SessionSeries(self, name)
+        return series
+
     def forget_session(self, name: str) -> None:
         """Drop the series of a removed session (a name may come back as a new session)."""
+        self._series.pop(name, None)
         for family in (self.messages_in, self.messages_out, self.dropped_frames, self.overloaded, self.latency, self.behind):
             try:
                 family.remove(name)
@@ -45,6 +56,35 @@ class Metrics:
         """The exposition text; without ``admin``, series labelled by session are left out (session
         names are not every role's business)."""
         return generate_latest(self.registry if admin else _WithoutSessions(self.registry))
+
+
+class SessionSeries:
+    """A session's ``messages_in``, ``messages_out`` and ``latency`` series, each made on its first use (as
+    ``labels`` makes it: a session that has sent no frame shows no frame series)."""
+
+    __slots__ = ("_metrics", "_name", "_in", "_out", "_latency")
+
+    def __init__(self, metrics: Metrics, name: str):
+        self._metrics, self._name = metrics, name
+        self._in = self._out = self._latency = None
+
+    @property
+    def messages_in(self) -> Counter:
+        if self._in is None:
+            self._in = self._metrics.messages_in.labels(self._name)
+        return self._in
+
+    @property
+    def messages_out(self) -> Counter:
+        if self._out is None:
+            self._out = self._metrics.messages_out.labels(self._name)
+        return self._out
+
+    @property
+    def latency(self) -> Histogram:
+        if self._latency is None:
+            self._latency = self._metrics.latency.labels(self._name)
+        return self._latency
 
 
 class _WithoutSessions(Collector):

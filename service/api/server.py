@@ -16,7 +16,8 @@ from ..pipeline.gc_policy import serving_gc  # noqa: F401  (re-exported: the CLI
 
 
 class DrainingWebSocket(WebSocketsSansIOProtocol):
-    """uvicorn's WebSocket protocol, except where it fails a connection for a frame it cannot take (larger
+    """uvicorn's WebSocket protocol, except that it pauses reading only once ``QUEUE_HIGH`` messages wait
+    for the app, and where it fails a connection for a frame it cannot take (larger
     than ``ws_max_size``: close 1009; malformed: 1002; not UTF-8: 1007). uvicorn sends its close frame
     and closes the socket at once, while the rest of the peer's frame is still arriving: the kernel
     answers that data with a reset, and a peer still sending gets the reset instead of the close frame
@@ -25,7 +26,21 @@ class DrainingWebSocket(WebSocketsSansIOProtocol):
     closes."""
 
     DRAIN_S = 5.0
+    QUEUE_HIGH = 16
+    """received messages the app has not taken yet before reading from the connection pauses (uvicorn pauses
+    after every message and resumes once the app has taken it: two changes of the loop's selector per
+    message, with routes that read all the time anyway; ``api.backlog`` bounds what waits beyond)"""
     _draining = False
+
+    def send_receive_event_to_app(self) -> None:
+        paused, self.read_paused = self.read_paused, True     # (so that uvicorn does not pause here)
+        try:
+            super().send_receive_event_to_app()
+        finally:
+            self.read_paused = paused
+        if not paused and self.queue.qsize() >= self.QUEUE_HIGH:
+            self.read_paused = True
+            self.transport.pause_reading()
 
     def handle_parser_exception(self) -> None:
         assert self.conn.close_sent is not None

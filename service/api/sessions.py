@@ -236,6 +236,11 @@ class LiveSession:
         session whose hand runs in a worker process leaves data messages to the worker to validate)."""
         return parse_input(data, binary)
 
+    def forward(self, data: dict) -> bool:
+        """Hand a received WebSocket message on at once, as the ingest route's processor would with nothing
+        to answer or wait for, if this session can (``True``); a session whose hand runs here cannot."""
+        return False
+
     async def ingest(self, raw: dict, parsed) -> Dropped | None:
         """Run one validated source message through the hand and fan the outputs out; after each
         frame it yields to the event loop so the subscribers' senders go out before the next tick.
@@ -243,7 +248,7 @@ class LiveSession:
         answers later, through ``attach_source``)."""
         t0 = time.perf_counter()
         async with self._lock:          # several sources (glove, tracker) may feed one hand: one at a time
-            self.metrics.messages_in.labels(self.name).inc()
+            self.metrics.of_session(self.name).messages_in.inc()
             if self.recorder is not None:
                 self.recorder.write(dump_message(parsed))     # as validated: unknown fields dropped
             dropped = self.hand.accept(parsed)

@@ -98,8 +98,6 @@ WINDOW = 512
 """source messages of one session on their way to its worker at once (more: the source waits)"""
 RESTART_BACKOFF_S = 1.0
 """pause before restarting a worker that died before it was ready, s"""
-READ_CHUNK = 1 << 16
-"""bytes of a worker's batch read at a time (each counts as a sign of life), bytes"""
 LAG_EVIDENCE = 20
 """source messages the other workers answer while one worker owing answers is silent, before that one
 counts as stuck after ``hand_worker_lag_s`` (not ``hand_worker_stall_s``)"""
@@ -139,9 +137,9 @@ class WorkerLink:
         """source messages of its sessions it has not answered yet (the sum of their ``_pending``, kept
         as a count so that a source message costs no walk over the worker's sessions)"""
         self.restarts = 0
-        self._writer: asyncio.StreamWriter | None = None
+        self._writer: asyncio.Transport | None = None
         self._sock: socket.socket | None = None
-        self._reader: asyncio.StreamReader | None = None
+        self._reader: _LinkReader | None = None
         self._out: list = []
         self._held: list = []                       # while restarting: messages other than source messages
         self._restarting = False
@@ -176,9 +174,10 @@ class WorkerLink:
                 os.setpriority(os.PRIO_PROCESS, self.pid,
                                min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.pool.settings.hand_worker_isolated_nice))
         self._cpu_ns, self.worked = None, time.monotonic()
-        reader, self._writer = await asyncio.open_unix_connection(sock=parent)
-        self._sock, self._reader = parent, reader
-        self._tasks = [asyncio.create_task(self._read(reader)), asyncio.create_task(self._watch(self.proc))]
+        self._writer, self._reader = await asyncio.get_running_loop().create_unix_connection(
+            lambda: _LinkReader(self), sock=parent)
+        self._sock = parent
+        self._tasks = [asyncio.create_task(self._watch(self.proc))]
         self._flush()
 
     def send(self, message: list) -> None:
@@ -203,31 +202,9 @@ class WorkerLink:
                 self._owing_from_flush = False
                 self._hear()
 
-    async def _read(self, reader: asyncio.StreamReader) -> None:
-        try:
-            while True:
-                size, = HEADER.unpack(await reader.readexactly(HEADER.size))
-                data = bytearray()
-                while len(data) < size:             # a worker whose bytes still arrive is not silent
-                    data += await reader.readexactly(min(size - len(data), READ_CHUNK))
-                    self._hear()
-                outs = 0
-                for message in msgpack.unpackb(data):
-                    self._dispatch(message)
-                    if message[0] == "out":
-                        outs += 1
-                        if outs % self.pool.outs_per_turn == 0:
-                            # the subscribers' senders go out before more frames come (their queues are bounded)
-                            await asyncio.sleep(0)
-                            self._hear()            # this process was busy with its outputs, not waiting for it
-                if outs % self.pool.outs_per_turn:
-                    await asyncio.sleep(0)
-        except (asyncio.IncompleteReadError, ConnectionError):
-            return                                  # the process ended: _watch restarts it
-
     def _unread(self) -> bool:
         """Bytes from the worker that this process has not read yet (in the socket or the reader's buffer)."""
-        if self._reader is not None and len(getattr(self._reader, "_buffer", b"")):
+        if self._reader is not None and self._reader.unread():
             return True
         try:
             return self._sock is not None and struct.unpack("i", fcntl.ioctl(self._sock.fileno(), termios.FIONREAD,
@@ -281,7 +258,8 @@ class WorkerLink:
         self._restarting = True
         self.restarts += 1
         self.pool.metrics.worker_restarts.inc()
-        await asyncio.gather(self._tasks[0], return_exceptions=True)   # what it sent before it died comes first
+        if self._reader is not None:                # what it sent before it died comes first
+            await asyncio.shield(self._reader.finished)
         if self._writer is not None:
             self._writer.close()
         self._writer, self._out, self._held = None, [], [m for m in self._out if m[0] == "close"]
@@ -360,6 +338,97 @@ class WorkerLink:
             except asyncio.TimeoutError:
                 self.proc.kill()
                 await self.proc.wait()
+
+
+class _LinkReader(asyncio.Protocol):
+    """The web process's end of a worker's socket: the worker's batches (``hands.worker``) dispatched as
+    their bytes arrive, in the callback that received them (no reading task and no turn of the loop per
+    batch). Every arrival counts as a sign of life; after every ``outs_per_turn`` frames and events the
+    rest waits for the next turn of the loop (reading paused meanwhile), so that the subscribers' senders
+    go out before more frames come (their queues are bounded)."""
+
+    def __init__(self, link: WorkerLink):
+        self.link = link
+        self._buf = bytearray()
+        self._batch: list = []                      # the messages of the batch being dispatched
+        self._next = 0                              # the next of them to dispatch
+        self._transport: asyncio.Transport | None = None
+        self._continuing = False
+        self._lost = False
+        self.finished = asyncio.get_running_loop().create_future()
+        """done once the connection has ended and everything the worker sent before was dispatched"""
+
+    def connection_made(self, transport) -> None:
+        self._transport = transport
+
+    def data_received(self, data: bytes) -> None:
+        self._buf += data
+        self.link._hear()                           # a worker whose bytes still arrive is not silent
+        if not self._continuing:
+            self._dispatch()
+
+    def unread(self) -> bool:
+        """Bytes or messages from the worker not dispatched yet."""
+        return bool(self._buf) or self._next < len(self._batch)
+
+    def _dispatch(self) -> None:
+        link, per_turn, outs = self.link, self.link.pool.outs_per_turn, 0
+        while True:
+            batch = self._batch
+            while self._next < len(batch):
+                message = batch[self._next]
+                self._next += 1
+                link._dispatch(message)
+                if message[0] == "out":
+                    outs += 1
+                    if outs == per_turn and self._next < len(batch):     # the rest after the senders' turn
+                        self._pause()
+                        return
+            buf = self._buf
+            if len(buf) < HEADER.size or len(buf) < HEADER.size + HEADER.unpack_from(buf)[0]:
+                break
+            size, = HEADER.unpack_from(buf)
+            self._batch, self._next = msgpack.unpackb(buf[HEADER.size:HEADER.size + size]), 0
+            del buf[:HEADER.size + size]
+            if outs:                                # a batch after frames: after the senders' turn too
+                self._pause()
+                return
+        if self._lost:
+            self._finish()
+
+    def _pause(self) -> None:
+        self._continuing = True
+        if not self._lost:
+            self._transport.pause_reading()
+        asyncio.get_running_loop().call_soon(self._continue)
+
+    def _continue(self) -> None:
+        self._continuing = False
+        self.link._hear()                           # this process was busy with its outputs, not waiting for it
+        try:
+            if not self._lost:
+                self._transport.resume_reading()
+            self._dispatch()
+        except Exception:                           # a defect: logged; the worker's end closes, as after a crash
+            log.exception("hand worker %d: passing on its messages failed", self.link.slot)
+            self._transport.close()
+            if self._lost:
+                self._finish()
+
+    def connection_lost(self, exc) -> None:
+        self._lost = True                           # the process ended: _watch restarts it
+        if not self._continuing:
+            try:
+                self._dispatch()
+            finally:
+                self._finish()
+
+    def eof_received(self) -> bool:
+        return False                                # the end of its output: close our end too
+
+    def _finish(self) -> None:
+        if not self.finished.done():
+            self.finished.set_result(None)
 
 
 class HandPool:
@@ -728,6 +797,19 @@ class ProcessSession(LiveSession):
                 return raw, Unchecked(raw["type"], data, binary)
         return super().parse_input(data, binary)
 
+    def forward(self, data: dict) -> bool:
+        """A JSON data message of the greeted source, known by its head (``parse_input``), sent on to the
+        worker here and now as ``ingest`` sends it, while the session does not record and its worker has
+        room (``WINDOW``): the route's reader then wakes no processor for it."""
+        text = data.get("text")
+        if text is None or self.recorder is not None or not self._greeted or len(self._pending) >= WINDOW:
+            return False
+        kind = data_type(text)
+        if kind is None:
+            return False
+        self._send_source(kind, ["chk", text, False], None)
+        return True
+
     async def ingest(self, raw: dict, parsed) -> None:
         while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker
             self._replied.clear()
@@ -737,7 +819,7 @@ class ProcessSession(LiveSession):
             if self.recorder is not None:           # recording began since it was received: as validated
                 self._record_unchecked(parsed)
             return None
-        self.metrics.messages_in.labels(self.name).inc()
+        self.metrics.of_session(self.name).messages_in.inc()
         if self.recorder is not None:
             from ...protocol.messages import dump_message
             self.recorder.write(dump_message(parsed))
@@ -813,7 +895,7 @@ class ProcessSession(LiveSession):
         here does)."""
         entry = self._pending.pop(n, None)
         if accepted:
-            self.metrics.messages_in.labels(self.name).inc()
+            self.metrics.of_session(self.name).messages_in.inc()
         if entry is not None:
             self.link.owed -= 1
         if entry is not None and entry[0] == "calibration" and not errors:

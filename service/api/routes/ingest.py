@@ -117,16 +117,35 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
     if not await claim_source(ws, live, metrics):
         return
     live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
-    bucket = TokenBucket(settings.rate_limit_msgs_per_s)
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
     processor = asyncio.create_task(_process(ws, session, live, backlog, metrics))
     try:
-        while not processor.done():          # read all the time (backlog.py): pings and pongs keep passing
+        # in a task of its own: each wait for a message suspends and resumes its few frames, not the two dozen
+        # of the server's and the framework's layers around this route
+        await asyncio.create_task(_read(ws, session, live, backlog, processor, settings, metrics))
+    finally:
+        backlog.close()                      # what was received is still processed (its replies go nowhere)
+        await asyncio.gather(processor, return_exceptions=True)
+        release(ws)
+        if live.source is ws:
+            live.source = live.source_token = None
+            live.touch()
+
+
+async def _read(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, processor: asyncio.Task,
+                settings: ServiceSettings, metrics: Metrics) -> None:
+    """Read the connection all the time (``backlog.py``: pings and pongs keep passing) into the backlog
+    until it ends or the processor is done."""
+    bucket = TokenBucket(settings.rate_limit_msgs_per_s)
+    try:
+        while not processor.done():
             data = await ws.receive()
             if data["type"] == "websocket.disconnect":
                 break
             size = _size(data)
             refused = _admit(size, settings, bucket)
+            if refused is None and backlog.idle() and live.source is ws and live.forward(data):
+                continue                     # handled here as the processor would (nothing waits before it)
             if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
                 live.overloaded += 1
                 metrics.overloaded.labels(session).inc()
@@ -139,13 +158,6 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
                 break
     except (WebSocketDisconnect, RuntimeError):   # RuntimeError: the processor closed the connection
         pass
-    finally:
-        backlog.close()                      # what was received is still processed (its replies go nowhere)
-        await asyncio.gather(processor, return_exceptions=True)
-        release(ws)
-        if live.source is ws:
-            live.source = live.source_token = None
-            live.touch()
 
 
 async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, metrics: Metrics) -> None:

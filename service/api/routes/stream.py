@@ -11,7 +11,8 @@ import time
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 
 from ..deps import WS_GOING_AWAY, WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
-from ..sessions import Subscriber
+from ..metrics import Metrics
+from ..sessions import Sessions, Subscriber
 from .socket import accept, close_reason, release, send, server_hello
 
 router = APIRouter()
@@ -27,6 +28,30 @@ async def _until_disconnect(ws: WebSocket) -> None:
         return
 
 
+async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber, closer: asyncio.Task,
+                    sessions: Sessions, metrics: Metrics) -> None:
+    """The server's hello, then the subscriber's queue as it fills, until the peer leaves, the subscriber
+    is closed (too slow) or the server shuts down."""
+    try:
+        await send(ws, server_hello(session, waiting=waiting))
+        while not closer.done():
+            if not sub.queue:
+                await sub.wake.wait()
+            if sessions.closing or (sub.closed and not sub.queue):
+                reason = "server shutting down" if sessions.closing else "subscriber too slow: gesture events would be lost"
+                # 1013 "try again later": a client that fell behind may reconnect (1008 means refused)
+                await ws.close(code=WS_GOING_AWAY if sessions.closing else WS_TRY_AGAIN_LATER, reason=reason)
+                break
+            while sub.queue:
+                msg, t0 = sub.pop()
+                await send(ws, msg)
+                series = metrics.of_session(session)
+                series.messages_out.inc()
+                series.latency.observe(time.perf_counter() - t0)
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+
+
 @router.websocket("/v1/stream/{session}", dependencies=[Security(Role("stream"))])
 async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: SettingsDep, metrics: MetricsDep):
     if not await accept(ws):                          # over the token's connection quota (HTTP 429)
@@ -40,25 +65,11 @@ async def stream(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         return
     metrics.subscribers.inc()
     closer = asyncio.create_task(_until_disconnect(ws))
+    closer.add_done_callback(lambda _: sub.wake.set())   # the peer left: stop waiting (no task per wait)
     try:
-        await send(ws, server_hello(session, waiting=live is None))
-        while not closer.done():
-            if not sub.queue:
-                waiter = asyncio.create_task(sub.wake.wait())
-                await asyncio.wait({waiter, closer}, return_when=asyncio.FIRST_COMPLETED)
-                waiter.cancel()
-            if sessions.closing or (sub.closed and not sub.queue):
-                reason = "server shutting down" if sessions.closing else "subscriber too slow: gesture events would be lost"
-                # 1013 "try again later": a client that fell behind may reconnect (1008 means refused)
-                await ws.close(code=WS_GOING_AWAY if sessions.closing else WS_TRY_AGAIN_LATER, reason=reason)
-                break
-            while sub.queue:
-                msg, t0 = sub.pop()
-                await send(ws, msg)
-                metrics.messages_out.labels(session).inc()
-                metrics.latency.labels(session).observe(time.perf_counter() - t0)
-    except (WebSocketDisconnect, RuntimeError):
-        pass
+        # in a task of its own: each wait for a frame suspends and resumes its few frames, not the two dozen of
+        # the server's and the framework's layers around this route
+        await asyncio.create_task(_send_all(ws, session, live is None, sub, closer, sessions, metrics))
     finally:
         closer.cancel()
         sessions.unsubscribe(session, sub)
