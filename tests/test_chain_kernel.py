@@ -17,6 +17,7 @@ from service.estimators.base import FingerSamples, samples_from_session
 from service.model.hand import default_calibration
 from service.model.kinematics import BaseMotion
 from service.pipeline.hand import HandSession, PipelineSettings
+from service.pipeline.mounting import MountingFitSettings
 from service.protocol import parse_message
 from service.sim.errors import OpticalModel
 from service.sim.session import SimConfig, simulate
@@ -551,7 +552,9 @@ def test_the_kernels_gyro_angles_equal_the_reference():
             e._state["x"][:, GA_START:GA_START + 9] *= 0.3
         hand._stack(ests, np.zeros(3))
         hand._cx[:] = rng.normal(0.0, 0.01, hand._cx.shape)
-        hand.cross_offsets = rng.normal(0.0, 0.05, (hand._x.shape[0], 2)) if trial % 2 else None
+        # offsets on odd trials, with their variance (a third column) on every other of them
+        hand.cross_offsets = np.c_[rng.normal(0.0, 0.05, (hand._x.shape[0], 2)),
+                                   rng.uniform(0.0, 0.01, (hand._x.shape[0], int(trial % 4 == 3)))] if trial % 2 else None
         rot = Rotation.random(random_state=rng).as_matrix()
         omega = rot @ rng.normal(0.0, 3.0, 3)
         motion = BaseMotion(rot, np.zeros(3), np.zeros(3), np.zeros(3), omega, np.zeros(3))
@@ -593,7 +596,9 @@ def test_the_gyros_cross_axis_offsets_bias_its_angle_unless_taken_off():
     settle on it, not on the angle (closed form: the state moves from its start toward the measured angle by
     ``n P / (r + n P)``). With the offsets taken off (``ChainHand.cross_offsets``, as the pipeline sets them
     from the flexion-axis fit) the same ticks settle on the angle, to 0.5 deg (taken off in the sensor's frame,
-    before the mounting, they would not)."""
+    before the mounting, they would not). Offsets known only to their prior (none taken off, their variance
+    ``σ_b²`` given) make each measurement count less: its variance is ``(σ_rate² + σ_b²) / |w|²`` per window,
+    so the same ticks move the state less far toward the biased angle."""
     index = default_calibration("right").finger("index")
     # sensors turned on their phalanges as the calibration states: the offsets are in the phalanx frame the
     # mounting turns the reading into, not in the sensor's own
@@ -612,7 +617,7 @@ def test_the_gyros_cross_axis_offsets_bias_its_angle_unless_taken_off():
     across = np.c_[-seen[:, 2], seen[:, 1]] / np.hypot(seen[:, 1], seen[:, 2])[:, None]
     b = np.radians([[4.0], [-3.0]]) * across
 
-    def settle(taken_off):
+    def settle(taken_off, var=None):
         est = Chain(geom)
         x = np.zeros((2, N_STATE))
         x[:, TH] = truth + np.radians(5.0)
@@ -621,6 +626,8 @@ def test_the_gyros_cross_axis_offsets_bias_its_angle_unless_taken_off():
         hand = ChainHand()
         hand._stack([est], np.zeros(3))
         hand.cross_offsets = b.copy() if taken_off else None
+        if var is not None:
+            hand.cross_offsets = np.c_[np.zeros((2, 2)), np.full(2, var)]
         omega = est.obs.base @ w_base                                   # R_M = I: world = metacarpus
         motion = BaseMotion(np.eye(3), np.zeros(3), np.zeros(3), np.zeros(3), omega, np.zeros(3))
         reading = seen + np.c_[np.zeros(2), b]
@@ -639,6 +646,12 @@ def test_the_gyros_cross_axis_offsets_bias_its_angle_unless_taken_off():
     error, _ = settle(True)
     np.testing.assert_allclose(error, np.radians(5.0) * keep, rtol=1e-6)
     assert np.abs(np.degrees(error)).max() < 0.5
+    var = MountingFitSettings().offset_std_rad_s ** 2
+    r_var = (s.gyro_angle_rate_std_rad_s ** 2 + var) / (w_base[1] ** 2 + w_base[2] ** 2) * s.gyro_angle_window_s / dt
+    keep_var = r_var / (r_var + ticks * 0.05**2)
+    error, _ = settle(False, var)
+    np.testing.assert_allclose(error, bias + (np.radians(5.0) - bias) * keep_var, rtol=1e-6)
+    assert keep_var > 1.2 * keep
 
 
 def test_the_kernels_gyro_angles_equal_the_numpy_step_after_the_kernel_through_the_pipeline(monkeypatch):
@@ -767,8 +780,8 @@ def test_the_default_live_pipeline_takes_the_gyro_angle():
     hs = sessions["on"]
     ids = tuple(sp.id for e in hs._together._estimators for sp in e.geom.sensors)
     fits = hs._mount_fits
-    own = np.concatenate([fits.cross_offsets(fits.rows((sid,))) for sid in ids])
+    own = np.concatenate([fits.cross_offsets(fits.rows((sid,)), np.empty((1, 3))) for sid in ids])
     np.testing.assert_array_equal(hs._together.cross_offsets, own)
-    assert len(ids) == 2 and np.abs(own[0] - own[1]).min() > 1e-4
+    assert len(ids) == 2 and np.abs(own[0, :2] - own[1, :2]).min() > 1e-4 and np.all(own[:, 2] > 0.0)
     # and it takes the gyros' cross-axis offsets off as the flexion-axis fit finds them
     assert np.abs(out["on"] - out["offsets left on"]).max() > 1e-4

@@ -45,6 +45,61 @@ def test_a_known_tilt_is_recovered_from_noise_free_gyro_samples(calibrated):
     np.testing.assert_allclose(calibrated @ np.array(fit.correct(mount.T @ omega_p)), omega_p, atol=0.01)
 
 
+def test_clipped_gyro_samples_stay_out_of_the_fit():
+    """Noise-free readings of a tilted sensor with offsets, 3000 ordinary flexion samples and 20 fists whose
+    hinge rate peaks at 2800 deg/s (a gyro's full scale is 2000): a clipped sample's hinge-axis rate ``ω_x``
+    is too small, so its cross-axis residual (the tilt's ``-ε_z ω_x`` of the true rate) is mis-fit, and a
+    fist's flexion is one-signed, so the misfit lands in the offsets, about 0.5 deg/s. Left out of the fit
+    (the default) the offsets and the tilt come out as without the fists."""
+    clip = np.radians(2000.0)
+    eps = np.radians([3.0, -4.0])
+    tilt = Rotation.from_rotvec([0.0, *eps]).as_matrix()
+    offset = np.radians([1.0, -3.0, 4.0])
+    tau = np.linspace(0.0, 1.0, 31)
+    fist = np.radians(2800.0) * 16.0 * tau**2 * (1.0 - tau) ** 2
+
+    def fitted(fit_clipped):
+        rng = np.random.default_rng(7)
+        fit = HingeAxisFit(np.eye(3), MountingFitSettings(fit_clipped=fit_clipped))
+        for rate in np.concatenate([rng.normal(0.0, 6.0, 3000), np.tile(fist, 20)]):
+            theta, w_base = rng.uniform(-0.2, 1.8), rng.normal(0.0, 1.5, 3)
+            omega_p = rot_x(theta).T @ w_base + rate * np.array([1.0, 0.0, 0.0])
+            fit.add(np.clip(tilt.T @ omega_p + offset, -clip, clip), theta, w_base)
+        return np.degrees(fit.cross_offsets - (tilt @ offset)[1:]), np.degrees(fit.tilt_rad - eps)
+
+    offsets_error, tilt_error = fitted(False)
+    assert np.abs(offsets_error).max() < 0.15 and np.abs(tilt_error).max() < 0.1
+    offsets_error, tilt_error = fitted(True)
+    assert np.abs(offsets_error).max() > 0.3
+
+
+def test_the_offsets_variance_is_their_error_when_they_are_drawn_from_the_prior():
+    """The offsets' variance (``HingeAxisFit.cross_offsets_var``, σ² a00 / det of the regression's normal
+    equations) is their posterior variance: with offsets and tilts drawn from the fit's priors and the
+    cross-axis residuals carrying white noise of ``residual_std_rad_s`` (the linear model exactly), the
+    offsets' mean squared error over 300 fits of 40 samples, each divided by its variance, is 1 (to its
+    sampling error, about 0.05); before any sample the variance is the prior's."""
+    st = MountingFitSettings()
+    assert HingeAxisFit(np.eye(3)).cross_offsets_var == pytest.approx(st.offset_std_rad_s ** 2, rel=1e-12)
+    rng = np.random.default_rng(3)
+    z = []
+    for _ in range(300):
+        eps, b = rng.normal(0.0, st.prior_std_rad, 2), rng.normal(0.0, st.offset_std_rad_s, 2)
+        fit = HingeAxisFit(np.eye(3), MountingFitSettings(max_tilt_rad=1.0))
+        wx_mean = rng.normal(0.0, 4.0)                   # some fits see one-signed flexions: a01 large
+        for _ in range(40):
+            wx = wx_mean + rng.normal(0.0, 3.0)
+            wx = wx if abs(wx) >= st.min_rate_rad_s else np.copysign(st.min_rate_rad_s, wx)
+            theta, w = rng.uniform(-0.2, 1.8), rng.normal(0.0, 1.5, 3)
+            c, s = np.cos(theta), np.sin(theta)
+            # the cross-axis residuals' first-order model: -ε_z ω_x + b_y and ε_y ω_x + b_z
+            fy = c * w[1] + s * w[2] - eps[1] * wx + b[0] + rng.normal(0.0, st.residual_std_rad_s)
+            fz = -s * w[1] + c * w[2] + eps[0] * wx + b[1] + rng.normal(0.0, st.residual_std_rad_s)
+            assert fit.add([wx, fy, fz], theta, w)
+        z.extend((fit.cross_offsets - b) ** 2 / fit.cross_offsets_var)
+    assert 0.85 < np.mean(z) < 1.15
+
+
 @pytest.mark.parametrize("cross_axis_std", [0.012, 0.0])
 def test_a_known_cross_axis_leak_is_recovered_from_a_still_finger_on_a_turning_hand(cross_axis_std):
     """A gyro whose hinge-axis reading picks up 2 % and -1.5 % of its cross-axis rates (cross-axis
@@ -70,6 +125,32 @@ def test_a_known_cross_axis_leak_is_recovered_from_a_still_finger_on_a_turning_h
     assert fit.quiet_samples == 5000
     np.testing.assert_allclose(fit.cross_axis, [0.02, -0.015], rtol=0.08)
     assert abs(error) < 0.004                           # the leak was 0.08 rad/s
+
+
+def test_a_still_hand_tells_the_offsets_whatever_the_angles_error():
+    """A finger flexing slowly (below the tilt fit's 2 rad/s) on a hand turning at most 0.15 rad/s across
+    the hinge, noise-free readings with offsets, the fit given angles 5 deg off: the cross axes read the
+    hand's rate turned by the angle plus their offsets, and a 5 deg error of the angle turns 0.15 rad/s by
+    0.75 deg/s at most, on average much less, so the offsets come out to 0.15 deg/s (the slow samples carry the
+    tilt times a small ``ω_x``, which the regression takes with them); the tilt is left alone (no sample is
+    fast). With ``still_rate_rad_s = 0`` nothing is learned (the offsets stay 0: 2-3 deg/s wrong)."""
+    eps = np.radians([3.0, -4.0])
+    tilt = Rotation.from_rotvec([0.0, *eps]).as_matrix()
+    offset = np.radians([1.0, -3.0, 2.5])
+
+    def fitted(still_rate):
+        rng = np.random.default_rng(4)
+        fit = HingeAxisFit(np.eye(3), MountingFitSettings(still_rate_rad_s=still_rate))
+        for _ in range(2000):
+            theta, rate = rng.uniform(-0.2, 1.8), rng.uniform(-1.5, 1.5)
+            w_base = np.r_[rng.uniform(-0.3, 0.3), rng.uniform(-0.1, 0.1, 2)]
+            omega_p = rot_x(theta).T @ w_base + rate * np.array([1.0, 0.0, 0.0])
+            assert not fit.add(tilt.T @ omega_p + offset, theta + np.radians(5.0), w_base)
+        assert fit.samples == 0 and np.array_equal(fit.tilt_rad, np.zeros(2))
+        return np.degrees(fit.cross_offsets - (tilt @ offset)[1:])
+
+    assert np.abs(fitted(MountingFitSettings().still_rate_rad_s)).max() < 0.15
+    assert np.abs(fitted(0.0)).min() > 2.0
 
 
 def test_slow_samples_are_not_used_and_leave_the_readings_alone():
@@ -186,6 +267,8 @@ def _assert_same_fits(kernel, reference):
         np.testing.assert_allclose(kernel.cross_axis(sid), reference.cross_axis(sid), rtol=0, atol=TOL, err_msg=sid)
     rows = np.array([j for j, _, _ in reference.places.values()] + [-1], dtype=np.int64)
     np.testing.assert_allclose(kernel.cross_offsets(rows), reference.cross_offsets(rows), rtol=0, atol=TOL)
+    with_var = [f.cross_offsets(rows, np.zeros((len(rows), 3))) for f in (kernel, reference)]
+    np.testing.assert_allclose(with_var[0], with_var[1], rtol=0, atol=TOL)
 
 
 def test_the_compiled_fits_equal_the_reference_on_random_ticks():
@@ -220,6 +303,8 @@ def test_the_compiled_fits_equal_the_reference_on_random_ticks():
         rows = kernel.rows(present)
         np.testing.assert_allclose(kernel.correct(rows, raw), reference.correct(rows, raw), rtol=0, atol=TOL)
         hand, phi = _hand_flat(rng), rng.uniform(-0.3, 1.4, n_phi)
+        if tick % 4 == 1:
+            hand[12:15] *= 0.02                     # a hand nearly still: slow samples tell the offsets
         started = rng.random(len(calib.fingers)) > 0.1
         n = kernel.fit(rows, raw, hand, phi, started)
         assert n == reference.fit(rows, raw, hand, phi, started)

@@ -225,10 +225,13 @@ offsets (MPU-9250 ±5 deg/s, 2.9 deg/s RMS per axis), which turn the angle they 
 not average out over windows; the pipeline's flexion-axis fit has the cross axes' residuals regressed on
 ``[ω_x, 1]`` (``service/pipeline/mounting.py``), whose constant terms estimate them, so with
 ``gyro_angle_cross_offsets`` they are taken off the cross axes' reading first (``ChainHand.cross_offsets``,
-set by the pipeline each tick from the fit). Not modelled yet (a review's leads): the estimate's own error
-(it learns from fast flexions only and weighs every sample alike, clipped ones included: 0.8-1.8 deg/s RMS
-left after 12 s on two tuning trials, one sensor worse than none taken off) is not in the measurement's
-noise; a tick longer than the window counts as more than one window; the gyro's scale and cross-axis
+set by the pipeline each tick from the fit, which learns them from fast flexions and from the samples of a
+still hand). The estimate has its own error (on tuning trial 521 0.68 deg/s RMS at 3 s, 0.21 at 12 s); with
+``gyro_angle_offset_error`` its variance as the fit's normal equations give it, ``σ_b² = σ² a00 / det``
+(the prior's 2.9 deg/s before any sample), is added to the optical rate's,
+``(σ_rate² + σ_b²) / |w_yz|²``, and counted once per window like it. Not modelled yet: ``σ_b²`` takes the
+fit's samples as independent, so it understates the error, and the estimate's error is correlated far
+longer than a window; a tick longer than the window counts as more than one window; the gyro's scale and cross-axis
 errors and the mounting's tilt do not average out over windows as the noise model assumes; the fit's sums
 weigh an old sample as much as a new one, so a temperature drift of the offsets (±0.24 deg/s/K) is followed
 ever more slowly. On tuning trials it
@@ -309,6 +312,7 @@ class ChainSettings(EstimatorSettings):
     gyro_angle_max_flexion_rad_s: float = Field(1.0, gt=0.0, description="... and the finger turns on its hand slower than this (its hinge-axis reading less the hand's rate about it), rad/s")
     gyro_angle_window_s: float = Field(0.15, gt=0.0, description="the optical hand rate's error is correlated over the optics' fit window (PipelineSettings.pose_window_s), so the gyro's angle counts once per window: its variance per tick is multiplied by this over the tick's step, s")
     gyro_angle_cross_offsets: bool = Field(True, description="take each gyro's cross-axis offsets, as the pipeline's flexion-axis fit estimates them (service/pipeline/mounting.py), off its cross axes' reading for the gyro's angle (MPU-9250 offsets ±5 deg/s: b/|w| is typically 1-3 deg of angle at a hand rate of 1-3 rad/s across the hinge, up to 7 deg at the bound)")
+    gyro_angle_offset_error: bool = Field(True, description="with gyro_angle_cross_offsets, count the offsets' own estimation error in the gyro angle's noise: their variance from the flexion-axis fit's normal equations over the rate across the hinge squared, sigma_b^2 / |w_yz|^2, beside the optical rate's")
     hold_min_s: float = Field(0.5, gt=0.0, description="least part of a reference_pose's hold the estimator must have seen for the offset measurement, s")
     implementation: Literal["compiled", "reference"] = Field(
         "compiled", description="'compiled': the numba kernel (chain_kernel.py); 'reference': the numpy implementation it is "
@@ -1045,7 +1049,8 @@ class ChainHand:
         if not i.size:
             return
         f = np.matmul(self._mount[i], gyr[i, :, None])[:, :, 0]                     # phalanx frame
-        f[:, 1:] -= self._cross_offsets()[i]
+        b = self._cross_offsets()[i]
+        f[:, 1:] -= b[:, :2]
         w = w[i]
         z = np.arctan2(w[:, 2], w[:, 1]) - np.arctan2(f[:, 2], f[:, 1])
         y = np.mod(z - self._x[i] @ _GYRO_ANGLE_H + np.pi, 2.0 * np.pi) - np.pi
@@ -1053,7 +1058,9 @@ class ChainHand:
         i, y = i[take], y[take]
         if not i.size:
             return
-        r = s.gyro_angle_rate_std_rad_s ** 2 / w_yz2[i] * s.gyro_angle_window_s / np.repeat(dts, counts)[i]
+        # the rate's error and the offsets' own (their variance, a third column of cross_offsets if there)
+        var = s.gyro_angle_rate_std_rad_s ** 2 + (b[take, 2] if b.shape[1] > 2 else 0.0)
+        r = var / w_yz2[i] * s.gyro_angle_window_s / np.repeat(dts, counts)[i]
         ph = self._p[i] @ _GYRO_ANGLE_H
         s_cov = ph @ _GYRO_ANGLE_H + r
         gain = ph / s_cov[:, None]
@@ -1074,7 +1081,7 @@ class ChainHand:
         """``cross_offsets`` where it fits the stacked sensors, else zeros."""
         n = int(self._sensor_start[-1])
         b = self.cross_offsets
-        if b is not None and b.shape == (n, 2):
+        if b is not None and b.ndim == 2 and b.shape[0] == n and b.shape[1] in (2, 3):
             return b
         if self._no_offsets.shape[0] != n:
             self._no_offsets = np.zeros((n, 2))

@@ -229,7 +229,8 @@ def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x,
             y = (seen - math.atan2(f2, f1) - predicted + math.pi) % two_pi - math.pi
             if not (abs(f0 - w0) < max_flex and abs(y) < GYRO_ANGLE_GATE_RAD):
                 continue
-            r = rate_std * rate_std / w_yz2 * window / dts[f]
+            var = rate_std * rate_std + (ga_off[s, 2] if ga_off.shape[1] > 2 else 0.0)
+            r = var / w_yz2 * window / dts[f]
             for i in range(N_STATE):
                 ph[i] = p[s, i, 0] + hq * p[s, i, g5] - hq * p[s, i, g7]
             den = ph[0] + hq * ph[g5] - hq * ph[g7] + r

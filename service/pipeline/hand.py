@@ -753,8 +753,9 @@ class HandSession:
             readings = np.array([self._last_reading(s) for s in layout.sensors])
             gyr, acc = readings[:, 0], readings[:, 1]
         fits = self._mount_fits
-        self._together.cross_offsets = layout.cross_offsets(fits) \
-            if fits and fingers[0].estimator.settings.gyro_angle_cross_offsets else None
+        chain = fingers[0].estimator.settings
+        self._together.cross_offsets = layout.cross_offsets(fits, chain.gyro_angle_offset_error) \
+            if fits and chain.gyro_angle_cross_offsets else None
         phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
         finite = math.isfinite(sum(phi.tolist()))
         names = layout.mode_names.get(tuple(modes))
@@ -881,12 +882,13 @@ class _TogetherLayout:
         self.rows_acc = None if self.rows is None else 2 * self.rows + 1
         self._fits = self._fit_rows = self._offsets = None
 
-    def cross_offsets(self, fits) -> np.ndarray:
+    def cross_offsets(self, fits, var: bool = False) -> np.ndarray:
         """The sensors' gyro cross-axis offsets (S, 2) as their flexion-axis fits ``fits`` estimate them now
-        (``HandMountings.cross_offsets``), in one array kept per layout and rewritten each call."""
-        if self._fits is not fits:
+        (``HandMountings.cross_offsets``), with ``var`` their variance as a third column, in one array kept
+        per layout and rewritten each call."""
+        if self._fits is not fits or self._offsets.shape[1] != 2 + var:
             self._fits, self._fit_rows = fits, fits.rows(tuple(self.sensors))
-            self._offsets = np.zeros((len(self.sensors), 2))
+            self._offsets = np.zeros((len(self.sensors), 2 + var))
         return fits.cross_offsets(self._fit_rows, self._offsets)
 
 

@@ -19,6 +19,17 @@ offsets ``0 ± offset_std``) over the samples whose flexion rate exceeds ``min_r
 about the hinge axis itself (``ε_x``) does not show here (it looks like a change of ``θ`` to the gyro
 and the accelerometer alike); a known configuration calibrates it (``chain``, item 5).
 
+**The offsets from a still hand.** The fast flexions teach the tilt, but they are few (seconds of them
+in a minute) and a flexion is one-signed while it lasts, so the constant terms ``b`` learn slowly
+from them. The residual's other error, the angle's, enters as ``δθ |w_yz|`` (the hand's rate across the
+hinge turned by the wrong angle): while the hand turns across the hinge slower than ``still_rate_rad_s``
+the cross axes read their offsets whatever the angle's error (0.6 deg/s at 3 deg and 0.2 rad/s), so
+such samples of a finger flexing slower than ``min_rate_rad_s`` go into a second set of the same sums,
+the offsets' own (``cross_offsets``), and not into the tilt's: their ``ω_x`` is small, so they would
+tell the tilt little, and the tilt's residual from the hinge-axis leak is largest there. A gyro sample
+with an axis at full scale is left out of both (its ``ω_x`` is too small, so a fist's peak would be
+mis-fit into the tilt and, one-signed, into the offsets, for the session).
+
 The fit turns both the gyro's and the accelerometer's readings by the estimated ``ε`` (the mounting is
 one rotation for both), so every estimator reads them as if the sensor sat straight. It uses the
 pipeline's current angle ``θ`` (the accelerometer's, which includes ``ε_x`` as the cross axes do) and
@@ -87,6 +98,15 @@ class MountingFitSettings:
         clip_range_rad_s: the gyro's full scale (MPU-9250 ±2000 deg/s): a reading within 0.1 % of it is
             clipped, and the angle a clipped run missed is added after it (module docstring); 0: not.
         clip_max_samples: a clipped run longer than this many samples is not reconstructed.
+        still_rate_rad_s: a sample slower than ``min_rate_rad_s`` still enters the regression while the hand
+            turns across the hinge axis slower than this (``|(w_y, w_z)|``): its cross axes then read their
+            offsets whatever the angle's error (an angle error ``δθ`` turns what they see of the hand's rate
+            by ``δθ |w|``: 0.6 deg/s at 3 deg and 0.2 rad/s), so it tells the offsets (it carries little of
+            the tilt, ``ω_x`` being small); 0: only fast flexions, rad/s.
+        fit_clipped: whether a gyro sample with an axis at full scale (``clip_range_rad_s``) enters the
+            fits; it should not: a clipped hinge-axis rate ``ω_x`` is too small, so the tilt term
+            ``-ε_z ω_x`` is mis-fit at a fist's peak, and a flexion is one-signed, so the misfit lands in the
+            offsets' constant terms, kept for the session (the sums never forget).
     """
 
     prior_std_rad: float = 1.7 * DEG
@@ -98,6 +118,8 @@ class MountingFitSettings:
     quiet_rate_rad_s: float = 0.5
     clip_range_rad_s: float = 2000.0 * DEG
     clip_max_samples: int = 40
+    fit_clipped: bool = False
+    still_rate_rad_s: float = 0.2
 
 
 class HingeAxisFit:
@@ -117,6 +139,7 @@ class HingeAxisFit:
         # the symmetric 2 x 2 matrix (a00, a01, a11) and the right-hand sides of the y and z rows
         self._a00, self._a01, self._a11 = lam_e, 0.0, lam_b
         self._by0 = self._by1 = self._bz0 = self._bz1 = 0.0
+        self._o = [lam_e, 0.0, lam_b, 0.0, 0.0, 0.0, 0.0]       # the same with the still samples (cross_offsets)
         self.samples = 0
         self.tilt_rad = np.zeros(2)                  # (ε_y, ε_z)
         self._correction, self._rows = np.eye(3), None          # None: readings pass unchanged
@@ -149,18 +172,35 @@ class HingeAxisFit:
     def add(self, gyr, theta: float, hand_rate_base: np.ndarray) -> bool:
         """One gyro sample (raw, sensor frame, rad/s), the phalanx angle (rad) and the hand's rate in the
         finger base frame (rad/s). Returns whether the sample was used (and the correction changed)."""
+        r = self.settings.clip_range_rad_s
+        if r > 0 and not self.settings.fit_clipped and max(abs(g) for g in gyr) >= r * (1.0 - 1e-3):
+            return False                # clipped: its rates are not what the sensor turned at
+        w1, w2 = hand_rate_base[1], hand_rate_base[2]
         if not self.flexing(gyr):
             self._add_quiet(gyr, hand_rate_base)
-            return False
+            if not w1 * w1 + w2 * w2 < self.settings.still_rate_rad_s ** 2:
+                return False
+            still = True
+        else:
+            still = False
         m = self._mount_rows
         gx, gy, gz = gyr
         wx = m[0][0] * gx + m[0][1] * gy + m[0][2] * gz          # f = M gyr, the reading in the phalanx frame
         f1 = m[1][0] * gx + m[1][1] * gy + m[1][2] * gz
         f2 = m[2][0] * gx + m[2][1] * gy + m[2][2] * gz
         c, s = math.cos(theta), math.sin(theta)
-        w1, w2 = hand_rate_base[1], hand_rate_base[2]
         ry = f1 - (c * w1 + s * w2)
         rz = f2 - (-s * w1 + c * w2)
+        o = self._o                 # the offsets' normal equations: every sample used, still ones too
+        o[0] += wx * wx
+        o[1] += wx
+        o[2] += 1.0
+        o[3] += wx * ry
+        o[4] += ry
+        o[5] += wx * rz
+        o[6] += rz
+        if still:
+            return False
         # the normal equations of the regressors [ω_x, 1] (symmetric 2 x 2), solved in closed form
         self._a00 += wx * wx
         self._a01 += wx
@@ -190,13 +230,21 @@ class HingeAxisFit:
         ``[ω_x, 1]`` solves them with the tilt (its prior ``0 ± offset_std``), rad/s; in the frame of the
         corrected reading ``R(ε) M g`` that the estimators read (to first order ``b_y + ε_z b_x`` and
         ``b_z - ε_y b_x`` of the calibrated phalanx frame's offsets: the regressor ``ω_x`` is the raw reading,
-        ``b_x`` in it). Only fast flexions teach it (``min_rate_rad_s``), every sample weighs alike, and a
-        clipped sample enters it too, so it is seconds to minutes from exact (a review measured 0.8-1.8 deg/s
-        RMS left after 12 s of tuning trials 521-522 against 3.0-3.3 with none taken off; one sensor 5.2 against
-        3.3)."""
-        det = self._a00 * self._a11 - self._a01 * self._a01
-        return np.array([(self._a00 * self._by1 - self._a01 * self._by0) / det,
-                         (self._a00 * self._bz1 - self._a01 * self._bz0) / det])
+        ``b_x`` in it). The fast flexions and the samples of a still hand teach it (``still_rate_rad_s``,
+        module docstring), clipped samples are left out, every sample weighs alike: on tuning trial 521 the
+        error left (RMS per axis over six sensors) was 0.68 deg/s at 3 s and 0.21 at 12 s, against 2.21 and
+        0.58 from the fast flexions alone and 3.0 with none taken off."""
+        a00, a01, a11, by0, by1, bz0, bz1 = self._o
+        det = a00 * a11 - a01 * a01
+        return np.array([(a00 * by1 - a01 * by0) / det, (a00 * bz1 - a01 * bz0) / det])
+
+    @property
+    def cross_offsets_var(self) -> float:
+        """The variance of each of ``cross_offsets`` as the regression's normal equations give it,
+        ``σ² (A⁻¹)₁₁ = σ² a00 / det`` with ``σ = residual_std_rad_s`` (the prior's ``offset_std²`` before any
+        sample), (rad/s)²; it takes every sample as independent, so it is a lower bound."""
+        a00, a01, a11 = self._o[:3]
+        return self.settings.residual_std_rad_s ** 2 * a00 / (a00 * a11 - a01 * a01)
 
     def _add_quiet(self, gyr, hand_rate_base) -> bool:
         """A sample of a finger still on its hand into the cross-axis fit (module docstring): its
@@ -294,7 +342,9 @@ class HandMountings:
         self.settings = settings
         self._st = np.array([settings.min_rate_rad_s, settings.max_tilt_rad,
                              settings.quiet_rate_rad_s if settings.cross_axis_std > 0 else 0.0,
-                             settings.clip_range_rad_s, float(settings.clip_max_samples)])
+                             settings.clip_range_rad_s, float(settings.clip_max_samples),
+                             0.0 if settings.fit_clipped else settings.clip_range_rad_s,
+                             settings.residual_std_rad_s ** 2, settings.still_rate_rad_s])
         s = settings
         lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
         lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
@@ -310,6 +360,7 @@ class HandMountings:
                 row[K.B0:K.B0 + 9] = base.ravel()
                 row[K.C0:K.C0 + 9] = np.eye(3).ravel()
                 row[K.A00], row[K.A11] = lam_e, lam_b
+                row[K.O00], row[K.O11] = lam_e, lam_b
                 row[K.Q00], row[K.Q11], row[K.Q22] = lam_b, lam_k, lam_k
                 row[K.STRAIGHT] = float(np.array_equal(mount, np.eye(3)))
                 kept = previous.places.get(sp.id) if previous is not None else None
@@ -376,10 +427,11 @@ class HandMountings:
     def cross_offsets(self, idx: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(b_y, b_z)`` (k, 2) of the sensors in state rows ``idx`` (``rows``; -1: zeros), into ``out`` if
         given: the gyro's cross-axis offsets in the frame of the corrected reading as the tilt fit's regression
-        on ``[ω_x, 1]`` solves them with the tilt (``HingeAxisFit.cross_offsets``), rad/s."""
+        on ``[ω_x, 1]`` solves them with the tilt (``HingeAxisFit.cross_offsets``), rad/s. An ``out`` of
+        (k, 3) gets each one's variance in its third column (``HingeAxisFit.cross_offsets_var``; 0 where -1)."""
         if out is None:
             out = np.empty((len(idx), 2))
-        K.cross_offsets(self.state, idx, out)
+        K.cross_offsets(self.state, idx, out, self._st)
         return out
 
 
@@ -444,6 +496,9 @@ class HandMountingsReference(HandMountings):
 
     def cross_offsets(self, idx, out=None):
         b = np.array([self._fits[j].cross_offsets if j >= 0 else np.zeros(2) for j in idx.tolist()]).reshape(-1, 2)
+        if out is not None and out.shape[1] > 2:
+            var = [self._fits[j].cross_offsets_var if j >= 0 else 0.0 for j in idx.tolist()]
+            b = np.column_stack([b, var])
         if out is not None:
             out[...] = b
         return b if out is None else out

@@ -42,10 +42,13 @@ CLIP_N, CLIP_RISE, LAST1, LAST2, HISTORY, CLIP_ADDED = 50, 53, 56, 59, 62, 65
 axis): the number of clipped samples in the current run, the rise of the reading over the two samples
 before it, the last two readings, how many of them there are (up to 2) and the rate added to the
 current run's samples so far."""
-WIDTH = 68
-ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE, ST_CLIP_RANGE, ST_CLIP_MAX = 0, 1, 2, 3, 4
+O00, O01, O11, OY0, OY1, OZ0, OZ1 = range(68, 75)
+"""The offsets' normal equations (``cross_offsets``): ``a00 .. bz1`` with the still samples added."""
+WIDTH = 75
+ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE, ST_CLIP_RANGE, ST_CLIP_MAX, ST_FIT_RANGE, ST_RESIDUAL_VAR, ST_STILL = range(8)
 """The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``, ``quiet_rate_rad_s`` (0: no cross-axis fit),
-``clip_range_rad_s`` (0: no reconstruction) and ``clip_max_samples``."""
+``clip_range_rad_s`` (0: no reconstruction), ``clip_max_samples`` and the full scale at which a sample is
+left out of the fits (0: none, ``fit_clipped``), ``residual_std_rad_s²`` and ``still_rate_rad_s``."""
 
 
 @njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
@@ -123,18 +126,24 @@ def correct(state, idx, raw, out, st):
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
-def cross_offsets(state, idx, out):
+def cross_offsets(state, idx, out, st):
     """``out[r] = (b_y, b_z)`` of the sensor in row ``idx[r]`` (0 where -1): the tilt fit's normal equations
-    solved for their constant terms, the cross axes' offsets (``HingeAxisFit.cross_offsets``)."""
+    solved for their constant terms, the cross axes' offsets (``HingeAxisFit.cross_offsets``); with a third
+    column, their variance ``σ² a00 / det`` (``HingeAxisFit.cross_offsets_var``)."""
+    var = out.shape[1] > 2
     for r in range(idx.shape[0]):
         j = idx[r]
         if j < 0:
             out[r, 0] = out[r, 1] = 0.0
+            if var:
+                out[r, 2] = 0.0
             continue
-        a00, a01 = state[j, A00], state[j, A01]
-        det = a00 * state[j, A11] - a01 * a01
-        out[r, 0] = (a00 * state[j, BY1] - a01 * state[j, BY0]) / det
-        out[r, 1] = (a00 * state[j, BZ1] - a01 * state[j, BZ0]) / det
+        a00, a01 = state[j, O00], state[j, O01]
+        det = a00 * state[j, O11] - a01 * a01
+        out[r, 0] = (a00 * state[j, OY1] - a01 * state[j, OY0]) / det
+        out[r, 1] = (a00 * state[j, OZ1] - a01 * state[j, OZ0]) / det
+        if var:
+            out[r, 2] = st[ST_RESIDUAL_VAR] * a00 / det
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
@@ -179,10 +188,12 @@ def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def fit(state, meta, idx, raw, hand, phi, started, st):
     """Every sample of a tick whose finger's estimator has started and whose flexion rate reaches
-    ``min_rate_rad_s`` into its sensor's fit (``HingeAxisFit.add`` with the hand's rate in the finger
+    ``min_rate_rad_s`` and whose gyro has no axis at full scale into its sensor's fit (``HingeAxisFit.add`` with the hand's rate in the finger
     base frame ``Bᵀ Rᵀ ω`` from ``hand`` = ``BaseMotion.flat`` (18) and the phalanx angle as the sum of
     the finger's joint angles up to it). Returns how many samples were used."""
     min_rate, max_tilt, quiet_rate = st[ST_MIN_RATE], st[ST_MAX_TILT], st[ST_QUIET_RATE]
+    clipped = st[ST_FIT_RANGE] * (1.0 - 1e-3)
+    still = st[ST_STILL]
     # the hand's angular velocity in the metacarpus frame, Rᵀ ω
     wm0 = hand[0] * hand[12] + hand[3] * hand[13] + hand[6] * hand[14]
     wm1 = hand[1] * hand[12] + hand[4] * hand[13] + hand[7] * hand[14]
@@ -193,18 +204,24 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
         if j < 0 or not started[meta[j, 0]]:
             continue
         gx, gy, gz = raw[r, 0, 0], raw[r, 0, 1], raw[r, 0, 2]
+        if clipped > 0.0 and max(abs(gx), abs(gy), abs(gz)) >= clipped:
+            continue                    # an axis at full scale: not the rates the sensor turned at
         wx = state[j, M0] * gx + state[j, M0 + 1] * gy + state[j, M0 + 2] * gz     # f = M gyr, phalanx frame
+        # the hand's rate in the finger base frame, Bᵀ (Rᵀ ω): its y and z components
+        w1 = state[j, B0 + 1] * wm0 + state[j, B0 + 4] * wm1 + state[j, B0 + 7] * wm2
+        w2 = state[j, B0 + 2] * wm0 + state[j, B0 + 5] * wm1 + state[j, B0 + 8] * wm2
         if not abs(wx) >= min_rate:
             if quiet_rate > 0.0:
                 # the hand's rate about the hinge axis, (Bᵀ Rᵀ ω)_x
                 w0 = state[j, B0] * wm0 + state[j, B0 + 3] * wm1 + state[j, B0 + 6] * wm2
                 _add_quiet(state, j, gx, gy, gz, w0, quiet_rate)
-            continue
+            if not w1 * w1 + w2 * w2 < still * still:
+                continue                # slow, and the hand turns: the angle's error is in the residual
+            slow = True
+        else:
+            slow = False
         f1 = state[j, M0 + 3] * gx + state[j, M0 + 4] * gy + state[j, M0 + 5] * gz
         f2 = state[j, M0 + 6] * gx + state[j, M0 + 7] * gy + state[j, M0 + 8] * gz
-        # the hand's rate in the finger base frame, Bᵀ (Rᵀ ω): its y and z components
-        w1 = state[j, B0 + 1] * wm0 + state[j, B0 + 4] * wm1 + state[j, B0 + 7] * wm2
-        w2 = state[j, B0 + 2] * wm0 + state[j, B0 + 5] * wm1 + state[j, B0 + 8] * wm2
         theta = 0.0
         o = meta[j, 2]
         for q in range(meta[j, 1] + 1):
@@ -212,13 +229,10 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
         c, s = math.cos(theta), math.sin(theta)
         ry = f1 - (c * w1 + s * w2)
         rz = f2 - (-s * w1 + c * w2)
-        state[j, A00] += wx * wx
-        state[j, A01] += wx
-        state[j, A11] += 1.0
-        state[j, BY0] += wx * ry
-        state[j, BY1] += ry
-        state[j, BZ0] += wx * rz
-        state[j, BZ1] += rz
+        _add_sums(state, j, O00, wx, ry, rz)
+        if slow:
+            continue                    # a still sample: the offsets' sums only
+        _add_sums(state, j, A00, wx, ry, rz)
         a00, a01, a11 = state[j, A00], state[j, A01], state[j, A11]
         det = a00 * a11 - a01 * a01
         ey = (a11 * state[j, BZ0] - a01 * state[j, BZ1]) / det
@@ -233,6 +247,20 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
         _set_correction(state, j, ey, ez, norm)
         used += 1
     return used
+
+
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+def _add_sums(state, j, first, wx, ry, rz):
+    """One sample into the normal equations of the regressors ``[ω_x, 1]`` of row ``j`` whose seven sums
+    ``a00, a01, a11, by0, by1, bz0, bz1`` start at column ``first`` (``A00``: the tilt's, ``O00``: the
+    offsets')."""
+    state[j, first] += wx * wx
+    state[j, first + 1] += wx
+    state[j, first + 2] += 1.0
+    state[j, first + 3] += wx * ry
+    state[j, first + 4] += ry
+    state[j, first + 5] += wx * rz
+    state[j, first + 6] += rz
 
 
 @njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
