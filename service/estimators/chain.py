@@ -260,6 +260,7 @@ from pydantic import Field
 
 from ..model.units import DEG, MPU9250_ACC_OFFSET_STD_M_S2, MPU9250_GYRO_NOISE_DENSITY_RAD_S_RTHZ, MPU9250_GYRO_OFFSET_STD_RAD_S
 from . import chain_kernel as K
+from ..pipeline.tick_kernel import steady_tick
 from .chain_kernel import GA_START, GS, N_STATE
 from . import kalman
 from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimate, FingerEstimator, FingerSamples, FingerTrack, \
@@ -426,7 +427,8 @@ class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
     jit_kernels = True
-    kernels = (K.run, K.run_hand)
+    kernels = (K.run, K.run_hand, steady_tick)
+    """``run_hand`` also inside the hand pipeline's steady tick (``pipeline.tick_kernel``, warmed with it)."""
 
     @classmethod
     def whole_hand_compiled(cls, settings: ChainSettings) -> bool:
@@ -949,6 +951,7 @@ class ChainHand:
         self._theta = np.empty(int(sensor_start[-1]))
         self._phal = np.empty(int(phalanx_start[-1]))
         self._mode = np.empty(int(sensor_start[-1]), dtype=np.int8)
+        self._gyr, self._acc = np.empty((int(sensor_start[-1]), 3)), np.empty((int(sensor_start[-1]), 3))
         # the hand's shared acceleration error δ ("The optics' acceleration" in the module docstring):
         # kept across a restack (a property of the optics, not of the filters: ``advance`` decays it
         # over the time since it was last advanced), its cross-covariances with the restacked states
@@ -1006,21 +1009,41 @@ class ChainHand:
         angles of all of them (one flat array, finger after finger), the mode codes (one list, sensor
         after sensor) and the finger boundaries in both (``phalanx_start``, ``sensor_start``: the same two lists
         while the same fingers are stacked; never to be modified)."""
+        dts, untracked, phi = self._begin(t, estimators, hand)
+        K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
+                   np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
+                   self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, self._mode,
+                   self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n,
+                   self._cross_offsets())
+        return self._end(t, estimators, phi)
+
+    def advance_in(self, kernel, head: tuple, t: float, estimators: list[Chain], hand):
+        """``advance`` with ``run_hand`` called inside ``kernel`` (``pipeline.tick_kernel.steady_tick``) as
+        ``kernel(*head, *run_hand's arguments)``: ``kernel`` writes the sensors' samples into the gyro and
+        accelerometer arrays it gets (kept here) before it calls ``run_hand`` with them, and may write
+        ``cross_offsets`` first. Returns what ``advance`` returns, then the kernel's result."""
+        dts, untracked, phi = self._begin(t, estimators, hand)
+        out = kernel(*head, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, hand.flat,
+                     self._st, self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start,
+                     self._theta, phi, self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, t,
+                     self._log_t, self._log_r, self._log_g, self._log_n, self._cross_offsets())
+        return (*self._end(t, estimators, phi), out)
+
+    def _begin(self, t: float, estimators: list[Chain], hand) -> tuple:
+        """``advance``'s steps before the kernel: the estimators stacked, their steps ``dts``, δ's step,
+        which are untracked, and the array of the joint angles the kernel writes."""
         if not self._stacked(estimators):
             self._stack(estimators, hand.acceleration)
         dts = np.array([t - e._t_last for e in estimators])
         self._jp[3] = self._delta_step(t, dts)
         untracked = np.array([e._hand_untracked for e in estimators])
-        phi = np.empty(self._phal.shape[0])
-        mode = self._mode                   # read out below, before the next call writes it again
-        K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
-                   np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
-                   self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, mode,
-                   self._cx, self._dl, self._pd, self._jp, t, self._log_t, self._log_r, self._log_g, self._log_n,
-                   self._cross_offsets())
+        return dts, untracked, np.empty(self._phal.shape[0])
+
+    def _end(self, t: float, estimators: list[Chain], phi: np.ndarray) -> tuple:
+        """``advance``'s steps after the kernel (the mode codes read out before the next call writes them)."""
         for e in estimators:
             e._t_last = t
-        return phi, mode.tolist(), *self._starts
+        return phi, self._mode.tolist(), *self._starts
 
     def _gyro_angles(self, gyr: np.ndarray, hand, dts: np.ndarray, untracked: np.ndarray) -> None:
         """(``advance_reference``; the kernel's ``_gyro_angles`` in ``advance``.) Each sensor's angle as its gyro's cross axes tell it, a measurement after the tick's update ("The

@@ -179,7 +179,29 @@ def _warm_estimator(cls, params: dict | None) -> None:
         estimator.update(0.005 * k, gyr, acc, hand)
     from .chain import ChainHand
     if ChainHand.takes(estimator, 0.015):           # the hand pipeline's one call for all its fingers
-        ChainHand().advance(0.015, [estimator], gyr, acc, hand)
+        together = ChainHand()
+        together.advance(0.015, [estimator], gyr, acc, hand)
+        _warm_steady_tick(together, estimator, hand)
+
+
+def _warm_steady_tick(together, estimator, hand) -> None:
+    """The pipeline's steady tick (``pipeline.tick_kernel``: the flexion-axis fits and ``run_hand`` in one
+    call) on ``together``'s one finger, with the argument types the pipeline passes."""
+    from ..model.hand import default_calibration
+    from ..pipeline.mounting import HandMountings
+    from ..pipeline.tick_kernel import steady_tick
+
+    calib = default_calibration("right")
+    fits = HandMountings(calib)
+    rows = fits.rows(tuple(s.id for s in estimator.geom.sensors))
+    raw = np.zeros((len(rows), 2, 3))
+    raw[:, 1, 1] = 9.81
+    gather = np.arange(len(rows), dtype=np.int64)
+    phi = np.zeros(sum(g.n_phalanges for g in calib.fingers.values()))
+    started = np.ones(len(calib.fingers), dtype=np.bool_)
+    together.cross_offsets = np.zeros((len(rows), 3))
+    together.advance_in(steady_tick, (fits.state, fits._meta, rows, fits._st, raw, np.empty_like(raw), phi, started,
+                                      rows, 2 * gather, 2 * gather + 1), 0.02, [estimator], hand)
 
 
 def is_warm(name: str) -> bool:

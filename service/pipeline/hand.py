@@ -54,6 +54,7 @@ from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, Jo
 from .hand_imu import HandImu
 from .mounting import HandMountings
 from .optical import OpticalTrack
+from .tick_kernel import steady_tick
 
 DEAD_RECKONING_PRIOR = 1e-2
 """Weight of the pull of the hand's angular velocity toward zero in ``_dead_reckoned_hand`` (against 1
@@ -563,7 +564,18 @@ class HandSession:
         ids = tuple(tick)
         # gyro, accelerometer (numpy reads one flat run of numbers faster than a list of lists)
         raw = np.fromiter(chained.from_iterable(tick.values()), float, 6 * len(ids)).reshape(-1, 2, 3)
-        if fits:
+        fingers = self._fingers.values()
+        again = self._advanced_together_again()
+        # every finger sensor sampled in this tick and live: no finger's sensors can have changed
+        settled = tick.keys() >= self._finger_sensor_ids and \
+            all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)
+        # a steady tick (every finger advanced together again, the optics tracking, the compiled fits on):
+        # its compiled calls in one (``tick_kernel``), which writes the corrected readings below
+        steady = settled and again and tracking and usable and bool(fits) and fits.compiled
+        if steady:
+            rows = fits.rows(ids)
+            readings = np.empty_like(raw)
+        elif fits:
             # the tick's raw readings turned by the flexion-axis fits so far, in one call
             rows = fits.rows(ids)
             readings = fits.correct(rows, raw)
@@ -608,13 +620,12 @@ class HandSession:
         elif not tracking and self._hand_motion is not None and self._tick_t is not None:
             hand = self._dead_reckoned_hand(t - self._tick_t)
         self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
-        again = self._advanced_together_again()
+        if steady:
+            self._steady_tick(fits, rows, raw, readings, t, hand)
+            self._apply_references(t)
+            return self._emit_frames(t)
         if tracking and fits:
             self._fit_mountings(fits, rows, raw, hand, again)
-        fingers = self._fingers.values()
-        # every finger sensor sampled in this tick and live: no finger's sensors can have changed
-        settled = tick.keys() >= self._finger_sensor_ids and \
-            all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)
         if settled and again:
             # every finger advanced together at the last tick, so each has sensors and is taken again (the
             # loop below would find it so: ``ChainHand.takes`` of an estimator it advanced, at a later tick)
@@ -757,7 +768,29 @@ class HandSession:
         self._together.cross_offsets = layout.cross_offsets(fits, chain.gyro_angle_offset_error) \
             if fits and chain.gyro_angle_cross_offsets else None
         phi, modes, phalanx_start, sensor_start = self._together.advance(t, [fs.estimator for fs in fingers], gyr, acc, hand)
-        finite = math.isfinite(sum(phi.tolist()))
+        self._take_together(fingers, layout, phi, modes, phalanx_start, sensor_start, math.isfinite(sum(phi.tolist())))
+
+    def _steady_tick(self, fits: HandMountings, rows: np.ndarray, raw: np.ndarray, readings: np.ndarray, t: float,
+                     hand: BaseMotion) -> None:
+        """A steady tick (``_process_tick``): ``correct`` of the raw readings into ``readings``,
+        ``_fit_mountings``, then ``_update_together`` of every finger, with their compiled calls made in
+        one (``tick_kernel.steady_tick``): the same kernels in the same order on the same arrays."""
+        phi_prev, fingers = self._together_phi
+        layout = self._together_layout(fingers)
+        chain = fingers[0].estimator.settings
+        if chain.gyro_angle_cross_offsets:
+            off_rows, self._together.cross_offsets = layout.offsets_of(fits, chain.gyro_angle_offset_error)
+        else:
+            off_rows, self._together.cross_offsets = _NO_ROWS, None
+        phi, modes, phalanx_start, sensor_start, total = self._together.advance_in(
+            steady_tick, (fits.state, fits._meta, rows, fits._st, raw, readings, phi_prev, self._all_started(len(fingers)),
+                          off_rows, layout.rows_gyr, layout.rows_acc), t, [fs.estimator for fs in fingers], hand)
+        self._take_together(fingers, layout, phi, modes, phalanx_start, sensor_start, math.isfinite(total))
+
+    def _take_together(self, fingers: list[FingerState], layout: "_TogetherLayout", phi: np.ndarray, modes: list,
+                       phalanx_start: list, sensor_start: list, finite: bool) -> None:
+        """The angles and modes of the fingers advanced together (``ChainHand.advance``) into their states;
+        a finger whose angles are not finite is reset (``finite``: all of them are)."""
         names = layout.mode_names.get(tuple(modes))
         if names is None:
             if len(layout.mode_names) > 256:
@@ -886,10 +919,19 @@ class _TogetherLayout:
         """The sensors' gyro cross-axis offsets (S, 2) as their flexion-axis fits ``fits`` estimate them now
         (``HandMountings.cross_offsets``), with ``var`` their variance as a third column, in one array kept
         per layout and rewritten each call."""
+        return fits.cross_offsets(*self.offsets_of(fits, var))
+
+    def offsets_of(self, fits, var: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """The sensors' rows in ``fits`` and the array their offsets (and with ``var`` their variance) are
+        written into (``cross_offsets``)."""
         if self._fits is not fits or self._offsets.shape[1] != 2 + var:
             self._fits, self._fit_rows = fits, fits.rows(tuple(self.sensors))
             self._offsets = np.zeros((len(self.sensors), 2 + var))
-        return fits.cross_offsets(self._fit_rows, self._offsets)
+        return self._fit_rows, self._offsets
+
+
+_NO_ROWS = np.zeros(0, dtype=np.int64)
+"""No fit rows: ``tick_kernel.steady_tick`` writes no cross-axis offsets."""
 
 
 @lru_cache(maxsize=64)

@@ -375,6 +375,10 @@ class HandMountings:
         self._meta = np.array(meta, dtype=np.int64).reshape(len(meta), 3)
         self._rows: dict[tuple, np.ndarray] = {}
 
+    compiled = True
+    """Whether the fits live in ``state`` as the kernels keep them (the hand's steady tick calls the kernels
+    on it directly: ``pipeline.tick_kernel``); the reference keeps its own."""
+
     def __bool__(self) -> bool:
         return bool(self.places)
 
@@ -438,6 +442,8 @@ class HandMountings:
 class HandMountingsReference(HandMountings):
     """``HandMountings`` with one ``HingeAxisFit`` per sensor, sample by sample in Python: the reference
     of the compiled kernels (``tests/test_mounting.py``)."""
+
+    compiled = False
 
     def __init__(self, calibration, settings: MountingFitSettings = MountingFitSettings(),
                  previous: "HandMountingsReference | None" = None):

@@ -1,0 +1,44 @@
+"""A steady tick's compiled work in one call (``HandSession._process_tick``): the flexion-axis fits' two
+calls, the cross-axis offsets, the gather of the fingers' samples and ``chain_kernel.run_hand``, which
+the pipeline otherwise makes one by one from Python with numpy in between. A steady tick is one whose
+fingers were all advanced together at the last tick, every finger sensor live and sampled, while the
+optics track: the ticks between two frames almost always. The kernels called are the same, in the same
+order, on the same arrays, so the numbers are the same (``tests/test_tick_kernel.py`` checks the frames
+of recordings against the calls one by one, bit for bit).
+"""
+from __future__ import annotations
+
+from numba import njit
+
+from .. import JIT_CACHE
+from ..estimators import chain_kernel as CK
+from . import mounting_kernel as MK
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=False)
+def steady_tick(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, off_idx, rows_gyr, rows_acc,
+                x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
+                out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off):
+    """One steady tick: the raw readings ``raw`` (k, 2, 3) turned by the flexion-axis fits into
+    ``readings`` (``HandMountings.correct``), the raw gyro samples into the fits with the hand's motion
+    ``hand`` and the fingers' angles of the last tick ``phi_prev`` (``HandMountings.fit``), the stacked
+    sensors' cross-axis offsets (and their variance where it has a third column) into ``ga_off`` where ``off_idx`` (their fits' rows) is not empty
+    (``HandMountings.cross_offsets``), the stacked sensors' gyro and accelerometer rows of ``readings``
+    seen as (2k, 3) (``rows_gyr``, ``rows_acc``) into ``gyr`` and ``acc``, then ``run_hand`` with
+    them (its arguments from ``x`` on, ``ChainHand.advance_in``). Returns the sum of the joint angles
+    ``out_phi`` in order (non-finite where one is)."""
+    MK.correct(m_state, m_idx, raw, readings, m_st)
+    MK.fit(m_state, m_meta, m_idx, raw, hand, phi_prev, started, m_st)
+    if off_idx.shape[0] > 0:
+        MK.cross_offsets(m_state, off_idx, ga_off, m_st)
+    flat = readings.reshape(-1, 3)
+    for r in range(rows_gyr.shape[0]):
+        for c in range(3):
+            gyr[r, c] = flat[rows_gyr[r], c]
+            acc[r, c] = flat[rows_acc[r], c]
+    CK.run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
+                out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off)
+    total = 0.0
+    for i in range(out_phi.shape[0]):
+        total += out_phi[i]
+    return total
