@@ -226,12 +226,16 @@ not average out over windows; the pipeline's flexion-axis fit has the cross axes
 ``[ω_x, 1]`` (``service/pipeline/mounting.py``), whose constant terms estimate them, so with
 ``gyro_angle_cross_offsets`` they are taken off the cross axes' reading first (``ChainHand.cross_offsets``,
 set by the pipeline each tick from the fit, which learns them from fast flexions and from the samples of a
-still hand). The estimate has its own error (on tuning trial 521 0.68 deg/s RMS at 3 s, 0.21 at 12 s); with
+still hand). The estimate has its own error (RMS per axis on tuning trial 521 0.68 deg/s at 3 s, 0.21 at 12 s;
+on 522 3.8 at 3 s, worse than none taken off (3.3) for its first 4 s, 1.3 at 12 s: the still samples are
+chosen by the optical rate, which is zero before the optics' window fills and lags while the hand turns);
+with
 ``gyro_angle_offset_error`` its variance as the fit's normal equations give it, ``σ_b² = σ² a00 / det``
 (the prior's 2.9 deg/s before any sample), is added to the optical rate's,
-``(σ_rate² + σ_b²) / |w_yz|²``, and counted once per window like it. Not modelled yet: ``σ_b²`` takes the
-fit's samples as independent, so it understates the error, and the estimate's error is correlated far
-longer than a window; a tick longer than the window counts as more than one window; the gyro's scale and cross-axis
+``(σ_rate² + σ_b²) / |w_yz|²``, and counted once per window like it. Not modelled yet: ``σ_b²`` is not
+calibrated (it takes the fit's samples as independent with the fast flexions' residual std; a review
+measured the mean of ``(b̂ - b)² / σ_b²`` at 0.13-0.36 on trial 521 and 1.7-3.1 on 522), and the estimate's
+error is correlated far longer than a window; a tick longer than the window counts as more than one window; the gyro's scale and cross-axis
 errors and the mounting's tilt do not average out over windows as the noise model assumes; the fit's sums
 weigh an old sample as much as a new one, so a temperature drift of the offsets (±0.24 deg/s/K) is followed
 ever more slowly. On tuning trials it

@@ -103,8 +103,8 @@ class MountingFitSettings:
             offsets whatever the angle's error (an angle error ``δθ`` turns what they see of the hand's rate
             by ``δθ |w|``: 0.6 deg/s at 3 deg and 0.2 rad/s), so it tells the offsets (it carries little of
             the tilt, ``ω_x`` being small); 0: only fast flexions, rad/s.
-        fit_clipped: whether a gyro sample with an axis at full scale (``clip_range_rad_s``) enters the
-            fits; it should not: a clipped hinge-axis rate ``ω_x`` is too small, so the tilt term
+        fit_clipped: whether a gyro sample with an axis at full scale (``clip_range_rad_s``; with that 0
+            every sample does) enters the fits; it should not: a clipped hinge-axis rate ``ω_x`` is too small, so the tilt term
             ``-ε_z ω_x`` is mis-fit at a fist's peak, and a flexion is one-signed, so the misfit lands in the
             offsets' constant terms, kept for the session (the sums never forget).
     """
@@ -233,7 +233,11 @@ class HingeAxisFit:
         ``b_x`` in it). The fast flexions and the samples of a still hand teach it (``still_rate_rad_s``,
         module docstring), clipped samples are left out, every sample weighs alike: on tuning trial 521 the
         error left (RMS per axis over six sensors) was 0.68 deg/s at 3 s and 0.21 at 12 s, against 2.21 and
-        0.58 from the fast flexions alone and 3.0 with none taken off."""
+        0.58 from the fast flexions alone and 3.0 with none taken off; on 522 (a review) 3.66, 3.83 and 1.31
+        deg/s at 1, 3 and 12 s against 3.26, 2.86 and 1.80 from the fast flexions alone and 3.3 with none taken
+        off: the still samples are chosen by the optical hand rate, which is zero at the first poses and lags
+        while the hand turns, and a wrong rate enters the residual in full (a lead: admit a still sample only
+        where the gyro's own cross axes are slow too, and once the optics' window is full)."""
         a00, a01, a11, by0, by1, bz0, bz1 = self._o
         det = a00 * a11 - a01 * a01
         return np.array([(a00 * by1 - a01 * by0) / det, (a00 * bz1 - a01 * bz0) / det])
@@ -242,7 +246,9 @@ class HingeAxisFit:
     def cross_offsets_var(self) -> float:
         """The variance of each of ``cross_offsets`` as the regression's normal equations give it,
         ``σ² (A⁻¹)₁₁ = σ² a00 / det`` with ``σ = residual_std_rad_s`` (the prior's ``offset_std²`` before any
-        sample), (rad/s)²; it takes every sample as independent, so it is a lower bound."""
+        sample), (rad/s)²; it takes every sample as independent with the fast flexions' residual std, so it is
+        not calibrated (a review: the offsets' mean squared error was 0.13-0.36 of it on tuning trial 521 and
+        1.7-3.1 times it on 522)."""
         a00, a01, a11 = self._o[:3]
         return self.settings.residual_std_rad_s ** 2 * a00 / (a00 * a11 - a01 * a01)
 

@@ -187,8 +187,10 @@ def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
 def fit(state, meta, idx, raw, hand, phi, started, st):
-    """Every sample of a tick whose finger's estimator has started and whose flexion rate reaches
-    ``min_rate_rad_s`` and whose gyro has no axis at full scale into its sensor's fit (``HingeAxisFit.add`` with the hand's rate in the finger
+    """Every sample of a tick whose finger's estimator has started and whose gyro has no axis at full scale
+    into its sensor's fit: one whose flexion rate reaches ``min_rate_rad_s`` into the tilt's and the offsets'
+    sums, a slower one while the hand turns across the hinge slower than ``still_rate_rad_s`` into the
+    offsets' only (``HingeAxisFit.add`` with the hand's rate in the finger
     base frame ``Bᵀ Rᵀ ω`` from ``hand`` = ``BaseMotion.flat`` (18) and the phalanx angle as the sum of
     the finger's joint angles up to it). Returns how many samples were used."""
     min_rate, max_tilt, quiet_rate = st[ST_MIN_RATE], st[ST_MAX_TILT], st[ST_QUIET_RATE]
