@@ -150,10 +150,40 @@ def test_a_still_hand_tells_the_offsets_whatever_the_angles_error():
             omega_p = rot_x(theta).T @ w_base + rate * np.array([1.0, 0.0, 0.0])
             assert not fit.add(tilt.T @ omega_p + offset, theta + np.radians(5.0), w_base)
         assert fit.samples == 0 and np.array_equal(fit.tilt_rad, np.zeros(2))
-        return np.degrees(fit.cross_offsets - (tilt @ offset)[1:])
+        return np.degrees(fit.cross_offsets - (tilt @ offset)[1:]), fit.cross_offsets_var
 
-    assert np.abs(fitted(MountingFitSettings().still_rate_rad_s)).max() < 0.15
-    assert np.abs(fitted(0.0)).min() > 2.0
+    st = MountingFitSettings()
+    error, var = fitted(st.still_rate_rad_s)
+    assert np.abs(error).max() < 0.15
+    # their variance is the offsets' sums' (the tilt's have no sample: their variance is still the prior's)
+    assert var < 0.05 * st.offset_std_rad_s ** 2
+    error, var = fitted(0.0)
+    assert np.abs(error).min() > 2.0 and var == pytest.approx(st.offset_std_rad_s ** 2, rel=1e-12)
+
+
+def test_a_nan_gyro_sample_stays_out_of_the_fit():
+    """A NaN reading (the protocol refuses them, the fit's own API does not) on a still hand, where slow samples
+    enter the offsets' sums, and in a fast flexion: the fit and its compiled kernel leave it out, so the offsets
+    and their variance stay finite and as they were."""
+    from service.pipeline.mounting import HandMountings, HandMountingsReference
+
+    calib = default_calibration("right")
+    ids = ("index.1",)
+    n_phi = sum(g.n_phalanges for g in calib.fingers.values())
+    phi, started = np.full(n_phi, 0.3), np.ones(len(calib.fingers), dtype=np.bool_)
+    still_hand = np.ascontiguousarray(np.r_[np.eye(3).ravel(), np.zeros(9)])
+    for cls in (HandMountings, HandMountingsReference):
+        fits = cls(calib)
+        rows = fits.rows(ids)
+        out = np.zeros((1, 3))
+        good = np.array([[[0.5, 0.01, -0.02], [0.0, 0.0, 9.8]]])
+        assert fits.fit(rows, good, still_hand, phi, started) == 0
+        before = fits.cross_offsets(rows, out).copy()
+        assert before[0, 1] != 0.0
+        for gyr in ([np.nan, 0.01, -0.02], [0.5, np.nan, -0.02], [6.0, 0.01, np.nan]):
+            fits.fit(rows, np.array([[gyr, [0.0, 0.0, 9.8]]]), still_hand, phi, started)
+            np.testing.assert_array_equal(fits.cross_offsets(rows, out), before, err_msg=f"{cls.__name__} {gyr}")
+            assert fits.samples("index.1") == 0
 
 
 def test_slow_samples_are_not_used_and_leave_the_readings_alone():

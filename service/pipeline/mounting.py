@@ -191,6 +191,8 @@ class HingeAxisFit:
         c, s = math.cos(theta), math.sin(theta)
         ry = f1 - (c * w1 + s * w2)
         rz = f2 - (-s * w1 + c * w2)
+        if not (wx == wx and ry == ry and rz == rz):
+            return False                # a NaN would stay in the sums for the session
         o = self._o                 # the offsets' normal equations: every sample used, still ones too
         o[0] += wx * wx
         o[1] += wx

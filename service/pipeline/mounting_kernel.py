@@ -231,6 +231,8 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
         c, s = math.cos(theta), math.sin(theta)
         ry = f1 - (c * w1 + s * w2)
         rz = f2 - (-s * w1 + c * w2)
+        if not (wx == wx and ry == ry and rz == rz):
+            continue                    # a NaN would stay in the sums for the session
         _add_sums(state, j, O00, wx, ry, rz)
         if slow:
             continue                    # a still sample: the offsets' sums only
