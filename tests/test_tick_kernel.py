@@ -85,3 +85,27 @@ def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
     _assert_same(a, b)
     for u, v in zip(_state(fused), _state(reference)):
         np.testing.assert_allclose(u, v, rtol=0, atol=1e-9)
+
+
+def test_the_steady_tick_cached_code_is_stale_once_a_kernel_it_calls_changes():
+    """numba checks only the caller's source file before it loads cached code, and keeps the callees' code
+    inside the caller's: the steady tick's index takes the stamp of the files it calls into too."""
+    import pytest
+    from service import JIT_CACHE
+    from service.estimators import chain_kernel
+    from service.pipeline import mounting_kernel, tick_kernel
+
+    if not JIT_CACHE:
+        pytest.skip("no on-disk kernel cache here")
+    from service.estimators.warm import warm
+    warm("chain")                                   # compiled into the cache, or loaded from it
+    cache_file = tick_kernel.steady_tick._cache._cache_file
+    stamp = tick_kernel._sources_stamp(tick_kernel, chain_kernel, mounting_kernel)
+    assert cache_file._source_stamp == stamp
+    assert cache_file._load_index()
+    (t0, size0), (t1, size1), (t2, size2) = stamp
+    try:
+        cache_file._source_stamp = ((t0, size0), (t1, size1), (t2 + 1.0, size2))     # mounting_kernel.py edited
+        assert cache_file._load_index() == {}
+    finally:
+        cache_file._source_stamp = stamp

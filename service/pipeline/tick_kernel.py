@@ -8,6 +8,9 @@ of recordings against the calls one by one, bit for bit).
 """
 from __future__ import annotations
 
+import os
+import sys
+
 from numba import njit
 
 from .. import JIT_CACHE
@@ -42,3 +45,22 @@ def steady_tick(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, 
     for i in range(out_phi.shape[0]):
         total += out_phi[i]
     return total
+
+
+def _sources_stamp(*modules) -> tuple:
+    """The modification time and size of each module's source file: what numba's on-disk cache checks, for
+    its own file only, before it uses a kernel's cached code."""
+    return tuple((st.st_mtime, st.st_size) for st in (os.stat(m.__file__) for m in modules))
+
+
+def _cached_with_callees(kernel, *callees) -> None:
+    """Let ``kernel``'s cached code count as stale when the source of a module it calls into changes, not only
+    its own: numba keeps the callees' code inside the caller's and checks only the caller's file, so a cached
+    ``steady_tick`` would go on running an old ``run_hand`` or fit. Its cache index takes the stamp of all the
+    files instead (numba's own check then compares that). Without an on-disk cache there is nothing to do."""
+    cache_file = getattr(getattr(kernel, "_cache", None), "_cache_file", None)
+    if cache_file is not None and hasattr(cache_file, "_source_stamp"):
+        cache_file._source_stamp = _sources_stamp(*callees)
+
+
+_cached_with_callees(steady_tick, sys.modules[__name__], CK, MK)
