@@ -8,6 +8,8 @@ import os
 import signal
 import time
 
+import msgpack
+
 from clients.glove import source_messages
 from service.api.config import ServiceSettings
 from service.api.hands.pool import CAUGHT_UP, LAG_EVIDENCE, HandPool, WorkerLink
@@ -532,45 +534,216 @@ def test_the_link_reader_passes_on_every_message_in_order_a_few_frames_per_turn_
     assert not unread and calls == ["pause"]        # lost: reading is not resumed
 
 
-def test_a_greeted_data_message_is_forwarded_by_the_reader_as_the_processor_would_send_it_and_nothing_else():
-    """``ProcessSession.forward`` (the ingest route's reader while its processor waits for work): a JSON
-    data message of a greeted source goes to the worker as ``ingest`` sends it (the same message, number
-    and count of unanswered messages); not before the hello, not a message of another type, not
-    MessagePack, not while the session records, not past ``WINDOW`` unanswered messages."""
+def _reader_pair(batches, outs_per_turn=2, dispatch=None):
+    """A ``_LinkReader`` on a fake link and transport: what it dispatches, its pause/resume calls."""
+    from types import SimpleNamespace
+
+    from service.api.hands.pool import _LinkReader
+
+    got, calls = [], []
+    link = SimpleNamespace(pool=SimpleNamespace(outs_per_turn=outs_per_turn), _dispatch=dispatch or got.append,
+                           _hear=lambda: None, slot=0)
+    transport = SimpleNamespace(pause_reading=lambda: calls.append("pause"),
+                                resume_reading=lambda: calls.append("resume"), close=lambda: calls.append("close"))
+    reader = _LinkReader(link)
+    reader.connection_made(transport)
+    return reader, got, calls
+
+
+def _out(k: int) -> list:
+    return ["out", 1, k, ["frame", k, 0.0, "right"], "{}", None]
+
+
+def test_the_link_reader_keeps_its_per_turn_bound_across_batches_and_finishes_only_after_the_last_message():
+    """A batch that ends on its ``outs_per_turn``-th frame and a batch of frames after it, in one read: at
+    most ``outs_per_turn`` frames per turn of the loop across the two. A message whose passing on raises
+    (a defect) is skipped and logged, the connection closed, and ``finished`` is done only once the
+    messages after it have been passed on too (its sessions move only then)."""
+    from service.api.hands.worker import frame
+
+    async def bound():
+        reader, got, _ = _reader_pair([])
+        reader.data_received(frame([_out(0), _out(1)]) + frame([_out(k) for k in range(2, 7)]))
+        per_turn = [len(got)]
+        while reader.unread():
+            await asyncio.sleep(0)
+            per_turn.append(len(got) - sum(per_turn))
+        return per_turn, len(got)
+    per_turn, total = asyncio.run(bound())
+    assert total == 7 and max(per_turn) <= 2, per_turn
+
+    async def defect():
+        got = []
+
+        def dispatch(message):
+            if message[0] == "bad":
+                raise KeyError("a defect")
+            got.append(message)
+        reader, _, calls = _reader_pair([], dispatch=dispatch)
+        reader.data_received(frame([_out(0), ["bad"], *[_out(k) for k in range(1, 6)]]))
+        reader.connection_lost(None)                # (the transport's close, then its end)
+        done_early = reader.finished.done() and reader.unread()
+        await asyncio.wait_for(reader.finished, 30)
+        return done_early, len(got), reader.unread(), calls
+    done_early, passed, unread, calls = asyncio.run(defect())
+    assert not done_early and passed == 6 and not unread and "close" in calls
+
+
+def _route(live, settings, metrics):
+    """The ingest route's reader and processor (``routes.ingest._read``/``_process``) on a fake connection."""
+    import json
+    from types import SimpleNamespace
+
+    from service.api.backlog import IngestBacklog
+    from service.api.routes import ingest as route
+    from service.api.routes.socket import send_error
+
+    class Ws:
+        def __init__(self):
+            self.inbox, self.sent = asyncio.Queue(), []
+            self.state = SimpleNamespace(binary=False, token="t")
+            self.app = SimpleNamespace(state=SimpleNamespace(sessions=SimpleNamespace(sending={})))
+
+        async def receive(self):
+            return await self.inbox.get()
+
+        async def send_text(self, text):
+            self.sent.append(json.loads(text))
+
+        async def close(self, code=1000, reason=""):
+            pass
+
+        def feed(self, message):
+            text = message if isinstance(message, str) else json.dumps(message, separators=(",", ":"))
+            self.inbox.put_nowait({"type": "websocket.receive", "text": text})
+
+    ws = Ws()
+    live.source = ws
+    live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
+    backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
+    processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics))
+    reader = asyncio.create_task(route._read(ws, "s", live, backlog, processor, settings, metrics))
+    return ws, backlog, processor, reader
+
+
+def _offline_session(**extra):
+    """A ``ProcessSession`` whose worker link only keeps what it is sent (no process)."""
+    from service.api.hands.pool import ProcessSession
+
+    pool = HandPool(ServiceSettings.load(port=0, hand_workers=1, **extra), Metrics())
+    pool.loop = asyncio.get_running_loop()
+    sent = []
+    pool.links[0].send = sent.append
+    return pool.settings, pool.metrics, ProcessSession("s", pool.settings, pool.metrics, pool.links[0], 1), sent
+
+
+def _source_types(sent: list) -> list[str]:
+    """The types of the source messages a worker link was sent, in order."""
     import json
 
-    from service.api.hands.pool import WINDOW, ProcessSession
-    from service.api.sessions import Recorder
+    return [json.loads(m[3])["type"] if m[0] == "chk" else msgpack.unpackb(m[3])["type"]
+            for m in sent if m[0] in ("chk", "src")]
 
-    batch = json.dumps({"type": "imu_batch", "samples": [{"t": 0.0, "id": "index.1", "gyr": [0, 0, 0],
-                                                          "acc": [0, 9.81, 0]}]}, separators=(",", ":"))
 
-    async def run(tmp):
-        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
-        pool.loop = asyncio.get_running_loop()
-        link = pool.links[0]                        # no process: what it is sent stays in its queue
-        sent = []
-        link.send = sent.append
-        live = ProcessSession("s", pool.settings, pool.metrics, link, 1)
-        live.attach_source(None)
-        refused = [live.forward({"type": "websocket.receive", "text": batch})]       # before the hello
-        await _ingest(live, HELLO)
-        forwarded = live.forward({"type": "websocket.receive", "text": batch})
-        by_processor = live.parse_input(batch, False)
-        await live.ingest(*by_processor)
-        refused += [live.forward({"type": "websocket.receive", "text": '{"type":"sync","id":1}'}),
-                    live.forward({"type": "websocket.receive", "bytes": batch.encode()})]
-        live.recorder = Recorder(tmp / "r.jsonl", 1.0)
-        refused.append(live.forward({"type": "websocket.receive", "text": batch}))
-        live.recorder.close()
-        live.recorder = None
-        live._pending.update(dict.fromkeys(range(100, 100 + WINDOW)))
-        refused.append(live.forward({"type": "websocket.receive", "text": batch}))
-        return sent, refused, forwarded
-    import tempfile
-    from pathlib import Path
-    with tempfile.TemporaryDirectory() as tmp:
-        sent, refused, forwarded = asyncio.run(run(Path(tmp)))
-    assert forwarded and refused == [False] * 5
-    chk = [m for m in sent if m[0] == "chk"]
-    assert chk == [["chk", 1, 2, batch, False], ["chk", 1, 3, batch, False]]   # numbered after the hello (1)
+async def _answer_all(live, turns: int = 30) -> None:
+    for _ in range(turns):
+        await asyncio.sleep(0)
+        for n in sorted(live._pending):
+            live.on_reply(n, [], True)
+
+
+def test_the_ingest_reader_hands_data_on_itself_only_in_order_and_only_after_its_own_connection_s_hello():
+    """The ingest route's reader hands a data message on itself only while the processor waits with nothing
+    queued: over random interleavings (data whose head the reader knows and data only the processor decodes,
+    calibrations, syncs, the worker answering at random turns) the worker gets every source message in the
+    order received, and the reader did hand some on. After a takeover, the new connection's data before its
+    own hello gets ``expected_hello`` and does not reach the worker, although the older connection's hello
+    (handled after the takeover) greeted the session. A defect while the reader hands a message on is
+    answered as the processor answers one (``internal_error``), and the connection goes on (its ``sync``
+    is answered)."""
+    import json
+    import random
+
+    msgs = [m for m in _glove(0.3, 1) if m["type"] != "hello"]
+    data = next(m for m in msgs if m["type"] == "imu_batch")
+
+    async def order(seed):
+        rnd = random.Random(seed)
+        settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
+        ws, backlog, processor, reader = _route(live, settings, metrics)
+        by_reader = []
+        forwardable = live.forwardable
+        live.forwardable = lambda data: by_reader.append(forwardable(data)) or by_reader[-1]
+        expected, syncs = ["hello"], 0
+        ws.feed(HELLO)
+        for m in msgs:
+            if m["type"] in ("imu_batch", "pose") and rnd.random() < 0.3:     # type last: the processor's path
+                m = {**{k: v for k, v in m.items() if k != "type"}, "type": m["type"]}
+            ws.feed(m)
+            expected.append(m["type"])
+            if rnd.random() < 0.1:
+                syncs += 1
+                ws.feed({"type": "sync", "id": syncs})
+            for _ in range(rnd.randrange(3)):
+                await asyncio.sleep(0)
+            if live._pending and rnd.random() < 0.5:
+                live.on_reply(min(live._pending), [], True)
+        while len(_source_types(sent)) < len(expected) or sum(s["type"] == "sync" for s in ws.sent) < syncs:
+            await _answer_all(live, 1)
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await reader
+        backlog.close()
+        await processor
+        return _source_types(sent), expected, sum(x is not None for x in by_reader)
+
+    async def takeover():
+        settings, metrics, live, sent = _offline_session()
+        live._pending[99] = ("imu", ["chk", "{}", False], 0.0, None)      # an earlier message not yet answered
+        live.link.owed += 1
+        a, backlog_a, processor_a, reader_a = _route(live, settings, metrics)
+        a.feed(HELLO)
+        for _ in range(10):
+            await asyncio.sleep(0)                  # A's processor waits for message 99 before A's hello
+        b, backlog_b, processor_b, reader_b = _route(live, settings, metrics)             # B takes over
+        live.on_reply(99, [], True)                 # A's hello goes on now and greets the session
+        await _answer_all(live, 10)
+        b.feed(data)                                # B's data before B's hello
+        await _answer_all(live)
+        for ws, backlog, processor, reader in ((a, backlog_a, processor_a, reader_a), (b, backlog_b, processor_b, reader_b)):
+            ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+            await reader
+            backlog.close()
+            await processor
+        return [s["code"] for s in b.sent if s["type"] == "error"], _source_types(sent)
+
+    async def defect():
+        settings, metrics, live, sent = _offline_session()
+
+        def send(message):
+            if message[0] == "chk":
+                raise KeyError("a defect")
+            sent.append(message)
+        live.link.send = send
+        ws, backlog, processor, reader = _route(live, settings, metrics)
+        ws.feed(HELLO)
+        await _answer_all(live, 10)
+        ws.feed(data)
+        ws.feed({"type": "sync", "id": 1})
+        while not any(s["type"] == "sync" for s in ws.sent):
+            assert not reader.done(), reader
+            await _answer_all(live, 1)
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await reader
+        backlog.close()
+        await processor
+        return [(s["type"], s.get("code")) for s in ws.sent if s["type"] != "hello"]
+
+    handed = 0
+    for seed in range(6):
+        got, expected, by_reader = asyncio.run(order(seed))
+        assert got == expected, seed
+        handed += by_reader
+    assert handed > 0
+    errors, to_worker = asyncio.run(takeover())
+    assert errors == ["expected_hello"] and to_worker == ["hello"]
+    assert asyncio.run(defect()) == [("error", "internal_error"), ("sync", None)]

@@ -3,9 +3,9 @@ rule when the service cannot keep up with the source.
 
 The ingest route reads its WebSocket all the time into an ``IngestBacklog`` while a second task
 processes the messages in order, so the connection's keepalive pings and pongs pass however far
-processing lags; while the processor waits for work with nothing queued, the reader hands a greeted
-source's JSON data message of a session whose hand runs in a worker on itself, as the processor would
-(``LiveSession.forward``: one task's wake less per message). (A route that stopped reading while it was busy left the source's pong behind
+processing lags; while the processor waits for work with nothing queued, the reader hands a JSON data
+message of a connection whose hello was handed on, for a session whose hand runs in a worker, to the
+session itself, as the processor would (``LiveSession.forwardable``: one task's wake less per message). (A route that stopped reading while it was busy left the source's pong behind
 unread data: after ``ping_timeout_s`` the connection was closed with 1011 and everything the source
 had sent and the service not yet read was lost without a word.)
 
@@ -53,6 +53,10 @@ class IngestBacklog:
         self._reply_bytes = 0
         self._ready = asyncio.Event()
         self._waiting = False                # the processor waits in ``get`` for the next item
+        self.greeted = False
+        """The processor has handed this connection's hello to its session (set by the route): from then on
+        the reader may hand a data message on itself (``LiveSession.forwardable``), not before (after a
+        takeover the session may be greeted by the older connection's hello)."""
         self.overloaded = False
         """True from the moment the backlog was full until it drained to half."""
 

@@ -29,7 +29,10 @@ class DrainingWebSocket(WebSocketsSansIOProtocol):
     QUEUE_HIGH = 16
     """received messages the app has not taken yet before reading from the connection pauses (uvicorn pauses
     after every message and resumes once the app has taken it: two changes of the loop's selector per
-    message, with routes that read all the time anyway; ``api.backlog`` bounds what waits beyond)"""
+    message, with routes that read all the time anyway; ``api.backlog`` bounds what waits beyond). While a
+    route does not read (the ingest route only while it closes an overloaded connection), up to this many
+    messages of up to ``ws_max_size`` each (4 x ``max_message_bytes``), plus one read, wait here: 16 times
+    what uvicorn's own rule let wait."""
     _draining = False
 
     def send_receive_event_to_app(self) -> None:

@@ -236,10 +236,11 @@ class LiveSession:
         session whose hand runs in a worker process leaves data messages to the worker to validate)."""
         return parse_input(data, binary)
 
-    def forward(self, data: dict) -> bool:
-        """Hand a received WebSocket message on at once, as the ingest route's processor would with nothing
-        to answer or wait for, if this session can (``True``); a session whose hand runs here cannot."""
-        return False
+    def forwardable(self, data: dict):
+        """The message of a received WebSocket message the ingest route's reader may hand to ``ingest``
+        itself (a greeted connection's, nothing queued before it) because nothing is to be answered or
+        waited for before it goes on: ``None`` here (a session whose hand runs here does the work then)."""
+        return None
 
     async def ingest(self, raw: dict, parsed) -> Dropped | None:
         """Run one validated source message through the hand and fan the outputs out; after each

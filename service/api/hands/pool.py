@@ -365,7 +365,7 @@ class _LinkReader(asyncio.Protocol):
         self._buf += data
         self.link._hear()                           # a worker whose bytes still arrive is not silent
         if not self._continuing:
-            self._dispatch()
+            self._run()
 
     def unread(self) -> bool:
         """Bytes or messages from the worker not dispatched yet."""
@@ -405,23 +405,27 @@ class _LinkReader(asyncio.Protocol):
     def _continue(self) -> None:
         self._continuing = False
         self.link._hear()                           # this process was busy with its outputs, not waiting for it
-        try:
-            if not self._lost:
-                self._transport.resume_reading()
-            self._dispatch()
-        except Exception:                           # a defect: logged; the worker's end closes, as after a crash
-            log.exception("hand worker %d: passing on its messages failed", self.link.slot)
-            self._transport.close()
-            if self._lost:
-                self._finish()
+        if not self._lost:
+            self._transport.resume_reading()
+        self._run()
+
+    def _run(self) -> None:
+        """``_dispatch`` until it has passed on everything or paused for the senders' turn. A message whose
+        passing on raised (a defect) is logged and skipped, the rest still passed on, and the connection
+        closed: the worker ends at the end of its input and its sessions move, as after a crash."""
+        while True:
+            try:
+                self._dispatch()
+                return
+            except Exception:
+                log.exception("hand worker %d: passing on its messages failed; it is ended", self.link.slot)
+                if not self._lost:
+                    self._transport.close()
 
     def connection_lost(self, exc) -> None:
         self._lost = True                           # the process ended: _watch restarts it
-        if not self._continuing:
-            try:
-                self._dispatch()
-            finally:
-                self._finish()
+        if not self._continuing:                    # (else ``_continue`` goes on, then finishes)
+            self._run()
 
     def eof_received(self) -> bool:
         return False                                # the end of its output: close our end too
@@ -797,18 +801,15 @@ class ProcessSession(LiveSession):
                 return raw, Unchecked(raw["type"], data, binary)
         return super().parse_input(data, binary)
 
-    def forward(self, data: dict) -> bool:
-        """A JSON data message of the greeted source, known by its head (``parse_input``), sent on to the
-        worker here and now as ``ingest`` sends it, while the session does not record and its worker has
-        room (``WINDOW``): the route's reader then wakes no processor for it."""
+    def forwardable(self, data: dict) -> "Unchecked | None":
+        """A JSON data message known by its head (``parse_input``'s rule, the source greeted), while the
+        session does not record and its worker has room (``WINDOW``: ``ingest`` does not wait then); the
+        route's reader then hands it to ``ingest`` itself and wakes no processor for it."""
         text = data.get("text")
         if text is None or self.recorder is not None or not self._greeted or len(self._pending) >= WINDOW:
-            return False
+            return None
         kind = data_type(text)
-        if kind is None:
-            return False
-        self._send_source(kind, ["chk", text, False], None)
-        return True
+        return None if kind is None else Unchecked(kind, text, False)
 
     async def ingest(self, raw: dict, parsed) -> None:
         while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker

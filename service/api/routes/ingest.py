@@ -144,8 +144,14 @@ async def _read(ws: WebSocket, session: str, live: LiveSession, backlog: IngestB
                 break
             size = _size(data)
             refused = _admit(size, settings, bucket)
-            if refused is None and backlog.idle() and live.source is ws and live.forward(data):
-                continue                     # handled here as the processor would (nothing waits before it)
+            if refused is None and backlog.greeted and backlog.idle() and live.source is ws \
+                    and (msg := live.forwardable(data)) is not None:
+                # the processor waits with nothing queued and would hand it on as it is: here, as it would
+                try:
+                    await live.ingest(None, msg)
+                    continue
+                except Exception as err:     # a defect: answered in the message's place, as the processor does
+                    refused = failure_reply(session, msg, err)
             if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
                 live.overloaded += 1
                 metrics.overloaded.labels(session).inc()
@@ -220,5 +226,7 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
         except Exception as err:           # bad input, or a defect (logged); no exception reaches the socket layer
             await reply(*failure_reply(session, msg, err))
             continue
+        if isinstance(msg, Hello):
+            backlog.greeted = True           # this connection's hello is the session's: the reader may hand on
         for code, detail in drop_replies(msg, dropped):            # a bus session answers from its worker
             await reply(code, detail)
