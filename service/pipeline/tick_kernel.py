@@ -3,8 +3,10 @@ calls, the cross-axis offsets, the gather of the fingers' samples and ``chain_ke
 the pipeline otherwise makes one by one from Python with numpy in between. A steady tick is one whose
 fingers were all advanced together at the last tick, every finger sensor live and sampled, while the
 optics track: the ticks between two frames almost always. The kernels called are the same, in the same
-order, on the same arrays, so the numbers are the same (``tests/test_tick_kernel.py`` checks the frames
-of recordings against the calls one by one, bit for bit).
+order, on the same arrays, so the numbers are the same: ``tests/test_tick_kernel.py`` checks the one call
+against the calls one by one on a recording whose readings are random for a stretch (with full-scale gyro
+samples), messages and filter states to 1e-9; ``tests/test_pipeline.py``'s replay checks a faulty recording's
+messages through both paths bit for bit.
 """
 from __future__ import annotations
 
