@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from service.model.units import DEG
 from service.pipeline.hand import HandSession
@@ -70,13 +71,23 @@ def _assert_same(a: list, b: list) -> None:
 
 def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
     messages = _random_readings(3, 0.8, 1.2)
-    steady = []
+    steady, early = [], []
     steady_tick = HandSession._steady_tick
-    monkeypatch.setattr(HandSession, "_steady_tick", lambda self, *a: steady.append(a[4]) or steady_tick(self, *a))
+
+    def fused_tick(self, *a):
+        # the buffer the kernel writes the corrected readings into is no sensor's last sample before it has
+        early.extend(s for s in self._last_sample.values() if s[1] is a[3])
+        steady.append(a[4])
+        return steady_tick(self, *a)
+
+    monkeypatch.setattr(HandSession, "_steady_tick", fused_tick)
     fused = TrackedHand()
     a = [o for m in messages for o in fused.handle(m)]
     # the random stretch went through the one call, and most ticks before it
     assert sum(0.8 <= t < 1.2 for t in steady) > 60 and len(steady) > 150
+    assert not early
+    session = fused._session
+    assert all(session._last_sample[s][1] is session._tick_readings for s in session._tick_ids)
     taken = len(steady)
     monkeypatch.setattr(HandSession, "_advanced_together_again", lambda self: False)
     reference = TrackedHand()
@@ -85,12 +96,19 @@ def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
     _assert_same(a, b)
     for u, v in zip(_state(fused), _state(reference)):
         np.testing.assert_allclose(u, v, rtol=0, atol=1e-9)
+    # a kernel checks no bounds: a count of sensor rows or cross-axis offsets that is not the stacked
+    # sensors' is refused before the call (the kernel here would only be called if it were not)
+    together, estimators = session._together, [fs.estimator for fs in session._fingers.values()]
+    n, hand = together._gyr.shape[0], session._hand_motion
+    for rows, offsets in ((n - 1, together.cross_offsets), (n, np.zeros((n - 1, 2)))):
+        together.cross_offsets = offsets
+        with pytest.raises(ValueError, match="stacked"):
+            together.advance_in(lambda *args: 0.0, (), 1.3, estimators, hand, rows)
 
 
 def test_the_steady_tick_cached_code_is_stale_once_a_kernel_it_calls_changes():
     """numba checks only the caller's source file before it loads cached code, and keeps the callees' code
     inside the caller's: the steady tick's index takes the stamp of the files it calls into too."""
-    import pytest
     from service import JIT_CACHE
     from service.estimators import chain_kernel
     from service.pipeline import mounting_kernel, tick_kernel

@@ -1021,16 +1021,24 @@ class ChainHand:
                    self._cross_offsets())
         return self._end(t, estimators, phi)
 
-    def advance_in(self, kernel, head: tuple, t: float, estimators: list[Chain], hand):
+    def advance_in(self, kernel, head: tuple, t: float, estimators: list[Chain], hand, rows: int):
         """``advance`` with ``run_hand`` called inside ``kernel`` (``pipeline.tick_kernel.steady_tick``) as
-        ``kernel(*head, *run_hand's arguments)``: ``kernel`` writes the sensors' samples into the gyro and
-        accelerometer arrays it gets (kept here) before it calls ``run_hand`` with them, and may write
-        ``cross_offsets`` first. Returns what ``advance`` returns, then the kernel's result."""
+        ``kernel(*head, *run_hand's arguments)``: ``kernel`` writes ``rows`` sensors' samples into the gyro
+        and accelerometer arrays it gets (kept here) before it calls ``run_hand`` with them, and may write
+        as many rows of ``cross_offsets`` first. Returns what ``advance`` returns, then the kernel's result.
+        Raises ``ValueError`` before the call unless ``rows`` is the number of sensors stacked and
+        ``cross_offsets`` (if set) is the array the kernel gets: a compiled kernel checks no bounds, and
+        ``cross_offsets`` of another shape would have it write into the shared zeros (or past them)."""
         dts, untracked, phi = self._begin(t, estimators, hand)
+        offsets = self._cross_offsets()
+        if rows != self._gyr.shape[0] or (self.cross_offsets is not None and offsets is not self.cross_offsets):
+            shape = None if self.cross_offsets is None else np.shape(self.cross_offsets)
+            raise ValueError(f"the kernel would write {rows} sensors' rows: {self._gyr.shape[0]} are stacked "
+                             f"(cross_offsets {shape})")
         out = kernel(*head, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, hand.flat,
                      self._st, self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start,
                      self._theta, phi, self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, t,
-                     self._log_t, self._log_r, self._log_g, self._log_n, self._cross_offsets())
+                     self._log_t, self._log_r, self._log_g, self._log_n, offsets)
         return (*self._end(t, estimators, phi), out)
 
     def _begin(self, t: float, estimators: list[Chain], hand) -> tuple:

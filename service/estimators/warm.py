@@ -201,7 +201,7 @@ def _warm_steady_tick(together, estimator, hand) -> None:
     started = np.ones(len(calib.fingers), dtype=np.bool_)
     together.cross_offsets = np.zeros((len(rows), 3))
     together.advance_in(steady_tick, (fits.state, fits._meta, rows, fits._st, raw, np.empty_like(raw), phi, started,
-                                      rows, 2 * gather, 2 * gather + 1), 0.02, [estimator], hand)
+                                      rows, 2 * gather, 2 * gather + 1), 0.02, [estimator], hand, len(rows))
 
 
 def is_warm(name: str) -> bool:

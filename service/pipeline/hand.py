@@ -574,17 +574,16 @@ class HandSession:
         steady = settled and again and tracking and usable and bool(fits) and fits.compiled
         if steady:
             rows = fits.rows(ids)
-            readings = np.empty_like(raw)
+            readings = np.empty_like(raw)       # the kernel writes it: the sensors' last samples only then
         elif fits:
             # the tick's raw readings turned by the flexion-axis fits so far, in one call
             rows = fits.rows(ids)
             readings = fits.correct(rows, raw)
         else:
             readings = raw
-        # each sensor's last sample: its time and its row of the tick's readings (one loop in C)
-        self._last_sample.update(zip(ids, zip(repeat(t), repeat(readings), range(len(ids)))))
-        self._tick_ids, self._tick_readings = ids, readings
-        self._processed_t = t
+        self._tick_ids, self._processed_t = ids, t
+        if not steady:
+            self._take_samples(t, ids, readings)
         if not usable:
             # the optical fit failed numerically (poses too far apart for their times): restart the
             # optics from the next pose rather than feed a non-finite hand to the estimators
@@ -622,6 +621,7 @@ class HandSession:
         self._hand_motion, self._tracking, self._hand_known, self._tick_t = hand, tracking, known, t
         if steady:
             self._steady_tick(fits, rows, raw, readings, t, hand)
+            self._take_samples(t, ids, readings)
             self._apply_references(t)
             return self._emit_frames(t)
         if tracking and fits:
@@ -649,6 +649,12 @@ class HandSession:
             self._update_together(together, t, hand)
         self._apply_references(t)
         return self._emit_frames(t)
+
+    def _take_samples(self, t: float, ids: tuple, readings: np.ndarray) -> None:
+        """The tick's readings (corrected) as each of its sensors' last sample: its time and its row of
+        ``readings`` (one loop in C)."""
+        self._last_sample.update(zip(ids, zip(repeat(t), repeat(readings), range(len(ids)))))
+        self._tick_readings = readings
 
     def _advanced_together_again(self) -> bool:
         """Whether every finger was advanced by the last ``_update_together`` (one kernel call) and still
@@ -784,7 +790,8 @@ class HandSession:
             off_rows, self._together.cross_offsets = _NO_ROWS, None
         phi, modes, phalanx_start, sensor_start, total = self._together.advance_in(
             steady_tick, (fits.state, fits._meta, rows, fits._st, raw, readings, phi_prev, self._all_started(len(fingers)),
-                          off_rows, layout.rows_gyr, layout.rows_acc), t, [fs.estimator for fs in fingers], hand)
+                          off_rows, layout.rows_gyr, layout.rows_acc), t, [fs.estimator for fs in fingers], hand,
+            len(layout.sensors))
         self._take_together(fingers, layout, phi, modes, phalanx_start, sensor_start, math.isfinite(total))
 
     def _take_together(self, fingers: list[FingerState], layout: "_TogetherLayout", phi: np.ndarray, modes: list,
