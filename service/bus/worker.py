@@ -447,7 +447,9 @@ class Worker:
 
 async def run_worker(url: str, settings: ServiceSettings, worker_id: str | None = None,
                      started: asyncio.Event | None = None) -> None:
-    """Run one worker until cancelled (SIGINT/SIGTERM): its sessions' leases are released on the way out."""
+    """Run one worker until cancelled (SIGINT/SIGTERM): its sessions' leases are released on the way out.
+    The process's SIGINT and SIGTERM handlers are given back as found (asyncio's removal of a loop's
+    handler sets SIGINT to Python's default, whatever it was before)."""
     import signal
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
@@ -456,10 +458,17 @@ async def run_worker(url: str, settings: ServiceSettings, worker_id: str | None 
     log.info("fingertrack worker %s on %s", worker.id, redacted_url(url))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    before = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in before:
         loop.add_signal_handler(sig, stop.set)
-    if started is not None:
-        started.set()
-    with serving_gc():                              # as the embedded service's processes: kernels loaded, heap frozen
-        await stop.wait()
-    await worker.stop(release=True)
+    try:
+        if started is not None:
+            started.set()
+        with serving_gc():                          # as the embedded service's processes: kernels loaded, heap frozen
+            await stop.wait()
+        await worker.stop(release=True)
+    finally:
+        for sig, handler in before.items():
+            loop.remove_signal_handler(sig)
+            if handler is not None:                 # None: installed from C, cannot be put back
+                signal.signal(sig, handler)
