@@ -72,6 +72,22 @@ def _compile_kernels_once() -> None:
             print(f"\ncompiling kernels before the tests failed ({proc.returncode}):\n{out.decode(errors='replace')}")
 
 
+LONGEST_FIRST = ("test_hardening.py", "test_bench_robustness.py", "test_bench_gestures.py", "test_hand_workers.py",
+                 "test_service.py", "test_read_only_root.py", "test_bus.py", "test_bench_paper.py", "test_estimators.py",
+                 "test_hand_pool.py", "test_bench_accuracy.py", "test_schema.py", "test_rigid_cores.py", "test_cli.py",
+                 "test_viewer_token.py", "test_pipeline.py", "test_load.py")
+"""The test files that take longest (wall time in a test worker, the mean share of two whole runs at load
+6-8), longest first; every other file takes under a minute. Each file runs in one worker
+(``--dist loadfile``) and the workers are handed files in the order of collection (``--no-loadscope-reorder``
+in ``pyproject.toml``: pytest-xdist's own order, by number of tests, handed out the two-test read-only-root
+file, over a minute, among the last), so one worker no longer goes on alone with a long file at the end."""
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))       # stable: the others as collected
+
+
 def pytest_unconfigure(config):
     busy = getattr(config, "_busy", None)
     if busy is not None:
