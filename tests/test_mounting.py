@@ -161,6 +161,44 @@ def test_a_still_hand_tells_the_offsets_whatever_the_angles_error():
     assert np.abs(error).min() > 2.0 and var == pytest.approx(st.offset_std_rad_s ** 2, rel=1e-12)
 
 
+def test_a_still_sample_needs_the_gyro_to_agree_and_the_optics_window_full():
+    """The optics report a hand rate of exactly zero at their first pose (and one lagging after it) while
+    the hand turns at 1.5 rad/s across the hinge: a finger still on it reads that turn on its gyro's cross
+    axes, far above what the offsets can make of a still hand's (0.2 rad/s and the MPU-9250's ±5 deg/s per
+    axis), so the sample is not a still one; taken as one, the turn lands in the offsets, ~80 deg/s off for
+    the session (a still sample's residual is the gyro's rate less the optics'). Slow samples of a hand the
+    gyro agrees is still tell the offsets, but only while the optics' window is full (``admit_still``).
+    The fit and its compiled kernel alike."""
+    from service.pipeline.mounting import HandMountings, HandMountingsReference
+
+    calib = default_calibration("right")
+    ids = ("index.1",)
+    n_phi = sum(g.n_phalanges for g in calib.fingers.values())
+    phi, started = np.zeros(n_phi), np.ones(len(calib.fingers), dtype=np.bool_)
+    zero_rate = np.ascontiguousarray(np.r_[np.eye(3).ravel(), np.zeros(9)])     # the first pose: no rate yet
+    offset = np.radians([1.0, -3.0, 2.5])
+    base = calib.finger("index").base_matrix()
+    turning = base @ np.array([0.0, 1.5, 0.0])          # across the index's hinge, metacarpus frame
+    rng = np.random.default_rng(3)
+    for cls in (HandMountings, HandMountingsReference):
+        fits = cls(calib)
+        rows = fits.rows(ids)
+        for _ in range(50):
+            w_p = base.T @ turning + rng.normal(0.0, 0.05, 3)          # the phalanx's rate, finger still
+            fits.fit(rows, np.array([[w_p + offset, [0.0, 0.0, 9.8]]]), zero_rate, phi, started)
+        np.testing.assert_array_equal(fits.cross_offsets(rows), np.zeros((1, 2)), err_msg=cls.__name__)
+        fits.admit_still(False)                            # a hand still, the optics' window not full yet
+        still = [np.array([[rng.normal(0.0, 0.01, 3) + offset, [0.0, 0.0, 9.8]]]) for _ in range(400)]
+        for raw in still:
+            fits.fit(rows, raw, zero_rate, phi, started)
+        np.testing.assert_array_equal(fits.cross_offsets(rows), np.zeros((1, 2)), err_msg=cls.__name__)
+        fits.admit_still(True)
+        for raw in still:
+            fits.fit(rows, raw, zero_rate, phi, started)
+        error = np.degrees(fits.cross_offsets(rows)[0] - offset[1:])
+        assert np.abs(error).max() < 1.0, (cls.__name__, error)      # the prior's pull: 0.25 deg/s
+
+
 def test_a_nan_gyro_sample_stays_out_of_the_fit():
     """A NaN reading (the protocol refuses them, the fit's own API does not) on a still hand, where slow samples
     enter the offsets' sums, and in a fast flexion: the fit and its compiled kernel leave it out, so the offsets
@@ -338,6 +376,9 @@ def test_the_compiled_fits_equal_the_reference_on_random_ticks():
         hand, phi = _hand_flat(rng), rng.uniform(-0.3, 1.4, n_phi)
         if tick % 4 == 1:
             hand[12:15] *= 0.02                     # a hand nearly still: slow samples tell the offsets
+            raw[:, 0, 1:] *= 0.02                   # and the gyros' cross axes agree, mostly
+        for fits in (kernel, reference):
+            fits.admit_still(tick % 16 != 5)        # now and then the optics' window not full
         started = rng.random(len(calib.fingers)) > 0.1
         n = kernel.fit(rows, raw, hand, phi, started)
         assert n == reference.fit(rows, raw, hand, phi, started)

@@ -226,9 +226,9 @@ not average out over windows; the pipeline's flexion-axis fit has the cross axes
 ``[ω_x, 1]`` (``service/pipeline/mounting.py``), whose constant terms estimate them, so with
 ``gyro_angle_cross_offsets`` they are taken off the cross axes' reading first (``ChainHand.cross_offsets``,
 set by the pipeline each tick from the fit, which learns them from fast flexions and from the samples of a
-still hand). The estimate has its own error (RMS per axis on tuning trial 521 0.68 deg/s at 3 s, 0.21 at 12 s;
-on 522 3.8 at 3 s, worse than none taken off (3.3) for its first 4 s, 1.3 at 12 s: the still samples are
-chosen by the optical rate, which is zero before the optics' window fills and lags while the hand turns);
+still hand, those once the optics' window is full and where the gyro's own cross axes agree the hand is
+still). The estimate has its own error (RMS per axis on tuning trial 522 2.5 deg/s at 3 s, 1.6 at 12 s,
+3.3 with none taken off; on 521 0.82 and 0.30, 3.0 with none taken off);
 with
 ``gyro_angle_offset_error`` its variance as the fit's normal equations give it, ``σ_b² = σ² a00 / det``
 (the prior's 2.9 deg/s before any sample), is added to the optical rate's,

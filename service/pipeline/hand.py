@@ -603,7 +603,11 @@ class HandSession:
         # they came back (before, the fit has too few poses for it and reports none, which in a fast
         # reach the accelerometers read as a tilt of tens of degrees); the angles are widened to be
         # placed again by the accelerometers then, for as long as the optics were lost
-        known = imu_live or (tracking and t - self._optics_back_t >= self.settings.pose_window_s)
+        window_full = tracking and t - self._optics_back_t >= self.settings.pose_window_s
+        known = imu_live or window_full
+        if fits:
+            # the samples of a still hand are chosen by the optics' rate: only once it is known (``mounting.py``)
+            fits.admit_still(window_full)
         if known and not self._hand_known and self._lost_since is not None:
             back = self._optics_back_t if self._optics_back_t > self._lost_since else t
             for fs in self._fingers.values():

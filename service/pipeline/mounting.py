@@ -26,7 +26,11 @@ hinge turned by the wrong angle): while the hand turns across the hinge slower t
 the cross axes read their offsets whatever the angle's error (0.6 deg/s at 3 deg and 0.2 rad/s), so
 such samples of a finger flexing slower than ``min_rate_rad_s`` go into a second set of the same sums,
 the offsets' own (``cross_offsets``), and not into the tilt's: their ``ω_x`` is small, so they would
-tell the tilt little, and the tilt's residual from the hinge-axis leak is largest there. A gyro sample
+tell the tilt little, and the tilt's residual from the hinge-axis leak is largest there. The hand's rate
+is the optics', which is zero at their first pose and lags while the hand turns; a wrong rate enters a
+still sample's residual in full, so one is taken only once the optics' fit window is full (the pipeline's
+``HandMountings.admit_still``) and where the gyro's own cross axes agree the hand is still (below
+``still_rate_rad_s`` plus the offsets' bound, ``still_gyro_margin_rad_s``). A gyro sample
 with an axis at full scale is left out of both (its ``ω_x`` is too small, so a fist's peak would be
 mis-fit into the tilt and, one-signed, into the offsets, for the session).
 
@@ -75,7 +79,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..model.units import DEG, MPU9250_GYRO_OFFSET_STD_RAD_S
+from ..model.units import DEG, MPU9250_GYRO_OFFSET_STD_RAD_S, MPU9250_GYRO_ZRO_TOLERANCE_RAD_S
 from . import mounting_kernel as K
 
 
@@ -102,7 +106,14 @@ class MountingFitSettings:
             turns across the hinge axis slower than this (``|(w_y, w_z)|``): its cross axes then read their
             offsets whatever the angle's error (an angle error ``δθ`` turns what they see of the hand's rate
             by ``δθ |w|``: 0.6 deg/s at 3 deg and 0.2 rad/s), so it tells the offsets (it carries little of
-            the tilt, ``ω_x`` being small); 0: only fast flexions, rad/s.
+            the tilt, ``ω_x`` being small); 0: only fast flexions, rad/s. The optics' rate is zero at the
+            first pose and lags while the hand turns, so a still sample is admitted only while the optics'
+            fit window is full (``HandMountings.admit_still``, set by the pipeline) and where the gyro's own
+            cross axes agree (``still_gyro_margin_rad_s``).
+        still_gyro_margin_rad_s: a still sample's gyro cross-axis rate ``|(f_y, f_z)|`` must be below
+            ``still_rate_rad_s`` plus this: what the offsets can add to it, the MPU-9250's zero-rate output
+            bound (±5 deg/s per axis, Product Specification rev. 1.1, section 3.1) on both axes, ``√2 ×``;
+            0: no such check, rad/s.
         fit_clipped: whether a gyro sample with an axis at full scale (``clip_range_rad_s``; with that 0
             every sample does) enters the fits; it should not: a clipped hinge-axis rate ``ω_x`` is too small, so the tilt term
             ``-ε_z ω_x`` is mis-fit at a fist's peak, and a flexion is one-signed, so the misfit lands in the
@@ -120,6 +131,7 @@ class MountingFitSettings:
     clip_max_samples: int = 40
     fit_clipped: bool = False
     still_rate_rad_s: float = 0.2
+    still_gyro_margin_rad_s: float = math.sqrt(2.0) * MPU9250_GYRO_ZRO_TOLERANCE_RAD_S
 
 
 class HingeAxisFit:
@@ -141,6 +153,9 @@ class HingeAxisFit:
         self._by0 = self._by1 = self._bz0 = self._bz1 = 0.0
         self._o = [lam_e, 0.0, lam_b, 0.0, 0.0, 0.0, 0.0]       # the same with the still samples (cross_offsets)
         self.samples = 0
+        self.admit_still = True         # the pipeline's: whether the optics' rate is good enough for still samples
+        self.still_gyro_rad_s = s.still_rate_rad_s + s.still_gyro_margin_rad_s \
+            if s.still_gyro_margin_rad_s > 0 and s.still_rate_rad_s > 0 else 0.0
         self.tilt_rad = np.zeros(2)                  # (ε_y, ε_z)
         self._correction, self._rows = np.eye(3), None          # None: readings pass unchanged
         self._straight = bool(np.array_equal(self.mount, np.eye(3)))
@@ -176,18 +191,22 @@ class HingeAxisFit:
         if r > 0 and not self.settings.fit_clipped and max(abs(g) for g in gyr) >= r * (1.0 - 1e-3):
             return False                # clipped: its rates are not what the sensor turned at
         w1, w2 = hand_rate_base[1], hand_rate_base[2]
-        if not self.flexing(gyr):
-            self._add_quiet(gyr, hand_rate_base)
-            if not w1 * w1 + w2 * w2 < self.settings.still_rate_rad_s ** 2:
-                return False
-            still = True
-        else:
-            still = False
         m = self._mount_rows
         gx, gy, gz = gyr
         wx = m[0][0] * gx + m[0][1] * gy + m[0][2] * gz          # f = M gyr, the reading in the phalanx frame
         f1 = m[1][0] * gx + m[1][1] * gy + m[1][2] * gz
         f2 = m[2][0] * gx + m[2][1] * gy + m[2][2] * gz
+        if not self.flexing(gyr):
+            self._add_quiet(gyr, hand_rate_base)
+            still_rate = self.settings.still_rate_rad_s if self.admit_still else 0.0
+            if not w1 * w1 + w2 * w2 < still_rate ** 2:
+                return False
+            bound = self.still_gyro_rad_s
+            if bound > 0.0 and not f1 * f1 + f2 * f2 < bound * bound:
+                return False            # the gyro's own cross axes see the hand turn: the optics' rate lags
+            still = True
+        else:
+            still = False
         c, s = math.cos(theta), math.sin(theta)
         ry = f1 - (c * w1 + s * w2)
         rz = f2 - (-s * w1 + c * w2)
@@ -233,13 +252,14 @@ class HingeAxisFit:
         corrected reading ``R(ε) M g`` that the estimators read (to first order ``b_y + ε_z b_x`` and
         ``b_z - ε_y b_x`` of the calibrated phalanx frame's offsets: the regressor ``ω_x`` is the raw reading,
         ``b_x`` in it). The fast flexions and the samples of a still hand teach it (``still_rate_rad_s``,
-        module docstring), clipped samples are left out, every sample weighs alike: on tuning trial 521 the
-        error left (RMS per axis over six sensors) was 0.68 deg/s at 3 s and 0.21 at 12 s, against 2.21 and
-        0.58 from the fast flexions alone and 3.0 with none taken off; on 522 (a review) 3.66, 3.83 and 1.31
-        deg/s at 1, 3 and 12 s against 3.26, 2.86 and 1.80 from the fast flexions alone and 3.3 with none taken
-        off: the still samples are chosen by the optical hand rate, which is zero at the first poses and lags
-        while the hand turns, and a wrong rate enters the residual in full (a lead: admit a still sample only
-        where the gyro's own cross axes are slow too, and once the optics' window is full)."""
+        module docstring), clipped samples are left out, every sample weighs alike. A still sample is chosen by
+        the optical hand rate, which is zero at the first pose and lags while the hand turns, and a wrong rate
+        enters the residual in full: so it is taken only once the optics' window is full and where the gyro's
+        own cross axes agree (``still_gyro_margin_rad_s``). Error left (RMS per axis over six sensors) on
+        tuning trial 522: 2.97, 2.51 and 1.61 deg/s at 1, 3 and 12 s (3.66, 3.83 and 1.31 without those two
+        checks, 3.26, 2.86 and 1.80 from the fast flexions alone, 3.3 with none taken off); on 521 1.14, 0.82
+        and 0.30 (without the checks 0.68 at 3 s and 0.21 at 12 s, from the fast flexions alone 2.21 and
+        0.58, none taken off 3.0)."""
         a00, a01, a11, by0, by1, bz0, bz1 = self._o
         det = a00 * a11 - a01 * a01
         return np.array([(a00 * by1 - a01 * by0) / det, (a00 * bz1 - a01 * bz0) / det])
@@ -352,7 +372,9 @@ class HandMountings:
                              settings.quiet_rate_rad_s if settings.cross_axis_std > 0 else 0.0,
                              settings.clip_range_rad_s, float(settings.clip_max_samples),
                              0.0 if settings.fit_clipped else settings.clip_range_rad_s,
-                             settings.residual_std_rad_s ** 2, settings.still_rate_rad_s])
+                             settings.residual_std_rad_s ** 2, settings.still_rate_rad_s, 0.0, 1.0])
+        if settings.still_gyro_margin_rad_s > 0 and settings.still_rate_rad_s > 0:
+            self._st[K.ST_STILL_GYRO] = settings.still_rate_rad_s + settings.still_gyro_margin_rad_s
         s = settings
         lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
         lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
@@ -407,6 +429,12 @@ class HandMountings:
         out = np.empty_like(raw)
         K.correct(self.state, idx, raw, out, self._st)
         return out
+
+    def admit_still(self, on: bool) -> None:
+        """Whether the samples of a still hand are taken from now on (``MountingFitSettings.still_rate_rad_s``):
+        only while the optics' rate is known, their fit window full of poses since they last came back (it is
+        zero at the first pose and lags after it)."""
+        self._st[K.ST_STILL_ON] = 1.0 if on else 0.0
 
     def fit(self, idx: np.ndarray, raw: np.ndarray, hand_flat: np.ndarray, phi: np.ndarray,
             started: np.ndarray) -> int:
@@ -479,6 +507,11 @@ class HandMountingsReference(HandMountings):
             if fit.samples or fit.quiet_samples:
                 out[r] = [fit.correct_gyro(gyr), fit.correct(list(raw[r, 1]))]
         return out
+
+    def admit_still(self, on):
+        super().admit_still(on)
+        for fit in self._fits.values():
+            fit.admit_still = bool(on)
 
     def fit(self, idx, raw, hand_flat, phi, started):
         w_metacarpus = hand_flat[:9].reshape(3, 3).T @ hand_flat[12:15]

@@ -45,10 +45,14 @@ current run's samples so far."""
 O00, O01, O11, OY0, OY1, OZ0, OZ1 = range(68, 75)
 """The offsets' normal equations (``cross_offsets``): ``a00 .. bz1`` with the still samples added."""
 WIDTH = 75
-ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE, ST_CLIP_RANGE, ST_CLIP_MAX, ST_FIT_RANGE, ST_RESIDUAL_VAR, ST_STILL = range(8)
+(ST_MIN_RATE, ST_MAX_TILT, ST_QUIET_RATE, ST_CLIP_RANGE, ST_CLIP_MAX, ST_FIT_RANGE, ST_RESIDUAL_VAR, ST_STILL,
+ ST_STILL_GYRO, ST_STILL_ON) = range(10)
 """The settings vector: ``min_rate_rad_s``, ``max_tilt_rad``, ``quiet_rate_rad_s`` (0: no cross-axis fit),
 ``clip_range_rad_s`` (0: no reconstruction), ``clip_max_samples`` and the full scale at which a sample is
-left out of the fits (0: none, ``fit_clipped``), ``residual_std_rad_s²`` and ``still_rate_rad_s``."""
+left out of the fits (0: none, ``fit_clipped``), ``residual_std_rad_s²``, ``still_rate_rad_s``, the bound on
+the gyro's own cross-axis rate of a still sample (``still_rate_rad_s + still_gyro_margin_rad_s``; 0: no such
+check) and whether still samples are admitted now (1: the optics' fit window is full; the pipeline sets it,
+``HandMountings.admit_still``)."""
 
 
 @njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
@@ -189,13 +193,15 @@ def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
 def fit(state, meta, idx, raw, hand, phi, started, st):
     """Every sample of a tick whose finger's estimator has started and whose gyro has no axis at full scale
     into its sensor's fit: one whose flexion rate reaches ``min_rate_rad_s`` into the tilt's and the offsets'
-    sums, a slower one while the hand turns across the hinge slower than ``still_rate_rad_s`` into the
+    sums, a slower one while the hand turns across the hinge slower than ``still_rate_rad_s`` (and its gyro's
+    cross axes slower than ``ST_STILL_GYRO``, the optics' window full: ``ST_STILL_ON``) into the
     offsets' only (``HingeAxisFit.add`` with the hand's rate in the finger
     base frame ``Bᵀ Rᵀ ω`` from ``hand`` = ``BaseMotion.flat`` (18) and the phalanx angle as the sum of
     the finger's joint angles up to it). Returns how many samples were used."""
     min_rate, max_tilt, quiet_rate = st[ST_MIN_RATE], st[ST_MAX_TILT], st[ST_QUIET_RATE]
     clipped = st[ST_FIT_RANGE] * (1.0 - 1e-3)
-    still = st[ST_STILL]
+    still = st[ST_STILL] if st[ST_STILL_ON] > 0.5 else 0.0
+    still_gyro = st[ST_STILL_GYRO]
     # the hand's angular velocity in the metacarpus frame, Rᵀ ω
     wm0 = hand[0] * hand[12] + hand[3] * hand[13] + hand[6] * hand[14]
     wm1 = hand[1] * hand[12] + hand[4] * hand[13] + hand[7] * hand[14]
@@ -212,6 +218,8 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
         # the hand's rate in the finger base frame, Bᵀ (Rᵀ ω): its y and z components
         w1 = state[j, B0 + 1] * wm0 + state[j, B0 + 4] * wm1 + state[j, B0 + 7] * wm2
         w2 = state[j, B0 + 2] * wm0 + state[j, B0 + 5] * wm1 + state[j, B0 + 8] * wm2
+        f1 = state[j, M0 + 3] * gx + state[j, M0 + 4] * gy + state[j, M0 + 5] * gz
+        f2 = state[j, M0 + 6] * gx + state[j, M0 + 7] * gy + state[j, M0 + 8] * gz
         if not abs(wx) >= min_rate:
             if quiet_rate > 0.0:
                 # the hand's rate about the hinge axis, (Bᵀ Rᵀ ω)_x
@@ -219,11 +227,11 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
                 _add_quiet(state, j, gx, gy, gz, w0, quiet_rate)
             if not w1 * w1 + w2 * w2 < still * still:
                 continue                # slow, and the hand turns: the angle's error is in the residual
+            if still_gyro > 0.0 and not f1 * f1 + f2 * f2 < still_gyro * still_gyro:
+                continue                # the gyro's own cross axes see the hand turn: the optics' rate lags
             slow = True
         else:
             slow = False
-        f1 = state[j, M0 + 3] * gx + state[j, M0 + 4] * gy + state[j, M0 + 5] * gz
-        f2 = state[j, M0 + 6] * gx + state[j, M0 + 7] * gy + state[j, M0 + 8] * gz
         theta = 0.0
         o = meta[j, 2]
         for q in range(meta[j, 1] + 1):
