@@ -747,3 +747,39 @@ def test_the_ingest_reader_hands_data_on_itself_only_in_order_and_only_after_its
     errors, to_worker = asyncio.run(takeover())
     assert errors == ["expected_hello"] and to_worker == ["hello"]
     assert asyncio.run(defect()) == [("error", "internal_error"), ("sync", None)]
+
+
+def test_a_sync_holds_back_no_later_message_and_is_answered_in_its_place_among_the_error_replies():
+    """A ``sync`` of a source whose worker has not answered the messages before it: the messages after it go
+    on to the worker at once (they used to wait here until the worker had answered everything before the
+    sync), and the source gets the replies in the order of its messages: the earlier message's error, the
+    sync's answer, the later message's error."""
+    msgs = [m for m in _glove(0.1, 2) if m["type"] == "imu_batch"][:4]
+
+    async def run():
+        settings, metrics, live, sent = _offline_session()
+        ws, backlog, processor, reader = _route(live, settings, metrics)
+        ws.feed(HELLO)
+        await _answer_all(live, 10)
+        ws.feed(msgs[0])
+        ws.feed({"type": "sync", "id": 7})
+        ws.feed(msgs[1])
+        ws.feed(msgs[2])
+        for _ in range(50):                         # the worker answers nothing meanwhile
+            await asyncio.sleep(0)
+        before_answers = _source_types(sent)
+        first = min(live._pending)
+        live.on_reply(first, [["late", "first"]], True)
+        for _ in range(200):                        # (the code before sent the later ones only now)
+            for n in sorted(live._pending):
+                live.on_reply(n, [["late", f"later {n}"]], True)
+            await asyncio.sleep(0)
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await reader
+        backlog.close()
+        await processor
+        return before_answers, [(s["type"], s.get("detail", s.get("id"))) for s in ws.sent if s["type"] != "hello"]
+
+    before_answers, replies = asyncio.run(run())
+    assert before_answers == ["hello", "imu_batch", "imu_batch", "imu_batch"]
+    assert replies[:2] == [("error", "first"), ("sync", 7)] and [r[0] for r in replies[2:]] == ["error", "error"]

@@ -265,6 +265,13 @@ class LiveSession:
     async def settled(self) -> None:
         """Every message ingested so far has been handled (here: as soon as ``ingest`` returned)."""
 
+    def answer_in_order(self, answer) -> bool:
+        """Have ``answer()`` (an async reply to the source, e.g. ``sync``'s, due once every message ingested so
+        far is handled and its error replies are out: ``settled``) sent in its place among the error replies,
+        without holding back the messages after it; ``False`` where the session does not (the caller waits
+        for ``settled``, then answers)."""
+        return False
+
     def _fan_out(self, group: list[FrameDict | GestureDict], t0: float) -> None:
         for out in group:
             if out["type"] == "frame":

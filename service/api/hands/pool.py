@@ -697,6 +697,9 @@ class ProcessSession(LiveSession):
         self._pending: dict[int, tuple] = {}        # n -> (type, its message to the worker, t_ingest, calibration or None)
         self._replied = asyncio.Event()
         self._errors: collections.deque = collections.deque()
+        """the source's error replies (``[code, detail, *samples]``) and answers (``answer_in_order``) to send, in order"""
+        self._answers: collections.deque = collections.deque()
+        """``(n, answer)``: an answer due once source messages up to number ``n`` are answered (``answer_in_order``)"""
         self._error_task: asyncio.Task | None = None
         self._source_error = None
         self._greeted = False
@@ -905,17 +908,44 @@ class ProcessSession(LiveSession):
             errors, self.lost = self.lost + list(errors), []
         if errors and self._source_error is not None:
             self._errors.extend(errors)
-            if self._error_task is None or self._error_task.done():
-                self._error_task = asyncio.get_running_loop().create_task(self._send_errors())
+            self._send_errors_soon()
+        self._release_answers()
         self._replied.set()
+
+    def answer_in_order(self, answer) -> bool:
+        """``answer()`` once every source message sent to the worker so far is answered, after their error
+        replies and before those of the later ones, which go on to the worker meanwhile (a ``sync`` used to
+        hold the source's later messages here until the worker had answered everything before it: at 1 kHz
+        every 64th message, and the frames of the messages held back came milliseconds late)."""
+        self._answers.append((self._n, answer))
+        self._release_answers()
+        return True
+
+    def _release_answers(self) -> None:
+        """The answers whose messages are all answered, into the source's queue of replies (``_pending`` is in
+        the order of its numbers)."""
+        answers, released = self._answers, False
+        while answers and (not self._pending or next(iter(self._pending)) > answers[0][0]):
+            self._errors.append(answers.popleft()[1])
+            released = True
+        if released:
+            self._send_errors_soon()
+
+    def _send_errors_soon(self) -> None:
+        if self._error_task is None or self._error_task.done():
+            self._error_task = asyncio.get_running_loop().create_task(self._send_errors())
 
     async def _send_errors(self) -> None:
         while self._errors:
-            code, detail, *samples = self._errors.popleft()
+            item = self._errors.popleft()
+            if callable(item):                      # an answer (``answer_in_order``: it never raises)
+                await item()
+                continue
+            code, detail, *samples = item
             try:
                 await self._source_error(code, detail, *samples)
-            except Exception:                       # the source went away: its replies with it
-                self._errors.clear()
+            except Exception:                       # the source went away: its error replies with it
+                self._errors = collections.deque(x for x in self._errors if callable(x))
         self._replied.set()
 
     async def settled(self) -> None:

@@ -6,6 +6,7 @@ session (``claim_source``)."""
 from __future__ import annotations
 
 import asyncio
+import functools
 import hmac
 import time
 
@@ -216,8 +217,10 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
             await reply("expected_hello", f"the first message must be hello, got {msg.type}")
             continue
         elif isinstance(msg, Sync):           # everything before it is handled: say so
-            await live.settled()
-            await say(send, SyncReplyDict(type="sync", id=msg.id))
+            answer = functools.partial(say, send, SyncReplyDict(type="sync", id=msg.id))
+            if not live.answer_in_order(answer):    # (a worker's session: the later messages go on meanwhile)
+                await live.settled()
+                await answer()
             continue
         if partial is not None:
             await reply(partial.code, partial.detail, samples=partial.refused)
