@@ -783,3 +783,37 @@ def test_a_sync_holds_back_no_later_message_and_is_answered_in_its_place_among_t
     before_answers, replies = asyncio.run(run())
     assert before_answers == ["hello", "imu_batch", "imu_batch", "imu_batch"]
     assert replies[:2] == [("error", "first"), ("sync", 7)] and [r[0] for r in replies[2:]] == ["error", "error"]
+
+
+def test_an_answer_that_fails_is_logged_and_the_replies_after_it_still_go_out(monkeypatch):
+    """A defect in an answer (``answer_in_order``) is logged, and the replies queued after it still go out."""
+    import gc
+
+    import service.api.hands.pool as pool_module
+
+    logged = []
+    monkeypatch.setattr(pool_module.log, "exception", lambda *args: logged.append(args[0]))
+
+    async def run():
+        settings, metrics, live, sent = _offline_session()
+        got = []
+
+        async def send_error(code, detail, samples=None):
+            got.append(detail)
+
+        async def broken():
+            raise KeyError("a defect")
+        live.attach_source(send_error)
+        live._send_source("imu", ["chk", "{}", False], None)
+        live.answer_in_order(broken)
+        live._send_source("imu", ["chk", "{}", False], None)
+        first, second = sorted(live._pending)
+        live.on_reply(first, [["late", "first"]], True)      # the first error, the answer, the second error queued
+        live.on_reply(second, [["late", "second"]], True)
+        for _ in range(50):
+            await asyncio.sleep(0)
+        return got
+
+    got = asyncio.run(run())
+    gc.collect()          # (a task that ended with the defect, before: finalised here, not while pytest reports)
+    assert got == ["first", "second"] and logged == ["session %s: answering its source failed"], (got, logged)

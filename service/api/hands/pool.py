@@ -938,8 +938,11 @@ class ProcessSession(LiveSession):
     async def _send_errors(self) -> None:
         while self._errors:
             item = self._errors.popleft()
-            if callable(item):                      # an answer (``answer_in_order``: it never raises)
-                await item()
+            if callable(item):                      # an answer (``answer_in_order``)
+                try:
+                    await item()
+                except Exception:                   # a defect (a closed connection is the answer's own affair): the
+                    log.exception("session %s: answering its source failed", self.name)   # later replies go on
                 continue
             code, detail, *samples = item
             try:
