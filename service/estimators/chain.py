@@ -1026,15 +1026,19 @@ class ChainHand:
         ``kernel(*head, *run_hand's arguments)``: ``kernel`` writes ``rows`` sensors' samples into the gyro
         and accelerometer arrays it gets (kept here) before it calls ``run_hand`` with them, and may write
         as many rows of ``cross_offsets`` first. Returns what ``advance`` returns, then the kernel's result.
-        Raises ``ValueError`` before the call unless ``rows`` is the number of sensors stacked and
-        ``cross_offsets`` (if set) is the array the kernel gets: a compiled kernel checks no bounds, and
-        ``cross_offsets`` of another shape would have it write into the shared zeros (or past them)."""
-        dts, untracked, phi = self._begin(t, estimators, hand)
+        Raises ``RuntimeError`` unless ``rows`` is the number of sensors stacked and ``cross_offsets`` (if
+        set) is the array the kernel gets: a compiled kernel checks no bounds, and ``cross_offsets`` of
+        another shape would have it write into the shared zeros (or past them). The refusal comes before
+        any state is advanced (δ's clock included), and is a defect of the caller, not of the readings: not a
+        ``ValueError``, which the service answers as the client's bad input."""
+        if not self._stacked(estimators):
+            self._stack(estimators, hand.acceleration)
         offsets = self._cross_offsets()
         if rows != self._gyr.shape[0] or (self.cross_offsets is not None and offsets is not self.cross_offsets):
             shape = None if self.cross_offsets is None else np.shape(self.cross_offsets)
-            raise ValueError(f"the kernel would write {rows} sensors' rows: {self._gyr.shape[0]} are stacked "
-                             f"(cross_offsets {shape})")
+            raise RuntimeError(f"the kernel would write {rows} sensors' rows: {self._gyr.shape[0]} are stacked "
+                               f"(cross_offsets {shape})")
+        dts, untracked, phi = self._begin(t, estimators, hand)
         out = kernel(*head, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, hand.flat,
                      self._st, self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start,
                      self._theta, phi, self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, t,
