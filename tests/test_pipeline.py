@@ -342,3 +342,28 @@ def test_a_batch_is_taken_in_as_its_samples_one_message_each():
     out_b = [o for m in ungrouped for o in b.handle(parse_message(m))]
     assert len(_frames(out_a)) > 100 and out_a == out_b
     assert a.counters == b.counters and a.counters.late == 1
+
+
+def test_still_samples_wait_for_a_full_optics_window_after_a_clock_step():
+    """The offsets' still samples are taken only while the optics' fit window is full of poses since they
+    last came back (``mounting.HandMountings.admit_still``): their rate is zero at the first pose and lags
+    after it. A clock step starts the optics again from one pose: the window is not full then either."""
+    from service.pipeline import mounting_kernel as K
+
+    msgs = list(simulate(SimConfig(motion="pinch", noise="both", seed=4, duration_s=3.0)).messages(include_truth=False))
+    session = HandSession("right", PipelineSettings())
+    window, step, jump = session.settings.pose_window_s, 1.5, 10.0
+    first_pose, seen = None, []
+    for m in msgs:
+        if "t" in m and m["t"] >= step:
+            m = {**m, "t": m["t"] + jump}               # the glove's clock jumps forward: a clock step
+        if m["type"] == "pose" and m["t"] >= step + jump and first_pose is None:
+            first_pose = m["t"]
+        session.handle(parse_message(m))
+        fits, t = session._mount_fits, session._tick_t        # (the last tick that reached the fusion)
+        if fits and t is not None and (not seen or seen[-1][0] != t):
+            seen.append((t, fits._st[K.ST_STILL_ON] == 1.0))
+    assert session.counters.clock_steps == 1 and first_pose is not None
+    after = [(t, on) for t, on in seen if t >= step + jump]
+    assert any(on for t, on in seen if t < step) and any(on for _, on in after)       # on before and after
+    assert after and not any(on for t, on in after if t - first_pose < window - 1e-9)

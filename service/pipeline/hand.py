@@ -521,6 +521,7 @@ class HandSession:
         self._next_frame_t = None
         self._tick_t = None
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+        self._tracking = False                # the new track's window fills from its first pose on
         self._hand_imu = self._new_hand_imu(self._hand_imu.placement)
         self._build_fingers()
 
@@ -589,6 +590,7 @@ class HandSession:
             # optics from the next pose rather than feed a non-finite hand to the estimators
             self.counters.filter_resets += 1
             self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+            self._tracking = False              # as after a clock step: the new track's window starts empty
             return []
         if METACARPUS_SENSOR_ID in tick:
             ga = tick[METACARPUS_SENSOR_ID]
