@@ -786,13 +786,14 @@ def test_a_sync_holds_back_no_later_message_and_is_answered_in_its_place_among_t
 
 
 def test_an_answer_that_fails_is_logged_and_the_replies_after_it_still_go_out(monkeypatch):
-    """A defect in an answer (``answer_in_order``) is logged, and the replies queued after it still go out."""
+    """A defect in an answer (``answer_in_order``) is logged in one line and answered ``internal_error`` in
+    its place (as a defect in a message's processing), and the replies queued after it still go out."""
     import gc
 
     import service.api.hands.pool as pool_module
 
     logged = []
-    monkeypatch.setattr(pool_module.log, "exception", lambda *args: logged.append(args[0]))
+    monkeypatch.setattr(pool_module.log, "warning", lambda *args: logged.append(args[0]))
 
     async def run():
         settings, metrics, live, sent = _offline_session()
@@ -816,4 +817,40 @@ def test_an_answer_that_fails_is_logged_and_the_replies_after_it_still_go_out(mo
 
     got = asyncio.run(run())
     gc.collect()          # (a task that ended with the defect, before: finalised here, not while pytest reports)
-    assert got == ["first", "second"] and logged == ["session %s: answering its source failed"], (got, logged)
+    assert got == ["first", "KeyError while answering the source; answer dropped", "second"], got
+    assert logged == ["session %s: %s while answering its source: %s"], logged
+
+
+def test_a_flood_of_syncs_is_bounded_by_the_backlog_while_the_worker_is_behind():
+    """Syncs answered in their place among the replies (``answer_in_order``) wait in the web process while
+    the worker is behind: at most ``ingest_backlog_messages`` of them; the ones after wait in the connection's
+    backlog, whose bounds refuse the rest. Every sync gets one reply, the answers in order."""
+    msg = [m for m in _glove(0.1, 2) if m["type"] == "imu_batch"][0]
+    flood = 60
+
+    async def run():
+        settings, metrics, live, sent = _offline_session(ingest_backlog_messages=8)
+        ws, backlog, processor, reader = _route(live, settings, metrics)
+        ws.feed(HELLO)
+        await _answer_all(live, 10)
+        ws.feed(msg)                                # the worker does not answer it for now
+        for i in range(flood):
+            ws.feed({"type": "sync", "id": i})
+        most = 0
+        for _ in range(300):
+            await asyncio.sleep(0)
+            most = max(most, len(live._answers))
+        held = len(backlog)
+        await _answer_all(live, 300)
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await reader
+        backlog.close()
+        await processor
+        return most, held, [s for s in ws.sent if s["type"] != "hello"]
+
+    most, held, replies = asyncio.run(run())
+    answered = [r["id"] for r in replies if r["type"] == "sync"]
+    refused = [r for r in replies if r["type"] == "error"]
+    assert most == 8 and 0 < held <= 16, (most, held)
+    assert refused and all(r["code"] == "overloaded" for r in refused), refused[:3]
+    assert answered == sorted(answered) and len(answered) + len(refused) == flood, (answered, len(refused))

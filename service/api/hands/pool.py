@@ -916,7 +916,12 @@ class ProcessSession(LiveSession):
         """``answer()`` once every source message sent to the worker so far is answered, after their error
         replies and before those of the later ones, which go on to the worker meanwhile (a ``sync`` used to
         hold the source's later messages here until the worker had answered everything before it: at 1 kHz
-        every 64th message, and the frames of the messages held back came milliseconds late)."""
+        every 64th message, and the frames of the messages held back came milliseconds late). ``False`` once
+        ``ingest_backlog_messages`` answers wait already: the caller then waits for ``settled`` as before, so
+        the source's later messages wait in its backlog, whose bounds refuse a flood (syncs queued here
+        unbounded would have grown the web process's memory without limit while the worker is behind)."""
+        if len(self._answers) >= self.settings.ingest_backlog_messages:
+            return False
         self._answers.append((self._n, answer))
         self._release_answers()
         return True
@@ -941,9 +946,13 @@ class ProcessSession(LiveSession):
             if callable(item):                      # an answer (``answer_in_order``)
                 try:
                     await item()
-                except Exception:                   # a defect (a closed connection is the answer's own affair): the
-                    log.exception("session %s: answering its source failed", self.name)   # later replies go on
-                continue
+                    continue
+                except Exception as err:            # a defect (a closed connection is the answer's own affair):
+                    # answered as a defect in a message's processing is (``replies.failure_reply``: logged in
+                    # one line, ``internal_error`` in its place), and the later replies go on
+                    log.warning("session %s: %s while answering its source: %s", self.name, type(err).__name__,
+                                str(err)[:200])
+                    item = ["internal_error", f"{type(err).__name__} while answering the source; answer dropped"]
             code, detail, *samples = item
             try:
                 await self._source_error(code, detail, *samples)
@@ -952,7 +961,8 @@ class ProcessSession(LiveSession):
         self._replied.set()
 
     async def settled(self) -> None:
-        """Every message ingested so far was answered and its error reply sent: what ``sync`` waits for."""
+        """Every message ingested so far was answered and its error reply sent: what a ``sync`` waits for
+        when its answer cannot wait in its place (``answer_in_order``), and a ``hello``."""
         while self._pending or self._errors or (self._error_task is not None and not self._error_task.done()):
             self._replied.clear()
             await self._replied.wait()
