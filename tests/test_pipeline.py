@@ -344,26 +344,60 @@ def test_a_batch_is_taken_in_as_its_samples_one_message_each():
     assert a.counters == b.counters and a.counters.late == 1
 
 
-def test_still_samples_wait_for_a_full_optics_window_after_a_clock_step():
+@pytest.mark.parametrize("event", ["clock_step", "optical_fit_failed"])
+def test_still_samples_wait_for_a_full_optics_window_after_the_optics_start_again(event):
     """The offsets' still samples are taken only while the optics' fit window is full of poses since they
     last came back (``mounting.HandMountings.admit_still``): their rate is zero at the first pose and lags
-    after it. A clock step starts the optics again from one pose: the window is not full then either."""
+    after it. A clock step, or an optical fit that failed numerically, starts the optics again from one
+    pose: the window is not full then either."""
     from service.pipeline import mounting_kernel as K
 
     msgs = list(simulate(SimConfig(motion="pinch", noise="both", seed=4, duration_s=3.0)).messages(include_truth=False))
     session = HandSession("right", PipelineSettings())
-    window, step, jump = session.settings.pose_window_s, 1.5, 10.0
-    first_pose, seen = None, []
+    window, step = session.settings.pose_window_s, 1.5
+    jump = 10.0 if event == "clock_step" else 0.0
+    at = session.optics.at
+
+    def failing_at(t):                                  # the old track's fit fails once, from ``step`` on
+        if t >= step:
+            raise np.linalg.LinAlgError("singular")
+        return at(t)
+
+    if event == "optical_fit_failed":
+        session.optics.at = failing_at
+    seen = []
     for m in msgs:
         if "t" in m and m["t"] >= step:
-            m = {**m, "t": m["t"] + jump}               # the glove's clock jumps forward: a clock step
-        if m["type"] == "pose" and m["t"] >= step + jump and first_pose is None:
-            first_pose = m["t"]
+            m = {**m, "t": m["t"] + jump}               # (a clock step: the glove's clock jumps forward)
         session.handle(parse_message(m))
         fits, t = session._mount_fits, session._tick_t        # (the last tick that reached the fusion)
         if fits and t is not None and (not seen or seen[-1][0] != t):
             seen.append((t, fits._st[K.ST_STILL_ON] == 1.0))
-    assert session.counters.clock_steps == 1 and first_pose is not None
+    assert session.counters.clock_steps + session.counters.filter_resets == 1
     after = [(t, on) for t, on in seen if t >= step + jump]
     assert any(on for t, on in seen if t < step) and any(on for _, on in after)       # on before and after
-    assert after and not any(on for t, on in after if t - first_pose < window - 1e-9)
+    # the new track's poses are from ``step`` on (those before went to the old one): a full window after
+    assert after and not any(on for t, on in after if t < step + jump + window - 1e-9)
+
+
+def test_an_outage_on_the_old_clock_is_not_told_to_the_estimators_after_a_clock_step(monkeypatch):
+    """The optics lost when the glove's clock steps: the estimators built on the new clock are not told
+    an outage measured across the step (10 s forward here: their angles' uncertainty was widened for 10 s
+    of drift; a step back gave a negative duration)."""
+    from service.estimators.chain import Chain
+
+    told = []
+    monkeypatch.setattr(Chain, "reference_lost", lambda self, duration_s: told.append(duration_s))
+    msgs = list(simulate(SimConfig(motion="pinch", noise="both", seed=4, duration_s=3.0)).messages(include_truth=False))
+    session = HandSession("right", PipelineSettings())
+    step, jump = 1.5, 10.0
+    for m in msgs:
+        if m["type"] == "pose" and (1.2 <= m["t"] < step or 2.0 <= m["t"] < 2.3):
+            continue                                    # occluded before the step, and once after it
+        if "t" in m and m["t"] >= step:
+            m = {**m, "t": m["t"] + jump}
+        session.handle(parse_message(m))
+    assert session.counters.clock_steps == 1
+    # the occlusion after the step is told (0.3 s of poses missing, less the optics' pose timeout; once per
+    # finger), the one across it is not
+    assert told and all(0.0 < d < 0.3 for d in told), told

@@ -522,6 +522,7 @@ class HandSession:
         self._tick_t = None
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
         self._tracking = False                # the new track's window fills from its first pose on
+        self._hand_known, self._lost_since = False, None    # (an outage on the old clock: not to be told the new estimators)
         self._hand_imu = self._new_hand_imu(self._hand_imu.placement)
         self._build_fingers()
 

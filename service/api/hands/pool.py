@@ -917,11 +917,13 @@ class ProcessSession(LiveSession):
         replies and before those of the later ones, which go on to the worker meanwhile (a ``sync`` used to
         hold the source's later messages here until the worker had answered everything before it: at 1 kHz
         every 64th message, and the frames of the messages held back came milliseconds late). ``False`` once
-        ``ingest_backlog_messages`` answers wait already: the caller then waits for ``settled`` as before, so
+        ``ingest_backlog_messages`` answers and replies wait already (for the worker, or to be sent to a
+        source that does not read them): the caller then waits for ``settled`` as before, so
         the source's later messages wait in its backlog, whose bounds refuse a flood (syncs queued here
         unbounded would have grown the web process's memory without limit while the worker is behind)."""
-        if len(self._answers) >= self.settings.ingest_backlog_messages:
-            return False
+        if len(self._answers) + len(self._errors) >= self.settings.ingest_backlog_messages:
+            return False                            # (``_errors``: replies released and not yet sent, a source
+                                                    # that reads nothing blocks their sending)
         self._answers.append((self._n, answer))
         self._release_answers()
         return True
