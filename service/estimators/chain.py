@@ -1013,7 +1013,8 @@ class ChainHand:
         angles of all of them (one flat array, finger after finger), the mode codes (one list, sensor
         after sensor) and the finger boundaries in both (``phalanx_start``, ``sensor_start``: the same two lists
         while the same fingers are stacked; never to be modified)."""
-        dts, untracked, phi = self._begin(t, estimators, hand)
+        self._stack_if_new(estimators, hand)
+        dts, untracked, phi = self._begin(t, estimators)
         K.run_hand(self._x, self._p, self._rate, self._hand_acc, dts, np.ascontiguousarray(gyr, dtype=float),
                    np.ascontiguousarray(acc, dtype=float), hand.flat, self._st, self._geo, untracked,
                    self._sensor_start, self._phalanx_start, self._geo_start, self._theta, phi, self._phal, self._mode,
@@ -1031,25 +1032,27 @@ class ChainHand:
         another shape would have it write into the shared zeros (or past them). The refusal comes before
         any state is advanced (δ's clock included), and is a defect of the caller, not of the readings: not a
         ``ValueError``, which the service answers as the client's bad input."""
-        if not self._stacked(estimators):
-            self._stack(estimators, hand.acceleration)
+        self._stack_if_new(estimators, hand)
         offsets = self._cross_offsets()
         if rows != self._gyr.shape[0] or (self.cross_offsets is not None and offsets is not self.cross_offsets):
             shape = None if self.cross_offsets is None else np.shape(self.cross_offsets)
             raise RuntimeError(f"the kernel would write {rows} sensors' rows: {self._gyr.shape[0]} are stacked "
                                f"(cross_offsets {shape})")
-        dts, untracked, phi = self._begin(t, estimators, hand)
+        dts, untracked, phi = self._begin(t, estimators)
         out = kernel(*head, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, hand.flat,
                      self._st, self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start,
                      self._theta, phi, self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, t,
                      self._log_t, self._log_r, self._log_g, self._log_n, offsets)
         return (*self._end(t, estimators, phi), out)
 
-    def _begin(self, t: float, estimators: list[Chain], hand) -> tuple:
-        """``advance``'s steps before the kernel: the estimators stacked, their steps ``dts``, δ's step,
-        which are untracked, and the array of the joint angles the kernel writes."""
+    def _stack_if_new(self, estimators: list[Chain], hand) -> None:
+        """The estimators' states stacked here, unless they are already (``advance``'s first step)."""
         if not self._stacked(estimators):
             self._stack(estimators, hand.acceleration)
+
+    def _begin(self, t: float, estimators: list[Chain]) -> tuple:
+        """``advance``'s steps before the kernel, on the stacked estimators: their steps ``dts``, δ's step,
+        which are untracked, and the array of the joint angles the kernel writes."""
         dts = np.array([t - e._t_last for e in estimators])
         self._jp[3] = self._delta_step(t, dts)
         untracked = np.array([e._hand_untracked for e in estimators])

@@ -520,11 +520,16 @@ class HandSession:
         self._newest_imu_t = None
         self._next_frame_t = None
         self._tick_t = None
-        self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
-        self._tracking = False                # the new track's window fills from its first pose on
+        self._restart_optics()
         self._hand_known, self._lost_since = False, None    # (an outage on the old clock: not to be told the new estimators)
         self._hand_imu = self._new_hand_imu(self._hand_imu.placement)
         self._build_fingers()
+
+    def _restart_optics(self) -> None:
+        """A new optical track (after a clock step or a failed optical fit), lost until its window fills
+        from its first pose on."""
+        self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
+        self._tracking = False
 
     # -- processing ---------------------------------------------------------------------------------
     def _ready(self, t: float) -> bool:
@@ -590,8 +595,7 @@ class HandSession:
             # the optical fit failed numerically (poses too far apart for their times): restart the
             # optics from the next pose rather than feed a non-finite hand to the estimators
             self.counters.filter_resets += 1
-            self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
-            self._tracking = False              # as after a clock step: the new track's window starts empty
+            self._restart_optics()
             return []
         if METACARPUS_SENSOR_ID in tick:
             ga = tick[METACARPUS_SENSOR_ID]
