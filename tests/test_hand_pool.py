@@ -496,9 +496,10 @@ def test_what_a_worker_could_not_restore_goes_to_the_session_s_source_with_its_n
 def test_the_link_reader_passes_on_every_message_in_order_a_few_frames_per_turn_and_finishes_after_the_last():
     """``_LinkReader`` (the web process's end of a worker's socket): batches split anywhere across reads
     are dispatched in order; at most ``outs_per_turn`` frames and events go before the loop's next turn
-    (reading paused meanwhile, so that the subscribers' senders go first), and a batch after frames waits
-    for that turn too; every read counts as a sign of life; once the connection is lost, what arrived
-    before is dispatched, then ``finished`` is done."""
+    (so that the subscribers' senders go first), and a batch after frames waits for that turn too; what
+    arrives meanwhile waits in its buffer, and reading pauses only once more than ``READ_AHEAD`` bytes
+    wait there (resumed at that turn; not once the connection is lost); every read counts as a sign of
+    life; once the connection is lost, what arrived before is dispatched, then ``finished`` is done."""
     from types import SimpleNamespace
 
     from service.api.hands.pool import _LinkReader
@@ -509,7 +510,7 @@ def test_the_link_reader_passes_on_every_message_in_order_a_few_frames_per_turn_
                [["rep", 1, 3, []]], [["out", 1, 4, ["gesture", None, None, None], "{}", None]], [["rep", 1, 4, []]]]
     data = b"".join(frame(batch) for batch in batches)
 
-    async def run():
+    async def run(read_ahead, lose):
         got, heard, turns = [], [], []
         link = SimpleNamespace(pool=SimpleNamespace(outs_per_turn=2), _dispatch=got.append,
                                _hear=lambda: heard.append(1), slot=0)
@@ -517,22 +518,28 @@ def test_the_link_reader_passes_on_every_message_in_order_a_few_frames_per_turn_
         transport = SimpleNamespace(pause_reading=lambda: calls.append("pause"),
                                     resume_reading=lambda: calls.append("resume"), close=lambda: None)
         reader = _LinkReader(link)
+        if read_ahead is not None:
+            reader.READ_AHEAD = read_ahead
         reader.connection_made(transport)
         for i in range(0, len(data), 7):           # reads of 7 bytes, all in one turn of the loop
             reader.data_received(data[i:i + 7])
         outs_in_first_turn = sum(1 for m in got if m[0] == "out")
-        assert reader.unread() and calls == ["pause"]
+        in_first_turn = list(calls)
+        assert reader.unread()
         assert len(heard) == -(-len(data) // 7)
-        reader.connection_lost(None)                # lost while messages still wait
-        while not reader.finished.done():
+        if lose:
+            reader.connection_lost(None)            # lost while messages still wait
+        while not (reader.finished.done() if lose else not reader.unread()):
             turns.append(sum(1 for m in got if m[0] == "out"))
             await asyncio.sleep(0)
-        return got, outs_in_first_turn, turns, reader.unread(), calls
-    got, first, turns, unread, calls = asyncio.run(run())
-    assert got == [m for batch in batches for m in batch]
-    assert first == 2                               # outs_per_turn, then the senders' turn
-    assert all(b - a <= 2 for a, b in zip([first, *turns], turns)), turns
-    assert not unread and calls == ["pause"]        # lost: reading is not resumed
+        return got, outs_in_first_turn, turns, reader.unread(), in_first_turn, calls
+    for read_ahead, lose, first_calls, all_calls in ((None, True, [], []), (40, True, ["pause"], ["pause"]),
+                                                     (40, False, ["pause"], ["pause", "resume"])):
+        got, first, turns, unread, in_first_turn, calls = asyncio.run(run(read_ahead, lose))
+        assert got == [m for batch in batches for m in batch]
+        assert first == 2                           # outs_per_turn, then the senders' turn
+        assert all(b - a <= 2 for a, b in zip([first, *turns], turns)), turns
+        assert not unread and in_first_turn == first_calls and calls == all_calls, (read_ahead, lose, calls)
 
 
 def _reader_pair(batches, outs_per_turn=2, dispatch=None):

@@ -118,3 +118,62 @@ def test_a_session_s_cached_series_count_as_labels_does_and_start_again_after_th
     metrics.of_session("a").messages_in.inc()
     text = metrics.render().decode()
     assert 'fingertrack_messages_in_total{session="a"} 1.0' in text and 'messages_out_total{session="a"}' not in text
+
+
+def test_a_messages_websocket_frame_is_built_once_as_the_protocol_library_builds_it():
+    """``Outgoing.wire``: the frame a server writes for ``send_text``/``send_binary`` (no extension), for
+    every length encoding (7, 7+16 and 7+64 bits), built once per format."""
+    from websockets.frames import Frame, Opcode
+
+    for n in (0, 1, 125, 126, 127, 65535, 65536, 70000):
+        packed = bytes(range(256)) * (n // 256) + bytes(range(n % 256))
+        text = "x" * n
+        out = outgoing.Outgoing.encoded("frame", text, packed)
+        assert out.wire(False) == Frame(Opcode.TEXT, text.encode()).serialize(mask=False, extensions=[]), n
+        assert out.wire(True) == Frame(Opcode.BINARY, packed).serialize(mask=False, extensions=[]), n
+        assert out.wire(False) is out.wire(False) and out.wire(True) is out.wire(True)
+    # a non-ASCII text: its length in UTF-8 bytes
+    out = outgoing.Outgoing.encoded("gesture", '{"a":"é"}')
+    assert out.wire(False) == Frame(Opcode.TEXT, '{"a":"é"}'.encode()).serialize(mask=False, extensions=[])
+
+
+def test_ready_made_frames_are_written_only_to_an_open_connection_without_extensions():
+    """``DrainingWebSocket.write_frames`` writes only what the protocol library would write as it is: to an
+    open connection with no extension negotiated (per-message deflate compresses each copy), nothing
+    fragmented in between, not closing; otherwise it refuses and the caller sends through ASGI."""
+    from websockets.extensions.permessage_deflate import PerMessageDeflate
+    from websockets.protocol import State
+    from websockets.server import ServerProtocol
+
+    from service.api.server import DrainingWebSocket
+
+    class Transport:
+        closing = False
+        written: list = []
+
+        def is_closing(self):
+            return self.closing
+
+        def write(self, data):
+            self.written.append(data)
+
+    def protocol(**changes):
+        p = DrainingWebSocket.__new__(DrainingWebSocket)
+        p.disconnected = p.close_sent = False
+        p.handshake_complete, p.initial_response = True, None
+        p.conn, p.transport = ServerProtocol(state=State.OPEN), Transport()
+        p.transport.written = []
+        for name, value in changes.items():
+            target = p.conn if name in ("state", "extensions", "expect_continuation_frame") else p
+            setattr(target, name, value)
+        return p
+
+    ok = protocol()
+    assert ok.write_frames(b"\x81\x01x") and ok.transport.written == [b"\x81\x01x"]
+    refused = [protocol(disconnected=True), protocol(close_sent=True), protocol(handshake_complete=False),
+               protocol(initial_response=(403, [], b"")), protocol(_draining=True), protocol(state=State.CLOSING),
+               protocol(extensions=[PerMessageDeflate(False, False, 12, 12)]), protocol(expect_continuation_frame=True)]
+    closing = protocol()
+    closing.transport.closing = True
+    for p in [*refused, closing]:
+        assert not p.write_frames(b"\x81\x01x") and not p.transport.written

@@ -437,6 +437,48 @@ def test_msgpack_stream_and_ingest(server):
     assert hello["type"] == "hello" and frame["type"] == "frame" and len(frame["joints"]) == 26
 
 
+def test_frames_are_written_as_ready_made_websocket_frames_to_json_and_msgpack_subscribers(server, monkeypatch):
+    """Each output's WebSocket frame is built once per format and written to the subscribers as it is
+    (``DrainingWebSocket.write_frames``, not the ASGI send per message): a JSON and a MessagePack
+    subscriber get every frame of the session, the same frames, in order."""
+    import msgpack
+    from service.api.server import DrainingWebSocket
+
+    written = []
+    real_write_frames = DrainingWebSocket.write_frames
+
+    def counted(self, data):
+        written.append(real_write_frames(self, data))
+        return written[-1]
+    monkeypatch.setattr(DrainingWebSocket, "write_frames", counted)
+
+    async def frames_until(sub, last, decode):
+        frames = []
+        while not frames or frames[-1]["seq"] < last:          # 120 s bounds a failure
+            m = decode(await asyncio.wait_for(sub.recv(), 120))
+            if m["type"] == "frame":
+                frames.append(m)
+        return frames
+
+    async def go():
+        url = f"{server.ws_url}/v1/stream/wire?token={VIEWER}"
+        async with connect(url) as js, connect(url + "&format=msgpack") as mp:
+            await js.recv(), await mp.recv()                    # their hellos: subscribed before any data
+            # (the admin token: the source token's quota of live sessions is taken by the other tests)
+            async with connect(f"{server.ws_url}/v1/ingest/wire?token={ADMIN}") as src:
+                for _, m in source_messages(_config(seed=8))[:300]:
+                    await src.send(json.dumps(m))
+                await src.send(json.dumps({"type": "sync", "id": 1}))
+                while json.loads(await asyncio.wait_for(src.recv(), 120)) != {"type": "sync", "id": 1}:
+                    pass
+            last = (await _session_summary(server, "wire"))["frames_out"]
+            return last, await frames_until(js, last, json.loads), await frames_until(mp, last, msgpack.unpackb)
+    last, as_json, as_msgpack = asyncio.run(go())
+    assert last > 10 and [f["seq"] for f in as_json] == list(range(1, last + 1))
+    assert as_msgpack == as_json
+    assert written.count(True) > 0                  # (False: a connection closing; the ASGI send then)
+
+
 def test_subscription_survives_a_server_restart(tmp_path):
     """The client reconnects with back-off to the same session with the same options."""
     port = __import__("service.api.server", fromlist=["free_port"]).free_port()

@@ -9,15 +9,18 @@ import time
 
 import uvicorn
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
+from websockets.protocol import State
 
 from .app import create_app
 from .config import ServiceSettings
+from .outgoing import WIRE_EXTENSION
 from ..pipeline.gc_policy import serving_gc  # noqa: F401  (re-exported: the CLI and the tests take it from here)
 
 
 class DrainingWebSocket(WebSocketsSansIOProtocol):
     """uvicorn's WebSocket protocol, except that it pauses reading only once ``QUEUE_HIGH`` messages wait
-    for the app, and where it fails a connection for a frame it cannot take (larger
+    for the app, that it takes ready-made data frames to write as they are (``write_frames``, offered in
+    the scope's extensions as ``WIRE_EXTENSION``), and where it fails a connection for a frame it cannot take (larger
     than ``ws_max_size``: close 1009; malformed: 1002; not UTF-8: 1007). uvicorn sends its close frame
     and closes the socket at once, while the rest of the peer's frame is still arriving: the kernel
     answers that data with a reset, and a peer still sending gets the reset instead of the close frame
@@ -44,6 +47,26 @@ class DrainingWebSocket(WebSocketsSansIOProtocol):
         if not paused and self.queue.qsize() >= self.QUEUE_HIGH:
             self.read_paused = True
             self.transport.pause_reading()
+
+    def handle_connect(self, event) -> None:
+        super().handle_connect(event)
+        if self.handshake_initiated and not self.close_sent:     # the app's task starts on the loop's next turn
+            self.scope["extensions"][WIRE_EXTENSION] = self
+
+    def write_frames(self, data: bytes) -> bool:
+        """Write ``data``, whole WebSocket data frames as a server sends them (unmasked, not fragmented,
+        uncompressed: ``api.outgoing.ws_frame``), as they are: one write for any number of frames, built once
+        for every subscriber, instead of the ASGI ``websocket.send`` path per message (the app's, the
+        server's and the protocol library's layers took more of this process's time than the frames' data).
+        ``False``, nothing written: the connection cannot take them so (closing or closed, or an extension
+        such as per-message deflate negotiated); the caller sends through ASGI then, which says why. The
+        caller waits for ``writable`` first, as the ASGI send does."""
+        if (self.disconnected or self.close_sent or not self.handshake_complete or self.initial_response is not None
+                or self._draining or self.conn.state is not State.OPEN or self.conn.extensions
+                or self.conn.expect_continuation_frame or self.transport.is_closing()):
+            return False
+        self.transport.write(data)
+        return True
 
     def handle_parser_exception(self) -> None:
         assert self.conn.close_sent is not None

@@ -344,8 +344,14 @@ class _LinkReader(asyncio.Protocol):
     """The web process's end of a worker's socket: the worker's batches (``hands.worker``) dispatched as
     their bytes arrive, in the callback that received them (no reading task and no turn of the loop per
     batch). Every arrival counts as a sign of life; after every ``outs_per_turn`` frames and events the
-    rest waits for the next turn of the loop (reading paused meanwhile), so that the subscribers' senders
-    go out before more frames come (their queues are bounded)."""
+    rest waits for the next turn of the loop, so that the subscribers' senders go out before more frames
+    come (their queues are bounded). What arrives meanwhile waits here; reading pauses only once
+    ``READ_AHEAD`` bytes wait (pausing and resuming the socket at every batch with a frame cost this
+    process two system calls and a selector change each time)."""
+
+    READ_AHEAD = 1 << 20
+    """bytes from the worker received and not yet passed on beyond which reading its socket pauses (the
+    worker then blocks in its writes: backpressure)"""
 
     def __init__(self, link: WorkerLink):
         self.link = link
@@ -354,6 +360,7 @@ class _LinkReader(asyncio.Protocol):
         self._next = 0                              # the next of them to dispatch
         self._transport: asyncio.Transport | None = None
         self._continuing = False
+        self._paused = False
         self._lost = False
         self.finished = asyncio.get_running_loop().create_future()
         """done once the connection has ended and everything the worker sent before was dispatched"""
@@ -366,6 +373,9 @@ class _LinkReader(asyncio.Protocol):
         self.link._hear()                           # a worker whose bytes still arrive is not silent
         if not self._continuing:
             self._run()
+        elif not self._paused and len(self._buf) > self.READ_AHEAD:
+            self._paused = True
+            self._transport.pause_reading()
 
     def unread(self) -> bool:
         """Bytes or messages from the worker not dispatched yet."""
@@ -398,15 +408,15 @@ class _LinkReader(asyncio.Protocol):
 
     def _pause(self) -> None:
         self._continuing = True
-        if not self._lost:
-            self._transport.pause_reading()
         asyncio.get_running_loop().call_soon(self._continue)
 
     def _continue(self) -> None:
         self._continuing = False
         self.link._hear()                           # this process was busy with its outputs, not waiting for it
-        if not self._lost:
-            self._transport.resume_reading()
+        if self._paused:
+            self._paused = False
+            if not self._lost:
+                self._transport.resume_reading()
         self._run()
 
     def _run(self) -> None:

@@ -15,12 +15,13 @@ import time
 
 from fastapi import WebSocket
 from fastapi.responses import JSONResponse
+from starlette.websockets import WebSocketState
 
 from ...protocol import MSGPACK_SUBPROTOCOL, PROTOCOL_VERSION, encode
 from ...protocol.outgoing import ErrorMessageDict, ServerHelloDict, SyncReplyDict
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER
 from ..metrics import Metrics
-from ..outgoing import Outgoing
+from ..outgoing import WIRE_EXTENSION, Outgoing
 from ..sessions import LiveSession, SessionFull, Sessions
 
 log = logging.getLogger("fingertrack")
@@ -40,6 +41,7 @@ async def accept(ws: WebSocket) -> bool:
     offered = MSGPACK_SUBPROTOCOL in ws.scope.get("subprotocols", [])
     await ws.accept(subprotocol=MSGPACK_SUBPROTOCOL if offered else None)
     ws.state.binary = offered or ws.query_params.get("format") == "msgpack"
+    ws.state.wire = ws.scope.get("extensions", {}).get(WIRE_EXTENSION)     # (``send_outputs``)
     if key is not None:
         sessions.connections[key] = sessions.connections.get(key, 0) + 1
     return True
@@ -91,6 +93,28 @@ async def send(ws: WebSocket, message: ServerHelloDict | SyncReplyDict | ErrorMe
             await ws.send_text(data)
     finally:
         sending.pop(ws, None)
+
+
+async def send_outputs(ws: WebSocket, messages: list[Outgoing]) -> None:
+    """Outputs of a session (frames, gesture events) in the connection's encoding, in order. Where the server
+    takes ready-made frames (``server.DrainingWebSocket.write_frames``) they go in one write of the frames
+    each message built once for every subscriber; else (another server, per-message deflate negotiated, the
+    connection closing or closed) one by one through ASGI (``send``, which raises as it would)."""
+    wire = getattr(ws.state, "wire", None)
+    if wire is not None:
+        binary = ws.state.binary
+        data = messages[0].wire(binary) if len(messages) == 1 else b"".join(m.wire(binary) for m in messages)
+        sending = ws.app.state.sessions.sending
+        sending[ws] = time.monotonic()       # watched as any send (``drop_stuck``)
+        try:
+            if not wire.writable.is_set():   # its buffers full: wait as the ASGI send does
+                await wire.writable.wait()
+            if ws.application_state is WebSocketState.CONNECTED and wire.write_frames(data):
+                return
+        finally:
+            sending.pop(ws, None)
+    for message in messages:
+        await send(ws, message)
 
 
 def drop_stuck(sessions: Sessions, metrics: Metrics, timeout_s: float, now: float) -> None:

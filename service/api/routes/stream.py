@@ -13,9 +13,12 @@ from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
 from ..deps import WS_GOING_AWAY, WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
 from ..sessions import Sessions, Subscriber
-from .socket import accept, close_reason, release, send, server_hello
+from .socket import accept, close_reason, release, send, send_outputs, server_hello
 
 router = APIRouter()
+SEND_BATCH = 16
+"""queued messages a subscriber's sender writes at once (one write of their ready-made frames: fewer system
+calls and turns; 16 frames of about 4 KB fill the transport's default high-water mark once)"""
 
 
 async def _until_disconnect(ws: WebSocket) -> None:
@@ -43,11 +46,16 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
                 await ws.close(code=WS_GOING_AWAY if sessions.closing else WS_TRY_AGAIN_LATER, reason=reason)
                 break
             while sub.queue:
-                msg, t0 = sub.pop()
-                await send(ws, msg)
-                series = metrics.of_session(session)
-                series.messages_out.inc()
-                series.latency.observe(time.perf_counter() - t0)
+                batch, since = [], []
+                while sub.queue and len(batch) < SEND_BATCH:
+                    msg, t0 = sub.pop()
+                    batch.append(msg)
+                    since.append(t0)
+                await send_outputs(ws, batch)
+                series, now = metrics.of_session(session), time.perf_counter()
+                series.messages_out.inc(len(batch))
+                for t0 in since:
+                    series.latency.observe(now - t0)
     except (WebSocketDisconnect, RuntimeError):
         pass
 
