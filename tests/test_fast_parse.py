@@ -171,3 +171,117 @@ def test_fast_encode_refuses_what_the_standard_library_refuses():
             json.dumps(message)
         with pytest.raises(TypeError):
             encode(message, False)
+
+
+def _decoded(data, binary=False):
+    """``decode``'s answer as comparable text: the value's ``repr`` (an int is not a float, ``-0.0``
+    is not ``0.0``, the keys' order counts) or the error's class, code and detail."""
+    try:
+        return ("ok", repr(decode(data, binary)))
+    except ProtocolError as err:
+        return ("error", err.code, err.detail)
+    except (TypeError, ValueError) as err:
+        return ("raised", type(err).__name__, str(err))
+
+
+def _both_ways(data, binary=False):
+    """``decode``'s answer with ``msgspec`` first, and the standard path's alone (``json``/``msgpack``
+    and a walk of the value), and whether ``msgspec`` read it."""
+    from unittest import mock
+
+    from service.protocol import wire
+    fast_read = wire._fast_decode(data, binary) is not wire._UNREAD
+    fast = _decoded(data, binary)
+    with mock.patch.object(wire, "_fast_decode", lambda data, binary: wire._UNREAD):
+        standard = _decoded(data, binary)
+    return fast, standard, fast_read
+
+
+def _nest(levels, leaf="1", open_="[", close="]"):
+    return open_ * levels + leaf + close * levels
+
+
+_FRAME_START = '{"type":"frame","t":0.5,"seq":3,"hand":"left","status":{"age_s":null}'
+DECODE_HOSTILE = [
+    # integers beyond 64 bits stay integers; beyond the standard library's digit limit they are refused
+    '{"seq":123456789012345678901234567890}', '[18446744073709551615,18446744073709551616,-9223372036854775809]',
+    "[" + "7" * 4300 + "]", "[" + "7" * 4301 + "]", "-" + "7" * 4301,
+    # non-finite numbers, as literals and by overflow; underflow to zero keeps its sign
+    '{"t":NaN}', '{"t":Infinity}', "[-Infinity]", '{"t":1e400}', "[-1e400]", "[1.7976931348623159e308]",
+    "[1.7976931348623157e308,-1e-400,1e-400,4.9e-324,2.4e-324]", "[1" + "0" * 400 + ".0]",
+    "[0.50000000000000011102230246251565404236316680908203125,1E5,1e+5,-0,-0.0,1.0,1]",
+    # strings: escapes, lone surrogates (escaped and not), non-ASCII, control characters
+    '["\\ud800"]', '{"hand":"\\udc00x"}', '["\\ud83d\\ude00","\\u00e9","é","\\/","\\u0000"]', '["\ud800"]',
+    '["a\tb"]', '["\x7f"]', '{"detail":"\\"quoted\\" \\\\ [[[{{"}', '{"k\\"ey":"\\\\"}',
+    # keys: a duplicate keeps its first place and its last value
+    '{"a":1,"b":2,"a":3}', '{"type":"frame","type":"gesture"}',
+    # text that is not one JSON value
+    "", " ", "[1,2,]", "[1]x", "1 2", "tru", "01", "{1:2}", '\ufeff{"a":1}',
+    # nesting: at the limit, one beyond it at the root, in a frame's field (refused with the path) and
+    # in a list root or a sample's known field (not refused: validation refuses those), far beyond
+    _FRAME_START + ',"x":' + _nest(15) + "}", _FRAME_START + ',"x":' + _nest(16) + "}",
+    _FRAME_START + ',"x":' + _nest(15, "1", '{"a":', "}") + "}", _FRAME_START + ',"x":' + _nest(16, "1", '{"a":', "}") + "}",
+    _FRAME_START + ',"x":' + _nest(16, "[]") + "}", _nest(16), _nest(17), _nest(3000), _nest(3000, "1", '{"a":', "}"),
+    _FRAME_START + ',"x":' + _nest(5, "[]") + "}", _FRAME_START + ',"x":' + _nest(6, "[]") + "}", _nest(7), _nest(8),
+    '{"type":"imu","t":0.5,"id":"index.1","gyr":' + _nest(17, "0.1") + ',"acc":[0,0,1]}',
+    '{"x":"]]]]]]]]]]]]]]]]","y":' + _nest(16) + "}", '{"x":"[[[[[[[[[[[[[[[[","y":' + _nest(14) + "}",
+]
+
+
+@pytest.mark.parametrize("text", DECODE_HOSTILE)
+def test_fast_decode_equals_the_standard_path_on_hostile_json(text):
+    for data in (text, text.encode("utf-8", "surrogatepass")):
+        fast, standard, _ = _both_ways(data)
+        assert fast == standard
+
+
+def test_fast_decode_reads_what_it_may_and_leaves_the_rest_to_the_standard_path():
+    from service.protocol import wire
+    read = {text: _both_ways(text)[2] for text in DECODE_HOSTILE}
+    assert read['{"seq":123456789012345678901234567890}'] and read['{"a":1,"b":2,"a":3}']
+    # nested to FAST_LEVELS (protocol v1's deepest is 6) by msgspec, deeper the standard way
+    assert read[_FRAME_START + ',"x":' + _nest(wire.FAST_LEVELS - 2, "[]") + "}"]
+    assert not read[_FRAME_START + ',"x":' + _nest(wire.FAST_LEVELS - 1, "[]") + "}"]
+    for refused in ('{"t":NaN}', '{"t":1e400}', '["\\ud800"]', '["\ud800"]', "[" + "7" * 4301 + "]",
+                    _FRAME_START + ',"x":' + _nest(16) + "}", _nest(17), '\ufeff{"a":1}'):
+        assert not read[refused], refused
+    # the standard library reads UTF-16 and a byte order mark in bytes, and a bytearray; refuses a memoryview
+    for data in ('{"a":[1,"é"]}'.encode("utf-16"), b'\xef\xbb\xbf{"a":1}', bytearray(b'{"a":1}'), memoryview(b'{"a":1}')):
+        fast, standard, fast_read = _both_ways(data)
+        assert fast == standard and not fast_read
+    assert _decoded(memoryview(b"1"))[0] == "raised"
+
+
+def _packed(value, **options):
+    import msgpack
+    return msgpack.packb(value, **options)
+
+
+DECODE_HOSTILE_PACKED = [
+    _packed({"type": "frame", "t": 0.5, "seq": 2 ** 64 - 1, "x": -2 ** 63, "hand": "é", "ok": [True, None]}),
+    _packed({"t": 1.5}, use_single_float=True), _packed([1.5, -0.0]),
+    _packed({"t": float("nan")}), _packed({"a": [0.0, float("inf")]}, use_single_float=True), _packed([-float("inf")]),
+    _packed({"note": "\xca\x7f\xff\xcb\x7f\xf8"}), _packed({1: 2}), _packed({None: 2}), _packed({"a": b"x"}),
+    _packed({b"k": 1}), b"\xd6\xff\x00\x00\x00\x01", b"\x82\xa1a\x01\xa1a\x02", _packed({"a": 1}) + b"\x01",
+    b"\xa2\xff\xfe", b"", b"\xc1", b"\x91" * 15 + b"\x90", b"\x91" * 16 + b"\x90", b"\x91" * 6 + b"\x90", b"\x91" * 7 + b"\x90",
+    _packed({"type": "frame", "x": json.loads(_nest(15))}), _packed({"type": "frame", "x": json.loads(_nest(16))}),
+    _packed({"type": "frame", "x": json.loads(_nest(16, "1", '{"a":', "}"))}),
+]
+
+
+@pytest.mark.parametrize("data", DECODE_HOSTILE_PACKED)
+def test_fast_decode_equals_the_standard_path_on_hostile_messagepack(data):
+    fast, standard, _ = _both_ways(data, binary=True)
+    assert fast == standard
+
+
+def test_fast_decode_reads_the_services_own_messages_and_gives_the_standard_values():
+    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=5, duration_s=0.6)
+    outputs = list(replay(parse_message(m) for m in simulate(config).messages(include_truth=False)))
+    outputs += [{"type": "error", "code": "invalid_json", "detail": 'not valid JSON: "x" \\ [['},
+                {"type": "hello", "protocol": 1, "session": "s", "server": "fingertrack"}, {"type": "sync", "id": 7}]
+    assert {m["type"] for m in outputs} >= {"frame", "gesture"} and len(outputs) > 50
+    for message in outputs:
+        for binary in (False, True):
+            fast, standard, fast_read = _both_ways(encode(message, binary), binary)
+            assert fast == standard and fast_read
