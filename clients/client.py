@@ -229,9 +229,11 @@ class Publisher:
                     waiter.set_exception(ConnectionError("the connection closed before the service answered sync"))
             self._synced.clear()
 
-    async def send(self, message) -> None:
+    async def send(self, message, encoded: str | bytes | None = None) -> None:
         """Send one source message (a dict or a ``service.protocol`` model), reconnecting (with
-        back-off) if the connection dropped."""
+        back-off) if the connection dropped. ``encoded``: the message as ``encode(message,
+        self.binary)`` wrote it beforehand (a real-time stream's messages, before its clock starts),
+        sent as it is instead of encoding it again."""
         if hasattr(message, "model_dump"):
             message = message.model_dump(exclude_none=True)
         elif not isinstance(message, dict):         # a sample or pose as ``parse_line`` reads it (``protocol.fast``)
@@ -248,7 +250,7 @@ class Publisher:
                     self.backoff.reset()
                     if message is self.calibration:
                         return                      # connect() has just sent it
-                data = encode(message, self.binary)
+                data = encode(message, self.binary) if encoded is None else encoded
                 await self._wait_for_room(len(data))
                 await self._ws.send(data)
                 self._sent += 1

@@ -88,3 +88,56 @@ def test_close_ends_when_the_service_never_answers_sync():
     lines = asyncio.run(run())
     assert [m["type"] for m in received] == ["hello", "pose", "sync"]
     assert len(lines) == 1 and "did not answer sync within 0.2 s" in lines[0] and SOURCE not in lines[0]
+
+
+def test_a_glove_stream_sends_its_messages_encoded_before_it_starts():
+    """``stream_glove`` sends each message as encoded before its clock started (``encoded``, or its
+    own encoding of them then): the ``Publisher`` encodes no sample or pose while it streams, the
+    service gets exactly those texts, in order, with the syncs of its flow control between them."""
+    import clients.client as client_module
+    from clients.glove import encoded_messages, source_messages, stream_glove
+    from service.sim.session import SimConfig
+
+    config = SimConfig(motion="random", duration_s=0.4, noise="both", seed=1)
+    messages = source_messages(config)
+    marked = encoded_messages(messages)
+    marked[-1] = marked[-1][:-1] + ',"mark":1}'            # the text given is what goes out, as it is
+    encoded_while_streaming = []
+    encode = client_module.encode
+
+    def counting_encode(message, binary):
+        encoded_while_streaming.append(message["type"])
+        return encode(message, binary)
+
+    async def run(given):
+        received = []
+
+        async def service(ws):
+            await ws.send(json.dumps({"type": "hello", "protocol": 1, "server": "fingertrack", "session": "s"}))
+            async for data in ws:
+                if json.loads(data)["type"] == "sync":
+                    await ws.send(data)
+                else:
+                    received.append(data)
+
+        async with serve(service, "127.0.0.1", 0) as server:
+            port = server.sockets[0].getsockname()[1]
+            pub = await stream_glove(f"http://127.0.0.1:{port}", "s", SOURCE, config, speed=20.0, messages=messages,
+                                     encoded=given)
+            await asyncio.wait_for(pub.close(), 60)
+        return received
+
+    client_module.encode = counting_encode
+    try:
+        for given in (marked, None):
+            encoded_while_streaming.clear()
+            received = asyncio.run(run(given))
+            sent = encoded_messages(messages)          # the hello first, as the Publisher sends it on connecting
+            expected = sent[:-1] + [marked[-1]] if given is not None else sent
+            assert received == expected and len(received) > 100
+            # the Publisher encodes only what it sends on connecting (hello, calibration) and its syncs
+            assert set(encoded_while_streaming) <= {"hello", "calibration", "sync"}
+    finally:
+        client_module.encode = encode
+    with pytest.raises(ValueError, match="encoded messages for"):
+        asyncio.run(stream_glove("http://127.0.0.1:1", "s", SOURCE, config, messages=messages, encoded=marked[1:]))

@@ -89,14 +89,16 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     the common start (``time.time()``) of every generator process; ``stop`` (a ``threading.Event``),
     once set, ends the gloves' streams early."""
     from clients.client import Subscription
-    from clients.glove import source_messages, stream_glove
+    from clients.glove import encoded_messages, source_messages, stream_glove
 
     urls, viewer, subscribers, seconds, binary = spec["urls"], spec["viewer"], spec["subscribers"], spec["seconds"], spec["binary"]
     indices = spec["indices"]
     configs = [SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=i,
                          hand="right" if i % 2 == 0 else "left") for i in indices]
-    # simulate every glove before the clock starts, so that they all stream together
+    # simulate every glove, and encode its messages, before the clock starts, so that they all stream
+    # together and the gloves only send bytes ready made while they stream
     msgs = [source_messages(c) for c in configs]
+    encoded = [encoded_messages(m, binary) for m in msgs]
     # the simulated messages are millions of objects that live to the end: a full collection scanning them
     # took 0.65 s for two hands of 150 s, and paused the gloves and subscribers mid-stream (taken for the
     # service's delay); kept out of the collector's generations from here on
@@ -133,8 +135,8 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
 
     cpu0, wall0 = time.process_time(), time.perf_counter()
     pubs = await asyncio.gather(*(stream_glove(urls[i % len(urls)], n, spec["source"], c, on_send=on_send_for(n),
-                                               messages=m, binary=binary, stop=stop)
-                                  for i, n, c, m in zip(indices, names, configs, msgs)))
+                                               messages=m, binary=binary, stop=stop, encoded=e)
+                                  for i, n, c, m, e in zip(indices, names, configs, msgs, encoded)))
     wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     for p in pubs:
         await p.close()                                       # returns once the service has handled everything sent (sync)
