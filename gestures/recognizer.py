@@ -280,7 +280,8 @@ class GestureRecognizer:
     _index_rate: float = 0.0
     _tips_rate: float = 0.0
     _handover_since: float | None = None
-    _frame_ray: tuple = (None, None)
+    _frame_values: tuple = (None, None)
+    """The last frame ``features`` read and its ``Values``."""
     _table: tuple | None = None
     """``(settings, _rule_table(settings))`` of the settings object last used (``GestureSettings`` is frozen:
     other thresholds are another object, which rebuilds the table; one changed in place behind pydantic's
@@ -290,8 +291,9 @@ class GestureRecognizer:
 
     def features(self, frame) -> Features:
         s = self.settings
-        v = frame_values(frame.joint_angles, frame.joints, s.curl_full_long_rad, s.curl_full_thumb_rad)
-        self._frame_ray = (frame, v.ray)
+        v = frame_values(frame.joint_angles, frame.joints, s.curl_full_long_rad, s.curl_full_thumb_rad,
+                         s.pinch_full_m, s.pinch_zero_m)
+        self._frame_values = (frame, v)
         return Features(v.curl, v.pinch_distance_m, v.grab_strength)
 
     @staticmethod
@@ -302,8 +304,8 @@ class GestureRecognizer:
 
     def _ray(self, frame) -> RayDict | None:
         """``ray(frame)``, from the values ``features`` computed for this frame."""
-        seen, ray = self._frame_ray
-        return ray if seen is frame else self.ray(frame)
+        seen, values = self._frame_values
+        return values.ray if seen is frame else self.ray(frame)
 
     def _event(self, frame, g: str, kind: Literal["start", "end"], confidence: float) -> GestureDict:
         """The protocol's ``gesture`` event (``protocol.outgoing.Gesture``)."""
@@ -401,11 +403,16 @@ class GestureRecognizer:
             self.active = self._candidate
             self._candidate, self._candidate_since, self._failing_since = None, None, None
             events.append(self._event(frame, self.active, "start", conf))
+        seen, values = self._frame_values
+        rounded = values.rounded if seen is frame else None
+        if rounded is None:         # not rounded by the kernel (``gestures.values.round4_into``): Python's ``round``
+            rounded = ({f: round(v, 4) for f, v in x.curl.items()}, round(x.grab_strength, 4),
+                       round(_band(x.pinch_distance_m, s.pinch_full_m, s.pinch_zero_m), 4))
         annotation: GestureStateDict = {
             "active": self.active,
-            "curl": {f: round(v, 4) for f, v in x.curl.items()},
-            "grab_strength": round(x.grab_strength, 4),
-            "pinch_strength": 0.0 if self.active == "grasp" else round(_band(x.pinch_distance_m, s.pinch_full_m, s.pinch_zero_m), 4),
+            "curl": rounded[0],
+            "grab_strength": rounded[1],
+            "pinch_strength": 0.0 if self.active == "grasp" else rounded[2],
         }
         if self.active == "point":
             annotation["ray"] = self._ray(frame)

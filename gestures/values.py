@@ -19,7 +19,7 @@ import numba
 import numpy as np
 
 from service import JIT_CACHE
-from service.model.openxr import JOINT_NAMES
+from service.model.openxr import JOINT_NAMES, FingerAngles
 
 FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
 LONG = ("index", "middle", "ring", "little")
@@ -38,12 +38,20 @@ class Values(NamedTuple):
     pinch_distance_m: float
     grab_strength: float
     ray: dict | None
+    rounded: tuple | None = None
+    """``frame_values``' only: what a frame's gesture annotation writes, each ``round(value, 4)`` (the curls as
+    a dict like ``curl``, the grab strength and the pinch strength before a grasp forces it to 0: the band of
+    the tip distance between ``pinch_zero_m`` and ``pinch_full_m``); ``None`` where the kernel left a value to
+    Python's ``round`` (``round4_into``)."""
 
 
-def reference_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float) -> Values:
+def reference_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float,
+                     pinch_full_m: float = 1.0, pinch_zero_m: float = 1.0) -> Values:
     """The values in numpy: ``Σφ / curl_full`` clipped to [0, 1] per finger; the norm of the
     thumb-to-index tip difference; the mean curl of ``LONG``; the ray from the index MCP joint to its
-    tip (origin at the tip) when the finger is longer than ``RAY_MIN_LENGTH_M`` and its tip finite."""
+    tip (origin at the tip) when the finger is longer than ``RAY_MIN_LENGTH_M`` and its tip finite.
+    No ``rounded`` annotation (the recogniser then rounds with Python's ``round``; the pinch band's ends
+    are not needed)."""
     curl = {}
     for f, phi in joint_angles.items():
         full = curl_full_thumb_rad if f == "thumb" else curl_full_long_rad
@@ -59,13 +67,46 @@ def reference_values(joint_angles, joints, curl_full_long_rad: float, curl_full_
     return Values(curl, float(np.linalg.norm(tip_t - tip_i)), float(np.mean([curl[f] for f in LONG])), ray)
 
 
+ROUND_SCALE = 1e4
+"""The gesture annotation's values are written to 4 decimals (``round(x, 4)``)."""
+
+
+@numba.njit(cache=JIT_CACHE)
+def round4_into(values, out):  # pragma: no cover - compiled
+    """``out[i] = round(values[i], 4)``, the very float Python's ``round`` gives, for every value where that is
+    certain without its decimal arithmetic; returns False if some value is left to ``round`` (``out[i]`` then
+    unset). Python rounds the exact binary value e = x·10⁴ to the nearest integer k (half to even) and returns
+    the float nearest to k/10⁴. Here ``y = x·10⁴`` is rounded to a float, but rounding is monotonic and every
+    halfway point h = j + 1/2 with |h| < 10⁷ is a float, so e < h gives y <= h and e > h gives y >= h: where
+    ``k = floor(y + 0.5)`` leaves ``d = y - k`` (exact: |y| < 10⁷ and |d| <= 1/2 + an ulp) strictly inside
+    (-1/2, 1/2), k - 1/2 < e < k + 1/2 too, k is e's nearest integer and no tie rule applies, and
+    ``k / 10⁴``, the correctly rounded quotient of two exact floats, is the float nearest to k/10⁴. The sign
+    of a zero is ``x``'s, as Python's. Everything else (y on a halfway point, |y| >= 10⁷, NaN, infinities) is
+    left to ``round``."""
+    ok = True
+    for i in range(values.shape[0]):
+        x = values[i]
+        y = x * ROUND_SCALE
+        if -1e7 < y < 1e7:
+            k = np.floor(y + 0.5)
+            d = y - k
+            if -0.5 < d < 0.5:
+                out[i] = math.copysign(k / ROUND_SCALE, x)
+                continue
+        ok = False
+    return ok
+
+
 @numba.njit(cache=JIT_CACHE)
 def values_kernel(phi, ends, full, positions, rows, long_fingers, out):  # pragma: no cover - compiled
     """``out[:n]`` the curls of the ``n = len(ends)`` fingers (finger ``k``'s angles are
     ``phi[ends[k-1]:ends[k]]``, its full curl ``full[k]``); then the tip distance, the mean curl of
     the fingers ``long_fingers``, 1.0 if the ray exists (else 0.0), its origin and direction; the
     joints are ``positions[rows[0]]`` (thumb tip), ``positions[rows[1]]`` (index tip),
-    ``positions[rows[2]]`` (index MCP). The order of operations is ``reference_values``'."""
+    ``positions[rows[2]]`` (index MCP). The order of operations is ``reference_values``'. Then, at
+    ``n + 9``, the pinch band of the tip distance (the recogniser's ``_band`` between ``full[n + 1]``, its
+    zero, and ``full[n]``, its full strength), and from ``n + 10`` the curls, the mean and the band each
+    rounded to 4 decimals (``round4_into``), with 1.0 after them if all were (else 0.0)."""
     n = ends.shape[0]
     start = 0
     for k in range(n):
@@ -97,20 +138,37 @@ def values_kernel(phi, ends, full, positions, rows, long_fingers, out):  # pragm
     for i in range(3):
         out[n + 3 + i] = tip_i[i]
         out[n + 6 + i] = d[i] / norm if ok else 0.0
+    inside, outside = full[n], full[n + 1]
+    band = 1.0
+    if inside != outside:                   # min(max(b, 0.0), 1.0) as Python's: a NaN and a -0.0 are kept
+        band = (out[n] - outside) / (inside - outside)
+        if 0.0 > band:
+            band = 0.0
+        if 1.0 < band:
+            band = 1.0
+    out[n + 9] = band
+    out[n + 10:n + 10 + n] = out[:n]
+    out[2 * n + 10] = out[n + 1]
+    out[2 * n + 11] = band
+    rounded = out[n + 10:2 * n + 12]
+    out[2 * n + 12] = 1.0 if round4_into(rounded, rounded) else 0.0
 
 
 _ROWS_CACHE: dict = {}
 
 
-def _layout(joint_angles, curl_full_long_rad: float, curl_full_thumb_rad: float):
-    """The kernel's finger layout of a frame (finger names, angle ends, full curls, long-finger rows, the
-    number of angles), kept per distinct layout."""
-    key = (tuple(joint_angles), tuple(map(len, joint_angles.values())), curl_full_long_rad, curl_full_thumb_rad)
+def _layout(joint_angles, curl_full_long_rad: float, curl_full_thumb_rad: float, pinch_full_m: float,
+            pinch_zero_m: float):
+    """The kernel's finger layout of a frame (finger names, angle ends, full curls then the pinch band's
+    ends, long-finger rows, the number of angles), kept per distinct layout."""
+    key = (tuple(joint_angles), tuple(map(len, joint_angles.values())), curl_full_long_rad, curl_full_thumb_rad,
+           pinch_full_m, pinch_zero_m)
     layout = _ROWS_CACHE.get(key)
     if layout is None:
         names = list(key[0])
         ends = np.cumsum(key[1]).astype(np.int64)
-        full = np.array([curl_full_thumb_rad if f == "thumb" else curl_full_long_rad for f in names])
+        full = np.array([curl_full_thumb_rad if f == "thumb" else curl_full_long_rad for f in names]
+                        + [pinch_full_m, pinch_zero_m])
         row_of = {f: k for k, f in enumerate(names)}
         long_rows = np.array([row_of[f] for f in LONG], dtype=np.int64)     # KeyError as the reference
         layout = _ROWS_CACHE[key] = (names, ends, full, long_rows, sum(key[1]))
@@ -134,25 +192,53 @@ def _flat_angles(joint_angles, n: int) -> np.ndarray:
     return phi
 
 
-def frame_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float) -> Values:
-    """``reference_values`` in one ``values_kernel`` call. ``joints`` is the pipeline's
+def frame_values(joint_angles, joints, curl_full_long_rad: float, curl_full_thumb_rad: float,
+                 pinch_full_m: float = 1.0, pinch_zero_m: float = 1.0) -> Values:
+    """``reference_values`` in one ``values_kernel`` call, with the ``rounded`` annotation (its pinch band
+    between ``pinch_zero_m`` and ``pinch_full_m``). ``joint_angles`` is the pipeline's ``FingerAngles``
+    (its one array is read as it is) or any mapping of finger name to angles; ``joints`` the pipeline's
     ``JointPoses`` (its positions array is read as it is) or any mapping of joint name to
     ``(position, orientation)``. A frame without the long fingers or the joints raises ``KeyError``
     like the reference."""
-    names, ends, full, long_rows, n_angles = _layout(joint_angles, curl_full_long_rad, curl_full_thumb_rad)
-    phi = _flat_angles(joint_angles, n_angles)
+    if type(joint_angles) is FingerAngles:
+        key = (joint_angles.layout, curl_full_long_rad, curl_full_thumb_rad, pinch_full_m, pinch_zero_m)
+        kept = _KEPT.get(key)
+        if kept is None:
+            kept = _keep(key, _layout(joint_angles, curl_full_long_rad, curl_full_thumb_rad, pinch_full_m, pinch_zero_m))
+        names, ends, full, long_rows, n_angles = kept
+        phi = joint_angles.flat
+    else:
+        names, ends, full, long_rows, n_angles = _layout(joint_angles, curl_full_long_rad, curl_full_thumb_rad,
+                                                         pinch_full_m, pinch_zero_m)
+        phi = _flat_angles(joint_angles, n_angles)
     positions = getattr(joints, "positions", None)        # the pipeline's JointPoses: rows in JOINT_NAMES order
-    if isinstance(positions, np.ndarray) and positions.shape == (len(JOINT_NAMES), 3) and positions.dtype == np.float64:
+    if type(positions) is np.ndarray and positions.dtype is _FLOAT64 and positions.shape == _POSITIONS_SHAPE:
         rows = _RAY_ROWS
     else:
         positions = np.array([joints[j][0] for j in RAY_JOINTS], dtype=np.float64)
         rows = _FIRST_THREE
     n = len(names)
-    out = np.empty(n + 9)
+    out = np.empty(2 * n + 13)
     values_kernel(phi, ends, full, positions, rows, long_rows, out)
     v = out.tolist()
     ray = {"origin": v[n + 3:n + 6], "direction": v[n + 6:n + 9]} if v[n + 2] == 1.0 else None
-    return Values(dict(zip(names, v[:n])), v[n], v[n + 1], ray)
+    rounded = (dict(zip(names, v[n + 10:2 * n + 10])), v[2 * n + 10], v[2 * n + 11]) if v[2 * n + 12] == 1.0 else None
+    return Values(dict(zip(names, v[:n])), v[n], v[n + 1], ray, rounded)
+
+
+_KEPT: dict = {}
+"""``_layout``'s answer per ``FingerAngles`` layout and settings (a dict lookup, no key built from the angles)."""
+
+
+def _keep(key, layout):
+    if len(_KEPT) > 64:                          # bounded: settings change rarely
+        _KEPT.pop(next(iter(_KEPT)))
+    _KEPT[key] = layout
+    return layout
+
+
+_FLOAT64 = np.dtype(np.float64)
+_POSITIONS_SHAPE = (len(JOINT_NAMES), 3)
 
 
 _FIRST_THREE = np.arange(3, dtype=np.int64)

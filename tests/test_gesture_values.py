@@ -10,9 +10,9 @@ import pytest
 
 from gestures import recognizer as rec_module
 from gestures.recognizer import GestureRecognizer, GestureSettings
-from gestures.values import frame_values, reference_values
+from gestures.values import frame_values, reference_values, round4_into
 from service.model.hand import default_calibration
-from service.model.openxr import JOINT_NAMES, joint_poses
+from service.model.openxr import JOINT_NAMES, FingerAngles, angles_layout, joint_poses
 from service.pipeline.hand import HandFrame, HandSession, JointPoses
 from service.protocol import parse_message
 from service.sim.errors import OpticalModel
@@ -105,9 +105,13 @@ def test_recorded_frames_equal_the_reference_and_the_recogniser_output_is_unchan
     for f in frames:
         _check(f.joint_angles, f.joints)
     fast = GestureRecognizer()
-    fast_out = [fast.update(f) for f in frames]
+    fast_out, kernel_rounded = [], 0
+    for f in frames:
+        fast_out.append(fast.update(f))
+        kernel_rounded += fast._frame_values[1].rounded is not None    # the annotation as the kernel rounded it
+    assert kernel_rounded == len(frames)
 
-    def reference(joint_angles, joints, long_rad, thumb_rad):
+    def reference(joint_angles, joints, long_rad, thumb_rad, *pinch):
         return reference_values(joint_angles, joints, long_rad, thumb_rad)
 
     ruled = GestureRecognizer()               # every rule asked through its GestureRule (no rule table)
@@ -243,3 +247,83 @@ def test_a_truth_frame_with_plain_joints_gives_the_pipeline_values():
     tip, base = joints["index_tip"][0], joints["index_proximal"][0]
     assert ray["origin"] == tip.tolist()
     assert np.allclose(ray["direction"], (tip - base) / np.linalg.norm(tip - base), atol=1e-12)
+
+
+def _bits(values) -> list:
+    return np.asarray(values, dtype=np.float64).view(np.int64).tolist()
+
+
+def test_round4_into_gives_pythons_round_or_leaves_the_value_to_it():
+    """``round4_into`` writes ``round(x, 4)`` to the bit (a zero's sign included) wherever it rounds, and
+    leaves to Python's ``round`` only values near a halfway point, huge ones and non-finite ones: random
+    values of the annotation's range and of every magnitude, every halfway point k + 1/2 of the last decimal
+    in [0, 1] and its neighbours a few ulps away, exact ties (odd multiples of 1/32, half of 10⁻⁴·625·2k+1)."""
+    rng = np.random.default_rng(5)
+    halfway = (np.arange(10001) + 0.5) / 1e4
+    near = [halfway]
+    for steps in (1, 2, 3, 40):
+        up, down = halfway.copy(), halfway.copy()
+        for _ in range(steps):
+            up, down = np.nextafter(up, np.inf), np.nextafter(down, -np.inf)
+        near += [up, down]
+    xs = np.concatenate([
+        rng.uniform(0.0, 1.0, 20000),
+        rng.uniform(-1.0, 1.0, 5000) * 10.0 ** rng.integers(-12, 8, 5000),
+        *near, -halfway,
+        np.arange(1, 64, 2) / 32.0, -np.arange(1, 64, 2) / 32.0,
+        [0.0, -0.0, 4e-5, -4e-5, 5e-5, -5e-5, 1e-300, -1e-300, 999.99994, 999.99996, 1e3, 1e20, -1e20,
+         np.nan, np.inf, -np.inf]])
+    sentinel = 0.12345                  # not the float nearest any k/10⁴: never a result
+    out = np.full_like(xs, sentinel)
+    assert round4_into(xs, out) is False
+    done = _bits(out) != np.float64(sentinel).view(np.int64)
+    left = ~done
+    for x, r in zip(xs[done].tolist(), out[done].tolist()):
+        assert _bits([r]) == _bits([round(x, 4)]), (x, r, round(x, 4))
+    y = xs[left] * 1e4
+    with np.errstate(invalid="ignore"):
+        assert np.all(~np.isfinite(y) | (np.abs(y) >= 1e7) | (np.abs(y - np.floor(y) - 0.5) < 1e-9))
+    assert done[:20000].sum() > 0.999 * 20000        # the annotation's range: all but a rare one near a halfway point
+    assert not done[np.isin(xs, np.arange(1, 64, 2) / 32.0)].any()      # exact ties are left to round
+    assert _bits(out[np.isin(xs, [-4e-5])]) == _bits([-0.0])            # a zero keeps the value's sign
+    one = np.array([0.123456789, -4e-5, 0.5])
+    assert round4_into(one, one) is True and _bits(one) == _bits([0.1235, -0.0, 0.5])
+
+
+def test_the_annotation_rounded_by_the_kernel_equals_pythons_round_at_ties_and_nans(monkeypatch):
+    """Frames of the pipeline's kind (``FingerAngles``, ``JointPoses``) whose curls, grab strength or pinch band
+    are exactly halfway between two 4-decimal values, a hair off it, zero or NaN: the kernel rounds what it can
+    and leaves the rest, and every annotation is the one Python's ``round`` gives (the reference path)."""
+    calib = default_calibration("right")
+    names = tuple(calib.fingers)
+    layout = angles_layout(names, tuple(g.n_phalanges for g in calib.fingers.values()))
+    full = {f: S.curl_full_thumb_rad if f == "thumb" else S.curl_full_long_rad for f in names}
+    rng = np.random.default_rng(9)
+    frames, kinds = [], []
+    for k in range(120):
+        curls = {f: float(rng.choice([0.03125, 0.09375, 0.00015, 0.5, 0.0, rng.uniform()])) for f in names}
+        flat = np.concatenate([np.array([curls[f] * full[f]] + [0.0] * (layout.counts[i] - 1))
+                               for i, f in enumerate(names)])
+        if k % 4 == 1:
+            flat[3] = np.nextafter(flat[3], np.inf)              # a hair above a tie
+        if k % 10 == 7:
+            flat[5] = np.nan
+        positions = rng.normal(0.0, 0.05, (len(JOINT_NAMES), 3))
+        tip_t, tip_i = JOINT_NAMES.index("thumb_tip"), JOINT_NAMES.index("index_tip")
+        # the tip distance such that the pinch band is 0.25 + 1/32 (a tie) on some frames
+        band = (0.25 + 0.03125) if k % 3 == 0 else rng.uniform()
+        gap = S.pinch_zero_m + band * (S.pinch_full_m - S.pinch_zero_m)
+        positions[tip_t] = positions[tip_i] + [gap, 0.0, 0.0]
+        angles = FingerAngles(flat, layout)
+        frames.append(HandFrame(k / 90, k, "right", angles, {}, np.eye(3), np.zeros(3),
+                                JointPoses(positions, np.tile([0.0, 0.0, 0.0, 1.0], (len(JOINT_NAMES), 1))), {}))
+    fast = GestureRecognizer()
+    fast_out = []
+    for f in frames:
+        fast_out.append(fast.update(f))
+        kinds.append(fast._frame_values[1].rounded is None)
+    assert any(kinds) and not all(kinds)          # some frames left to round, most rounded by the kernel
+    monkeypatch.setattr(rec_module, "frame_values", lambda a, j, long_rad, thumb_rad, *pinch:
+                        reference_values(a, j, long_rad, thumb_rad))
+    slow = GestureRecognizer()
+    assert repr([slow.update(f) for f in frames]) == repr(fast_out)   # (repr: exact, a zero's sign and NaN too)

@@ -5,7 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from service.model.hand import default_calibration
-from service.model.openxr import JOINT_NAMES, joint_poses, joint_poses_compiled
+from service.model.openxr import JOINT_NAMES, FingerAngles, angles_layout, joint_pose_arrays, joint_poses, joint_poses_compiled
 
 
 @pytest.mark.parametrize("hand", ["right", "left"])
@@ -27,3 +27,25 @@ def test_compiled_joint_poses_equal_the_reference(hand):
         for name in JOINT_NAMES:
             np.testing.assert_allclose(compiled[name][0], reference[name][0], rtol=0, atol=1e-12, err_msg=name)
             np.testing.assert_allclose(compiled[name][1], reference[name][1], rtol=0, atol=1e-12, err_msg=name)
+
+
+def test_joint_poses_from_the_pipelines_one_array_of_angles_equal_those_from_a_dict():
+    """``FingerAngles`` (every finger's angles in one array, as the pipeline's frames hold them) give the
+    same joint poses to the bit as the same angles given finger by finger, the fingers in any order;
+    a finger's angles read from it are its slice of the array."""
+    rng = np.random.default_rng(12)
+    for hand in ("right", "left"):
+        calib = default_calibration(hand)
+        for order in (tuple(calib.fingers), tuple(reversed(tuple(calib.fingers)))):
+            counts = tuple(calib.finger(f).n_phalanges for f in order)
+            layout = angles_layout(order, counts)
+            flat = rng.uniform(-1.5, 3.0, sum(counts))
+            angles = FingerAngles(flat, layout)
+            plain = {f: angles[f].copy() for f in order}
+            assert list(angles) == list(order) and len(angles) == len(order)
+            assert np.array_equal(np.concatenate([plain[f] for f in order]), flat)
+            rotation = Rotation.random(random_state=rng).as_matrix()
+            position = rng.normal(0.0, 1.0, 3)
+            for a, b in zip(joint_pose_arrays(calib, angles, rotation, position),
+                            joint_pose_arrays(calib, plain, rotation, position)):
+                assert np.array_equal(a, b)

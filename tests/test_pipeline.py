@@ -401,3 +401,19 @@ def test_an_outage_on_the_old_clock_is_not_told_to_the_estimators_after_a_clock_
     # the occlusion after the step is told (0.3 s of poses missing, less the optics' pose timeout; once per
     # finger), the one across it is not
     assert told and all(0.0 < d < 0.3 for d in told), told
+
+
+def test_a_frames_message_from_its_one_array_of_angles_equals_the_one_from_a_dict(sequence_clean):
+    """The pipeline's frames hold every finger's angles in one array (``FingerAngles``); their message is
+    the same text as that of the same frame with the angles given finger by finger."""
+    from dataclasses import replace as replaced
+    from service.model.openxr import FingerAngles
+    from service.protocol import encode
+
+    session = HandSession()
+    frames = [f for m in list(sequence_clean.messages())[:1500] for f in session.handle(parse_message(m)).frames]
+    assert len(frames) > 50
+    for f in frames[::7]:
+        assert type(f.joint_angles) is FingerAngles
+        plain = replaced(f, joint_angles={n: a.copy() for n, a in f.joint_angles.items()})
+        assert encode(f.to_message(session.calibration), False) == encode(plain.to_message(session.calibration), False)

@@ -177,6 +177,58 @@ _kernel: list = [None]
 """``openxr_kernel.joint_poses`` once ``joint_pose_arrays`` has imported it."""
 
 
+class AnglesLayout:
+    """Where each finger's joint angles lie in one array of every finger's (``FingerAngles.flat``): the
+    fingers in order (``names``), their angle counts (``counts``), finger ``k``'s angles at ``slices[k]``,
+    up to ``ends[k]``; ``padded``, where the kernel's zero-padded (5, 3) angles (``_FINGER_ORDER``) take
+    them (``None`` unless the fingers are those five). One object per names and counts
+    (``angles_layout``): compared by identity."""
+
+    __slots__ = ("names", "counts", "slices", "slice_of", "ends", "n", "padded")
+
+    def __init__(self, names: tuple[str, ...], counts: tuple[int, ...]):
+        self.names, self.counts = names, counts
+        self.ends = np.cumsum(counts, dtype=np.int64) if counts else np.zeros(0, dtype=np.int64)
+        starts = [0, *self.ends.tolist()[:-1]]
+        self.slices = tuple(slice(a, a + c) for a, c in zip(starts, counts))
+        self.slice_of = dict(zip(names, self.slices))
+        self.n = int(sum(counts))
+        self.padded = None
+        if sorted(names) == sorted(_FINGER_ORDER) and len(names) == len(_FINGER_ORDER) and max(counts) <= 3:
+            row = {f: k for k, f in enumerate(_FINGER_ORDER)}
+            self.padded = np.array([3 * row[f] + j for f, c in zip(names, counts) for j in range(c)], dtype=np.int64)
+
+
+@functools.lru_cache(maxsize=64)
+def angles_layout(names: tuple[str, ...], counts: tuple[int, ...]) -> AnglesLayout:
+    """The ``AnglesLayout`` of these fingers and angle counts (one object per combination)."""
+    return AnglesLayout(names, counts)
+
+
+class FingerAngles(Mapping):
+    """``name -> φ`` (rad) of a frame's fingers over ``flat``, every finger's angles in one float64 array,
+    finger after finger as ``layout`` (``AnglesLayout``) says: what reads them all (the joint poses, the
+    gesture values, a frame's message) takes the one array, and a finger's angles are a view of it made
+    when read (the pipeline's frames are read whole far more often than by finger). Never modified."""
+
+    __slots__ = ("flat", "layout")
+
+    def __init__(self, flat: np.ndarray, layout: AnglesLayout):
+        self.flat, self.layout = flat, layout
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        return self.flat[self.layout.slice_of[name]]
+
+    def __iter__(self):
+        return iter(self.layout.names)
+
+    def __len__(self) -> int:
+        return len(self.layout.names)
+
+    def __repr__(self) -> str:
+        return f"FingerAngles({dict(self.items())!r})"
+
+
 def joint_pose_arrays(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
                       hand_rotation: np.ndarray, hand_position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``joint_poses_compiled`` as two arrays in ``JOINT_NAMES`` order: positions (26, 3) and
@@ -186,9 +238,12 @@ def joint_pose_arrays(calib: HandCalibration, joint_angles: dict[str, np.ndarray
         from .openxr_kernel import joint_poses as kernel
         _kernel[0] = kernel
     phi = np.zeros((len(_FINGER_ORDER), 3))
-    for f, name in enumerate(_FINGER_ORDER):
-        a = joint_angles[name]
-        phi[f, :len(a)] = a
+    if type(joint_angles) is FingerAngles and joint_angles.layout.padded is not None:
+        phi.put(joint_angles.layout.padded, joint_angles.flat)      # one call for the five fingers
+    else:
+        for f, name in enumerate(_FINGER_ORDER):
+            a = joint_angles[name]
+            phi[f, :len(a)] = a
     positions = np.empty((len(JOINT_NAMES), 3))
     quats = np.empty((len(JOINT_NAMES), 4))
     kernel(_packed_calibration(calib), phi, np.ascontiguousarray(hand_rotation, dtype=float),

@@ -47,7 +47,8 @@ from ..model.hand import METACARPUS_SENSOR_ID, FingerGeometry, HandCalibration, 
     joint_to_phalanx_angles
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
-from ..model.openxr import JOINT_NAMES, joint_pose_arrays, joint_radii, joint_radii_list, joint_tracked_list
+from ..model.openxr import JOINT_NAMES, FingerAngles, angles_layout, joint_pose_arrays, joint_radii, joint_radii_list, \
+    joint_tracked_list
 from ..protocol import Calibration, Hello, ReferencePose, Truth
 from ..protocol.fast import IMU, IMU_BATCH, POSE
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
@@ -223,7 +224,7 @@ class HandFrame:
     t: float
     seq: int
     hand: str
-    joint_angles: dict[str, np.ndarray]        # φ per finger, rad
+    joint_angles: Mapping[str, np.ndarray]     # φ per finger, rad (the pipeline's: ``FingerAngles``, one array)
     modes: dict[str, str]
     hand_rotation: np.ndarray                   # metacarpus to world
     hand_position: np.ndarray
@@ -235,12 +236,20 @@ class HandFrame:
         """The protocol's ``frame`` (``protocol.outgoing.Frame``), without the gesture layer's object."""
         fingers: dict[str, FingerAnglesDict] = {}
         names_of = _joint_names(calib)
-        for f, phi in self.joint_angles.items():
-            # the finger's joint names (mcp, pip, dip; the thumb mcp, ip) are read from the calibration
-            names = names_of.get(f) or calib.finger(f).joint_names
-            angles = dict(zip(names, np.asarray(phi, dtype=float).tolist()))
-            angles["mode"] = self.modes[f]
-            fingers[f] = angles  # type: ignore[assignment]
+        modes = self.modes
+        if type(self.joint_angles) is FingerAngles:      # the pipeline's: one ``tolist`` for every finger
+            flat, layout = self.joint_angles.flat.tolist(), self.joint_angles.layout
+            for f, s in zip(layout.names, layout.slices):
+                angles = dict(zip(names_of.get(f) or calib.finger(f).joint_names, flat[s]))
+                angles["mode"] = modes[f]
+                fingers[f] = angles  # type: ignore[assignment]
+        else:
+            for f, phi in self.joint_angles.items():
+                # the finger's joint names (mcp, pip, dip; the thumb mcp, ip) are read from the calibration
+                names = names_of.get(f) or calib.finger(f).joint_names
+                angles = dict(zip(names, np.asarray(phi, dtype=float).tolist()))
+                angles["mode"] = modes[f]
+                fingers[f] = angles  # type: ignore[assignment]
         tracked = self.tracked
         if isinstance(self.joints, JointPoses):         # the pipeline's: two ``tolist`` calls for all 26
             positions, quats = self.joints.positions.tolist(), self.joints.quats.tolist()
@@ -890,12 +899,15 @@ class HandSession:
     def _frame(self, t: float) -> HandFrame:
         hand = self._hand_motion
         assert hand is not None
-        angles = {n: fs.phi.copy() for n, fs in self._fingers.items()}
-        modes = {n: fs.mode for n, fs in self._fingers.items()}
+        names, states = tuple(self._fingers), list(self._fingers.values())
+        phis = [fs.phi for fs in states]
+        # every finger's angles copied into one array, each finger's a view of it (``FingerAngles``)
+        flat = np.concatenate(phis, dtype=np.float64) if phis else np.zeros(0)
+        angles = FingerAngles(flat, angles_layout(names, tuple(map(len, phis))))
+        modes = dict(zip(names, [fs.mode for fs in states]))
         positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position)
         joints = JointPoses(positions, quats)
-        measured = tuple((n, bool(fs.active_sensors)) for n, fs in self._fingers.items())
-        tracked = _tracked_dict(self._tracking, measured)
+        tracked = _tracked_dict(self._tracking, tuple(zip(names, [bool(fs.active_sensors) for fs in states])))
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
                          joints, self.status(t), tracked)
