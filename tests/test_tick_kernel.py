@@ -10,10 +10,12 @@ import json
 import numpy as np
 import pytest
 
+from service.estimators.chain import ChainHand
 from service.model.units import DEG
 from service.pipeline.hand import HandSession
 from service.pipeline.tracked import TrackedHand
 from service.protocol import parse_message
+from service.sim.errors import OpticalModel
 from service.sim.session import SimConfig, simulate
 
 GYRO_RANGE_RAD_S = 2000.0 * DEG
@@ -81,6 +83,8 @@ def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
         return steady_tick(self, *a)
 
     monkeypatch.setattr(HandSession, "_steady_tick", fused_tick)
+    # the steady ticks one by one (a run of them in one call, ``_steady_run``, is the next test's)
+    monkeypatch.setattr(HandSession, "_steady_run", lambda self, t: None)
     fused = TrackedHand()
     a = [o for m in messages for o in fused.handle(m)]
     # the random stretch went through the one call, and most ticks before it
@@ -130,3 +134,82 @@ def test_the_steady_tick_cached_code_is_stale_once_a_kernel_it_calls_changes():
         assert cache_file._load_index() == {}
     finally:
         cache_file._source_stamp = stamp
+
+
+def _glove_stream(seed: int, t0: float, t1: float, missing: tuple, gone: float, lost: tuple):
+    """A short realistic recording at 1 kHz whose samples arrive in bursts, 20 ticks in one ``imu_batch``
+    (so a message releases the ticks of several poses at once, each run of them ended by a frame), with
+    random readings between ``t0`` and ``t1`` (a gyro axis at full scale now and then), one sensor's sample
+    left out at the ticks ``missing``, the tick ``gone`` left out whole (a step of two ticks) and the optics lost from ``lost[0]`` to ``lost[1]`` s (then back, their
+    window filling again)."""
+    rng = np.random.default_rng(seed)
+    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=0.8,
+                       rate_hz=1000.0, optical=OpticalModel(occlusions_s=(lost,)))
+    out, burst = [], []
+    for k, m in enumerate(simulate(config).messages(include_truth=False)):
+        if m["type"] != "imu":
+            out.append(parse_message(m))
+            continue
+        if (m["id"] == "index.2" and any(abs(m["t"] - u) < 1e-9 for u in missing)) or abs(m["t"] - gone) < 1e-9:
+            continue
+        if t0 <= m["t"] < t1:
+            gyr = rng.uniform(-6.0, 6.0, 3)
+            if k % 37 == 0:
+                gyr[k % 3] = GYRO_RANGE_RAD_S * np.sign(gyr[k % 3])
+            m = {**m, "gyr": gyr.tolist(), "acc": rng.uniform(-20.0, 20.0, 3).tolist()}
+        burst.append({key: m[key] for key in ("t", "id", "gyr", "acc")})
+        if len(burst) == 200:
+            out.append(parse_message({"type": "imu_batch", "samples": burst}))
+            burst = []
+    return out
+
+
+def test_the_steady_ticks_released_together_in_one_call_equal_them_tick_by_tick(monkeypatch):
+    missing = (0.345, 0.466)
+    # the optics lost from the pose at 0.5333 s on: the frame tick 0.523 (the last of its run) is the first
+    # tick this pose covers; their window full again 0.15 s after they are back
+    messages = _glove_stream(5, 0.3, 0.5, missing, 0.372, (0.525, 0.565))
+    runs = []
+    advance_run = ChainHand.advance_run
+
+    def counted(self, kernel, head, ts, estimators, rows):
+        out = advance_run(self, kernel, head, ts, estimators, rows)
+        runs.append((list(ts), None if out is None else out[0]))
+        return out
+
+    monkeypatch.setattr(ChainHand, "advance_run", counted)
+    fused = TrackedHand()
+    a = [o for m in messages for o in fused.handle(m)]
+    done = [u for ts, n in runs if n for u in ts[:n]]
+    # the ticks went through runs, most of nine and more (the random stretch among them), ...
+    assert len(done) > 500 and sum(n == len(ts) >= 9 for ts, n in runs) > 40
+    assert sum(0.3 <= u < 0.5 for u in done) > 150
+    # ... a run ended by the kernel where the optics were lost (the covering pose invalid) and where their
+    # window was full again (the tick it left is then processed tick by tick), and no tick missing a
+    # sample in one
+    cut = [ts[n] for ts, n in runs if n is not None and n < len(ts)]
+    assert any(0.52 < u < 0.53 for u in cut) and any(0.565 + 0.13 <= u < 0.565 + 0.17 for u in cut)
+    # a run steps over the tick left out whole (the fingers' and δ's steps twice as long there)
+    assert any(ts[0] < 0.372 < ts[n - 1] for ts, n in runs if n)
+    for u in missing:       # the run before the tick missing a sample ends there, and that tick is in none
+        assert any(abs(ts[-1] - (u - 0.001)) < 1e-9 and n == len(ts) >= 4 for ts, n in runs)
+        assert not any(abs(u - v) < 1e-9 for v in done)
+    session = fused._session
+    assert all(session._last_sample[s][:2] == (session._processed_t, session._tick_readings) for s in session._tick_ids)
+    # every tick by the calls one by one (the general path)
+    monkeypatch.setattr(HandSession, "_advanced_together_again", lambda self: False)
+    count = len(runs)
+    reference = TrackedHand()
+    b = [o for m in messages for o in reference.handle(m)]
+    assert len(runs) == count and len(a) > 60
+    _assert_same(a, b)
+    for u, v in zip(_state(fused) + _clocks(fused), _state(reference) + _clocks(reference)):
+        np.testing.assert_allclose(u, v, rtol=0, atol=1e-9)
+
+
+def _clocks(hand: TrackedHand) -> list:
+    session = hand._session
+    return [np.array([session._processed_t, session._tick_t, session._together._t_dl, session._optics_back_t]),
+            np.array([fs.estimator._t_last for fs in session._fingers.values()]),
+            session._hand_motion.flat, session._tick_readings, session._together._jp, session._together._log_n,
+            session._together._log_t[:session._together._log_n.max()]]

@@ -1045,6 +1045,40 @@ class ChainHand:
                      self._log_t, self._log_r, self._log_g, self._log_n, offsets)
         return (*self._end(t, estimators, phi), out)
 
+    def advance_run(self, kernel, head: tuple, ts: list, estimators: list[Chain], rows: int):
+        """``advance_in`` over the ticks ``ts`` (in order) in one call of ``kernel``
+        (``pipeline.tick_kernel.steady_run``) as ``kernel(*head, δ's step to ts[0], run_hand's arguments without
+        the hand, the angles and the time)``, which advances the estimators tick after tick and returns how
+        many ticks it did (it may leave the rest undone, with no state moved). The estimators must be
+        stacked already (their hand acceleration is not known here). Returns that count and, when it is not
+        0, the last tick's mode codes and the finger boundaries (as ``advance``); None, with no state moved,
+        when the estimators are not stacked or δ's clock steps back at ``ts[0]`` (the tick by tick path
+        restarts δ then). Refuses as ``advance_in`` does."""
+        if not self._stacked(estimators):
+            return None
+        offsets = self._cross_offsets()
+        if rows != self._gyr.shape[0] or (self.cross_offsets is not None and offsets is not self.cross_offsets):
+            shape = None if self.cross_offsets is None else np.shape(self.cross_offsets)
+            raise RuntimeError(f"the kernel would write {rows} sensors' rows: {self._gyr.shape[0]} are stacked "
+                               f"(cross_offsets {shape})")
+        t = ts[0]
+        dts = np.array([t - e._t_last for e in estimators])
+        gap = float(dts.max()) if self._t_dl is None else t - self._t_dl     # ``_delta_step``
+        if gap < 0.0:
+            return None
+        untracked = np.array([e._hand_untracked for e in estimators])
+        done = kernel(*head, gap, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st,
+                      self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start, self._theta,
+                      self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, self._log_t, self._log_r,
+                      self._log_g, self._log_n, offsets)
+        if not done:
+            return 0, None, None, None
+        last = ts[done - 1]
+        self._t_dl = last
+        for e in estimators:
+            e._t_last = last
+        return done, self._mode.tolist(), *self._starts
+
     def _stack_if_new(self, estimators: list[Chain], hand) -> None:
         """The estimators' states stacked here, unless they are already (``advance``'s first step)."""
         if not self._stacked(estimators):

@@ -202,6 +202,21 @@ def _warm_steady_tick(together, estimator, hand) -> None:
     together.cross_offsets = np.zeros((len(rows), 3))
     together.advance_in(steady_tick, (fits.state, fits._meta, rows, fits._st, raw, np.empty_like(raw), phi, started,
                                       rows, 2 * gather, 2 * gather + 1), 0.02, [estimator], hand, len(rows))
+    _warm_steady_run(together, estimator, fits, rows, raw, phi, started, gather)
+
+
+def _warm_steady_run(together, estimator, fits, rows, raw, phi, started, gather) -> None:
+    """The pipeline's run of steady ticks (``pipeline.tick_kernel.steady_run``) with the argument types the
+    pipeline passes (``HandSession._steady_run``), on a track without poses: compiled (or loaded), nothing
+    done (no tick is steady without the optics)."""
+    from ..pipeline.optical import OpticalTrack
+    from ..pipeline.tick_kernel import steady_run
+
+    ts = [0.025]
+    together.advance_run(steady_run, (np.array(ts), *OpticalTrack().kernel_args(), -np.inf, 0.15, False,
+                                      np.empty((1, 24)), np.empty((1, 18)), np.empty(1), fits.state, fits._meta, rows,
+                                      fits._st, raw[None], np.empty_like(raw[None]), np.tile(phi, (2, 1)), started,
+                                      rows, 2 * gather, 2 * gather + 1), ts, [estimator], len(rows))
 
 
 def is_warm(name: str) -> bool:

@@ -54,8 +54,8 @@ from ..protocol.fast import IMU, IMU_BATCH, POSE
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
 from .mounting import HandMountings
-from .optical import OpticalTrack
-from .tick_kernel import steady_tick
+from .optical import OpticalTrack, motion_of
+from .tick_kernel import steady_run, steady_tick
 
 DEAD_RECKONING_PRIOR = 1e-2
 """Weight of the pull of the hand's angular velocity toward zero in ``_dead_reckoned_hand`` (against 1
@@ -563,12 +563,87 @@ class HandSession:
                     t = min(pending)
                     if not self._ready(t):
                         break
-                    frames = self._process_tick(t, pending.pop(t))
+                    frames = self._steady_run(t)
+                    if frames is None:
+                        frames = self._process_tick(t, pending.pop(t))
                     if frames:
                         break
             if not frames:
                 return
             yield from frames
+
+    def _steady_run(self, t: float) -> list[HandFrame] | None:
+        """The ready ticks from ``t`` on, up to the one that emits the next frame or has a reference pose
+        due (included), advanced in one compiled call (``tick_kernel.steady_run``) while they are steady,
+        as ``_process_tick`` makes each: every finger advanced together at the tick before, every finger
+        sensor live and sampled (the same sensor ids in the same order tick after tick), no back-of-hand
+        IMU, the optics tracking since before ``t`` (the kernel checks them at each tick) and nothing for
+        the estimators to be told. The kernel's numbers are those of the tick by tick calls (the same
+        kernels in the same order on the same values); the bookkeeping between two of the ticks, which
+        only the last one's leaves behind, is done once. Returns the frames of the last tick done (then
+        the next tick, if the kernel stopped before it, is processed tick by tick), or None when ``t``
+        does not start such a run of two ticks or more (nothing done: one tick alone costs less tick by
+        tick, whose steady tick is one call too)."""
+        frame_t = self._next_frame_t
+        ref_t = self._references[0].t1 if self._references else math.inf
+        if frame_t is None or t + 1e-9 >= frame_t or t + 1e-9 >= ref_t:
+            return None
+        # the ticks of the run: ready, with the same sensors, until a frame or a reference pose is due
+        pending = self._pending
+        tick = pending[t]
+        ids = tuple(tick)
+        ts, ticks = [t], [tick]
+        for u in sorted(pending)[1:]:
+            nxt = pending[u]
+            if not self._ready(u) or tuple(nxt) != ids:
+                break
+            ts.append(u)
+            ticks.append(nxt)
+            if u + 1e-9 >= frame_t or u + 1e-9 >= ref_t:
+                break
+        if len(ts) < 2:
+            return None
+        fits, together = self._mount_fits, self._together_phi
+        if not (self._tracking and together is not None and fits and fits.compiled and self._advanced_together_again()):
+            return None
+        fingers = together[1]
+        if not (tick.keys() >= self._finger_sensor_ids and METACARPUS_SENSOR_ID not in tick
+                and all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)) or self._hand_imu.live(t):
+            return None
+        n, k = len(ts), len(ids)
+        raw = np.fromiter(chained.from_iterable(chained.from_iterable(tk.values() for tk in ticks)), float,
+                          6 * k * n).reshape(n, k, 2, 3)
+        self._tick_ids = ids
+        layout, off_rows = self._steady_layout(fits, fingers)
+        readings = np.empty_like(raw)           # the kernel writes them: the sensors' last samples only then
+        phis = np.empty((n + 1, together[0].shape[0]))
+        phis[0] = together[0]
+        motions, hands, totals = np.empty((n, 24)), np.empty((n, 18)), np.empty(n)
+        known = self._hand_known                # every tick's window full is this (the kernel checks it)
+        run = self._together.advance_run(
+            steady_run, (np.array(ts), *self.optics.kernel_args(), self._optics_back_t, self.settings.pose_window_s,
+                         known, motions, hands, totals, fits.state, fits._meta, fits.rows(ids), fits._st, raw,
+                         readings, phis, self._all_started(len(fingers)), off_rows, layout.rows_gyr, layout.rows_acc),
+            ts, [fs.estimator for fs in fingers], len(layout.sensors))
+        if run is None:
+            return None
+        done, modes, phalanx_start, sensor_start = run
+        if not done:
+            return self._process_tick(t, pending.pop(t))
+        for u in ts[:done]:
+            del pending[u]
+        last = ts[done - 1]
+        self._processed_t, self._tick_t = last, last
+        self._hand_motion = motion_of(motions[done - 1], hands[done - 1])
+        finite = math.isfinite(totals[done - 1])
+        self._take_together(fingers, layout, phis[done].copy(), modes, phalanx_start, sensor_start, finite)
+        self._take_samples(last, ids, readings[done - 1])
+        self._apply_references(last)
+        frames = self._emit_frames(last)
+        if done < n and finite:
+            # the kernel stopped before this tick: it is not steady
+            return frames + self._process_tick(ts[done], pending.pop(ts[done]))
+        return frames
 
     def _process_tick(self, t: float, tick: dict) -> list[HandFrame]:
         try:
@@ -802,17 +877,24 @@ class HandSession:
         ``_fit_mountings``, then ``_update_together`` of every finger, with their compiled calls made in
         one (``tick_kernel.steady_tick``): the same kernels in the same order on the same arrays."""
         phi_prev, fingers = self._together_phi
+        layout, off_rows = self._steady_layout(fits, fingers)
+        phi, modes, phalanx_start, sensor_start, total = self._together.advance_in(
+            steady_tick, (fits.state, fits._meta, rows, fits._st, raw, readings, phi_prev, self._all_started(len(fingers)),
+                          off_rows, layout.rows_gyr, layout.rows_acc), t, [fs.estimator for fs in fingers], hand,
+            len(layout.sensors))
+        self._take_together(fingers, layout, phi, modes, phalanx_start, sensor_start, math.isfinite(total))
+
+    def _steady_layout(self, fits: HandMountings, fingers: list[FingerState]) -> tuple["_TogetherLayout", np.ndarray]:
+        """The layout of a steady tick's fingers (``_together_layout``) and their sensors' rows in the fits
+        whose cross-axis offsets the kernel writes, into the array set as ``ChainHand.cross_offsets`` here
+        (no rows, and none set, unless the estimators take them off)."""
         layout = self._together_layout(fingers)
         chain = fingers[0].estimator.settings
         if chain.gyro_angle_cross_offsets:
             off_rows, self._together.cross_offsets = layout.offsets_of(fits, chain.gyro_angle_offset_error)
         else:
             off_rows, self._together.cross_offsets = _NO_ROWS, None
-        phi, modes, phalanx_start, sensor_start, total = self._together.advance_in(
-            steady_tick, (fits.state, fits._meta, rows, fits._st, raw, readings, phi_prev, self._all_started(len(fingers)),
-                          off_rows, layout.rows_gyr, layout.rows_acc), t, [fs.estimator for fs in fingers], hand,
-            len(layout.sensors))
-        self._take_together(fingers, layout, phi, modes, phalanx_start, sensor_start, math.isfinite(total))
+        return layout, off_rows
 
     def _take_together(self, fingers: list[FingerState], layout: "_TogetherLayout", phi: np.ndarray, modes: list,
                        phalanx_start: list, sensor_start: list, finite: bool) -> None:

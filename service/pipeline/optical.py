@@ -75,6 +75,18 @@ _FLAT = np.r_[0:9, 15:24]
 """Where ``BaseMotion.flat`` (rotation, acceleration, angular velocity and acceleration) lies in the
 kernel's output (rotation, position, velocity, acceleration, angular velocity and acceleration)."""
 
+def motion_of(out: np.ndarray, flat: np.ndarray) -> BaseMotion:
+    """The ``BaseMotion`` of ``optical_kernel.at``'s output ``out`` (24), its fields views of it, with
+    ``flat`` (18: ``out[_FLAT]``) as ``BaseMotion.flat``: the frozen dataclass's fields set as its
+    ``__init__`` would (one ``object.__setattr__`` call each there), and ``flat`` in one step (the kernels
+    read it)."""
+    motion = _new_motion(_BASE_MOTION)
+    motion.__dict__.update(rotation=out[:9].reshape(3, 3), position=out[9:12], velocity=out[12:15],
+                           acceleration=out[15:18], angular_velocity=out[18:21], angular_acceleration=out[21:24],
+                           flat=flat)
+    return motion
+
+
 class OpticalTrack:
     """Causal metacarpus kinematics from a live pose stream (the hand pipeline's view of the optics).
 
@@ -175,18 +187,16 @@ class OpticalTrack:
         """``(kinematics, tracking)``; ``None`` before the first valid pose. One compiled call
         (``optical_kernel.at``), equal to ``at_reference``."""
         out = np.empty(24)
-        status = optical_kernel.at(float(t), self._t, self._valid, self._position, self._orientation, self._lo, self._hi,
-                                   self._held_t, self._held_position, self._held_orientation, float(self.window_s),
-                                   float(self.timeout_s), out)
+        status = optical_kernel.at(float(t), *self.kernel_args(), out)
         if status == optical_kernel.NONE:
             return None, False
-        # the frozen dataclass's fields set as its ``__init__`` would (one ``object.__setattr__`` call each
-        # there), and ``BaseMotion.flat`` in one step (the kernels read it)
-        motion = _new_motion(_BASE_MOTION)
-        motion.__dict__.update(rotation=out[:9].reshape(3, 3), position=out[9:12], velocity=out[12:15],
-                               acceleration=out[15:18], angular_velocity=out[18:21], angular_acceleration=out[21:24],
-                               flat=out[_FLAT])
-        return motion, status == optical_kernel.TRACKING
+        return motion_of(out, out[_FLAT]), status == optical_kernel.TRACKING
+
+    def kernel_args(self) -> tuple:
+        """``optical_kernel.at``'s arguments between the time and the output: the stored poses (``at``; the
+        pipeline's run of steady ticks calls the kernel itself, ``tick_kernel.steady_run``)."""
+        return (self._t, self._valid, self._position, self._orientation, self._lo, self._hi, self._held_t,
+                self._held_position, self._held_orientation, float(self.window_s), float(self.timeout_s))
 
     def at_reference(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``at`` in numpy and scipy (the reference of the compiled kernel), for a track made with

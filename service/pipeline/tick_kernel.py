@@ -7,9 +7,18 @@ order, on the same arrays, so the numbers are the same: ``tests/test_tick_kernel
 against the calls one by one on a recording whose readings are random for a stretch (with full-scale gyro
 samples), messages and filter states to 1e-9; ``tests/test_pipeline.py``'s replay checks a faulty recording's
 messages through both paths bit for bit.
+
+``steady_run`` takes the ticks a message releases together (a pose releases the ~11 ticks before it at
+1 kHz) up to the one that emits the next frame in one call: for each, the optics at the tick
+(``optical_kernel.at``) and then ``steady_tick``, the pipeline's Python between two ticks done once for the
+run (``HandSession._steady_run``). It stops before the first tick that is not steady in a way only the
+optics tell (not tracking, non-finite, their window filling), and after one whose angles are not finite;
+``tests/test_tick_kernel.py`` checks it against the general path tick by tick on a 1 kHz recording with
+random readings, clipped gyro samples, missing samples and an optical loss.
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
 
@@ -18,6 +27,7 @@ from numba import njit
 from .. import JIT_CACHE
 from ..estimators import chain_kernel as CK
 from . import mounting_kernel as MK
+from . import optical_kernel as OK
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=False)
@@ -49,6 +59,66 @@ def steady_tick(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, 
     return total
 
 
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=False)
+def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p, held_q,
+               pose_window_s, pose_timeout_s, back_t, window_s, known, motions, hands, totals,
+               m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr, rows_acc, gap0,
+               x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start, phalanx_start, geo_start,
+               out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g, log_n, ga_off):
+    """The steady ticks ``ts`` (n,) released together, each as ``HandSession._process_tick`` makes a steady
+    one, in one call: the optics at the tick (``optical_kernel.at`` on the track's arrays, ``OpticalTrack.at``)
+    into ``motions[i]`` (24), then ``steady_tick`` with its ``BaseMotion.flat`` (``hands[i]``, 18), the tick's
+    raw readings ``raw[i]`` (k, 2, 3) corrected into ``readings[i]``, the angles of the tick before
+    ``phis[i]`` and its own written into ``phis[i + 1]``, the sum of its angles into ``totals[i]``.
+
+    A tick is steady here only while the optics track at it, their kinematics are finite (the sum
+    ``_finite_motion`` takes) and whether their window is full (``t - back_t >= window_s``) is ``known``
+    (nothing to tell the estimators; the still samples admitted as it says): the first tick that is not is left undone,
+    with no state moved, for the tick by tick path. ``dts`` holds the fingers' steps to the first tick and
+    ``gap0`` δ's (``ChainHand._begin``); after it every finger and δ step from the tick before. A tick whose
+    angles are not finite is the last one done (its fingers are reset then). Returns the number of ticks done."""
+    n = ts.shape[0]
+    for i in range(n):
+        t = ts[i]
+        out = motions[i]
+        if OK.at(t, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p, held_q,
+                 pose_window_s, pose_timeout_s, out) != OK.TRACKING:
+            return i
+        # ``_finite_motion``'s sum, in its order: BaseMotion.flat, then the position, then the velocity
+        s_flat = 0.0
+        for k in range(9):
+            s_flat += out[k]
+        for k in range(15, 24):
+            s_flat += out[k]
+        s_pos = out[9] + out[10] + out[11]
+        s_vel = out[12] + out[13] + out[14]
+        if not math.isfinite(s_flat + s_pos + s_vel):
+            return i
+        if (t - back_t >= window_s) != known:
+            return i
+        hand = hands[i]
+        for k in range(9):
+            hand[k] = out[k]
+        for k in range(9):
+            hand[9 + k] = out[15 + k]
+        if i == 0:
+            m_st[MK.ST_STILL_ON] = 1.0 if known else 0.0      # ``HandMountings.admit_still`` at every tick
+            jp[3] = gap0
+        else:
+            step = t - ts[i - 1]
+            for f in range(dts.shape[0]):
+                dts[f] = step
+            jp[3] = step
+        total = steady_tick(m_state, m_meta, m_idx, m_st, raw[i], readings[i], phis[i], started, off_idx, rows_gyr,
+                            rows_acc, x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start,
+                            phalanx_start, geo_start, out_theta, phis[i + 1], out_phal, out_mode, cx, dl, pd, jp, t,
+                            log_t, log_r, log_g, log_n, ga_off)
+        totals[i] = total
+        if not math.isfinite(total):
+            return i + 1
+    return n
+
+
 def _sources_stamp(*modules) -> tuple:
     """The modification time and size of each module's source file: what numba's on-disk cache checks, for
     its own file only, before it uses a kernel's cached code."""
@@ -66,3 +136,4 @@ def _cached_with_callees(kernel, *callees) -> None:
 
 
 _cached_with_callees(steady_tick, sys.modules[__name__], CK, MK)
+_cached_with_callees(steady_run, sys.modules[__name__], CK, MK, OK)
