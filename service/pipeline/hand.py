@@ -204,13 +204,16 @@ def _joint_names(calib: HandCalibration) -> dict[str, tuple[str, ...]]:
 
 
 def _joint_constants(calib: HandCalibration, tracked: dict[str, bool]) -> tuple:
-    """``(name, radius, tracked)`` of the 26 joints in ``JOINT_NAMES`` order, kept per calibration object and
+    """``(name, message)`` of the 26 joints in ``JOINT_NAMES`` order, ``message`` the joint's ``JointPoseDict``
+    with its radius and tracked flag and without its pose (``None`` in place of position and orientation: a
+    frame's message copies it and sets them, cheaper than a new dict of four), kept per calibration object and
     ``tracked`` dict (the pipeline's are shared per combination and never modified)."""
     key = (id(calib), id(tracked))
     hit = _kept_constants.get(key)
     if hit is not None and hit[0] is calib and hit[1] is tracked:
         return hit[2]
-    out = tuple(zip(JOINT_NAMES, joint_radii_list(calib), [tracked.get(n, True) for n in JOINT_NAMES]))
+    out = tuple((n, {"position": None, "orientation": None, "radius": r, "tracked": k}) for n, r, k in
+                zip(JOINT_NAMES, joint_radii_list(calib), [tracked.get(n, True) for n in JOINT_NAMES]))
     if len(_kept_constants) >= 64:
         _kept_constants.clear()
     _kept_constants[key] = (calib, tracked, out)
@@ -225,7 +228,7 @@ class HandFrame:
     seq: int
     hand: str
     joint_angles: Mapping[str, np.ndarray]     # φ per finger, rad (the pipeline's: ``FingerAngles``, one array)
-    modes: dict[str, str]
+    modes: dict[str, str]                       # (the pipeline's: shared by the frames that have them, never modified)
     hand_rotation: np.ndarray                   # metacarpus to world
     hand_position: np.ndarray
     joints: Mapping[str, tuple[np.ndarray, np.ndarray]]
@@ -252,10 +255,11 @@ class HandFrame:
                 fingers[f] = angles  # type: ignore[assignment]
         tracked = self.tracked
         if isinstance(self.joints, JointPoses):         # the pipeline's: two ``tolist`` calls for all 26
-            positions, quats = self.joints.positions.tolist(), self.joints.quats.tolist()
-            joints: dict[str, JointPoseDict] = {
-                n: {"position": p, "orientation": q, "radius": r, "tracked": k}
-                for (n, r, k), p, q in zip(_joint_constants(calib, tracked), positions, quats)}
+            joints: dict[str, JointPoseDict] = {}
+            for (n, kept), p, q in zip(_joint_constants(calib, tracked), self.joints.positions.tolist(),
+                                       self.joints.quats.tolist()):
+                joint = joints[n] = kept.copy()
+                joint["position"], joint["orientation"] = p, q
         else:
             radii = joint_radii(calib)
             joints = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
@@ -300,6 +304,7 @@ class HandSession:
         self._dropped: dict[str, int] | None = None      # this message's drops (``accept``), once there is one
         self._sensor_ids_of: HandCalibration | None = None
         self._sensor_ids: frozenset[str] = frozenset()
+        self._frame_fingers: tuple | None = None         # the fingers as ``_frame`` reads them, kept per ``_fingers``
         self._estimator = EstimatorSpec.of(self.settings.estimator, self.settings.estimator_params)
         self._build_fingers()
 
@@ -310,13 +315,14 @@ class HandSession:
     def _make_estimator(self, geom: FingerGeometry, theta0: np.ndarray | None, extra=()) -> FingerEstimator:
         return make_estimator(self._estimator, geom, initial_theta=theta0, extra_couplings=tuple(extra))
 
-    def _sensor_status(self, now: float) -> dict[str, SensorStatusDict]:
+    def _sensor_status(self, now: float, live: tuple | None = None) -> dict[str, SensorStatusDict]:
         """Every calibrated sensor's age and silence at source time ``now``. At a tick that sampled every
         one of them (all ages 0) the answer depends only on which sensors are live: one dict per set of
-        live sensors is kept and shared by the frames that have it (never modified)."""
+        live sensors is kept and shared by the frames that have it (never modified). ``live``: every
+        finger's live sensors (``FingerState.active_sensors``), if the caller has them at hand."""
         complete = now == self._processed_t and self._tick_ids is not None
         if complete:
-            key = (self._tick_ids, *[fs.active_sensors for fs in self._fingers.values()])
+            key = (self._tick_ids, *(live if live is not None else [fs.active_sensors for fs in self._fingers.values()]))
             cached = self._sensor_status_kept.get(key)
             if cached is not None:
                 return cached
@@ -981,26 +987,39 @@ class HandSession:
     def _frame(self, t: float) -> HandFrame:
         hand = self._hand_motion
         assert hand is not None
-        names, states = tuple(self._fingers), list(self._fingers.values())
-        phis = [fs.phi for fs in states]
-        # every finger's angles copied into one array, each finger's a view of it (``FingerAngles``)
+        fingers = self._frame_fingers
+        if fingers is None or fingers[0] is not self._fingers:
+            fingers = self._frame_fingers = (self._fingers, tuple(self._fingers), list(self._fingers.values()), {})
+        _, names, states, kept = fingers
+        phis, modes, live = zip(*[(fs.phi, fs.mode, fs.active_sensors) for fs in states]) if states else ((), (), ())
+        # every finger's angles copied into one array (``FingerAngles``: a finger's are a view of it)
         flat = np.concatenate(phis, dtype=np.float64) if phis else np.zeros(0)
-        angles = FingerAngles(flat, angles_layout(names, tuple(map(len, phis))))
-        modes = dict(zip(names, [fs.mode for fs in states]))
+        # what depends only on the fingers' modes, live sensors and angle counts and on the optics: one of each
+        # per combination (a hand has few), shared by the frames that have it (never modified)
+        key = (self._tracking, modes, live, tuple(map(len, phis)))
+        constants = kept.get(key)
+        if constants is None:
+            if len(kept) > 64:
+                kept.clear()
+            constants = kept[key] = (angles_layout(names, key[3]), dict(zip(names, modes)),
+                                     _tracked_dict(self._tracking, tuple(zip(names, map(bool, live)))))
+        layout, modes_of, tracked = constants
+        angles = FingerAngles(flat, layout)
         positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position)
-        joints = JointPoses(positions, quats)
-        tracked = _tracked_dict(self._tracking, tuple(zip(names, [bool(fs.active_sensors) for fs in states])))
         self._seq += 1
-        return HandFrame(t, self._seq, self.hand, angles, modes, hand.rotation.copy(), hand.position.copy(),
-                         joints, self.status(t), tracked)
+        return HandFrame(t, self._seq, self.hand, angles, modes_of, hand.rotation.copy(), hand.position.copy(),
+                         JointPoses(positions, quats), self._status(t, live), tracked)
 
     def status(self, t: float | None = None) -> FrameStatusDict:
         """The frame's ``status`` (``protocol.outgoing.FrameStatus``) at source time ``t``."""
-        now = t if t is not None else (self._processed_t or 0.0)
+        return self._status(t if t is not None else (self._processed_t or 0.0))
+
+    def _status(self, now: float, live: tuple | None = None) -> FrameStatusDict:
+        """``status`` at source time ``now``; ``live``: every finger's live sensors, if known."""
         return {
             "optics": "tracking" if self._tracking else ("occluded" if self.optics.latest_t is not None else "waiting"),
             "estimator": self.estimator_name,
-            "sensors": self._sensor_status(now),
+            "sensors": self._sensor_status(now, live),
             "dropped": {"duplicate": self.counters.duplicate, "late": self.counters.late,
                         "overflow": self.counters.overflow, "unknown_sensor": self.counters.unknown_sensor},
             "clock_steps": self.counters.clock_steps,
