@@ -7,8 +7,9 @@ received, the latency is the time since the glove sent the message that complete
 (``completing_sends``: the first after which the reorder window has passed and a pose covers the
 tick) to the moment the frame's last bytes are read from the subscriber's socket, on the machine's
 monotonic clock: transport both ways plus the service's processing. (Until the subscriber's own decoding
-is done, this benchmark's figure before, is reported beside it: the Python client's checks of a frame
-take 0.5-0.8 ms, the subscriber's work, not the service's. The time
+is done, this benchmark's figure before, is reported beside it: the Python client's decoding of a frame,
+the subscriber's work, not the service's, took 0.5-0.8 ms with the standard library's ``json`` and a
+walk of the value, and is read by ``msgspec`` now, about eight times fewer instructions. The time
 since the glove's latest send, this benchmark's earlier figure, is reported beside it: at high IMU
 rates a later message has often been sent by the time a frame arrives, which makes that figure too
 small.) The service's own ingest-to-send histogram (``/metrics``) is reported too. The pipeline's
@@ -80,13 +81,14 @@ def _timed_connection():
 
 def _subscriber(url: str, viewer: str, ready, stop, conn, parent: int) -> None:
     """The subscriber, in its own process (so the glove's sends never delay its reads): every frame's
-    ``(arrival time, decoded time, frame t)`` on the machine's monotonic clock (``time.perf_counter``):
-    when the frame's last bytes were read from the socket, and when the Python client's decoding
-    (``clients.client``: JSON, then a walk of the value that refuses non-finite numbers and deep nesting,
-    0.5-0.8 ms per frame) had it ready; sent back through ``conn`` once ``stop`` is set, with its own
-    garbage collections' pauses. Its heap is frozen once it is connected (a full collection of its
-    modules took 0.3 s on a busy machine, and would be counted as the service's latency); the collections
-    left are reported. It ends with the benchmark's process (``parent``), however that ends."""
+    ``(arrival time, decoded time, frame t, decoding's duration)`` on the machine's monotonic clock
+    (``time.perf_counter``): when the frame's last bytes were read from the socket, when the Python
+    client's decoding (``clients.client``, ``protocol.decode``: ``msgspec``, which refuses non-finite
+    numbers and deep nesting as it reads) had it ready, and how long that decoding took; sent back
+    through ``conn`` once ``stop`` is set, with its own garbage collections' pauses. Its heap is frozen
+    once it is connected (a full collection of its modules took 0.3 s on a busy machine, and would be
+    counted as the service's latency); the collections left are reported. It ends with the benchmark's
+    process (``parent``), however that ends."""
     import gc
 
     end_with_parent(parent)
@@ -95,7 +97,7 @@ def _subscriber(url: str, viewer: str, ready, stop, conn, parent: int) -> None:
 
     from clients.client import _decode, _path, _url
 
-    received: list[tuple[float, float, float]] = []
+    received: list[tuple[float, float, float, float]] = []
     pauses: list[tuple[int, float]] = []
 
     async def main():
@@ -107,9 +109,11 @@ def _subscriber(url: str, viewer: str, ready, stop, conn, parent: int) -> None:
             async def collect():
                 async for data in ws:
                     arrived = ws.arrivals.popleft()
+                    start = time.perf_counter()
                     msg = _decode(data)
                     if msg["type"] == "frame":
-                        received.append((arrived, time.perf_counter(), msg["t"]))
+                        decoded = time.perf_counter()
+                        received.append((arrived, decoded, msg["t"], decoded - start))
 
             task = asyncio.create_task(collect())
             gc.freeze()
@@ -207,9 +211,9 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
     # the service's CPU while it streamed (its web process, and its hand workers), in % of one core
     service_cpu = {name: (None if a is None or b is None else 100 * (b - a) / wall)
                    for name, a, b in (("web_process_pct", cpu0[0], cpu1[0]), ("hand_workers_pct", cpu0[1], cpu1[1]))}
-    frame_ts = np.array([t for _, _, t in received])
-    recv_wall = np.array([w for w, _, _ in received])
-    decoded_wall = np.array([w for _, w, _ in received])
+    frame_ts = np.array([r[2] for r in received])
+    recv_wall = np.array([r[0] for r in received])
+    decoded_wall = np.array([r[1] for r in received])
     done = completing_sends(sends, frame_ts, PipelineSettings().reorder_window_s) if len(received) else np.zeros(0, int)
     matched = done >= 0
     send_wall = np.array([w for w, _, _ in sends])
@@ -227,6 +231,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
         "client_latency_ms": _quantiles(exact),
         "client_latency_decoded_ms": _quantiles(decoded),
         "since_latest_send_ms": _quantiles(since_latest),
+        "subscriber_decode_ms": _quantiles(np.array([r[3] for r in received]) * 1e3),
         "service_ingest_to_send_ms_bucket_upper_bound": {
             q: (None if (v := _histogram_quantile(metrics_text, p)) is None else 1e3 * v)
             for q, p in (("p50", 0.5), ("p99", 0.99))},
@@ -249,6 +254,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, imu_rate_hz: float = 200.0, 
             + row("glove sends the message that completes a frame -> the frame's last bytes read by the subscriber", c)
             + row("the same -> the Python client has decoded the frame (this benchmark's figure before)", d)
             + row("glove's latest send -> subscriber receives a frame", o)
+            + row("the Python client's decoding of a frame (`_decode`, in the subscriber)", result["subscriber_decode_ms"])
             + f"\nService histogram (ingest -> send, bucket upper bounds): p50 <= {s['p50']} ms, p99 <= {s['p99']} ms; "
             f"{len(received)} frames, {int(matched.sum())} with their completing message found. Service CPU while "
             f"streaming (incl. start-up of the subscriber): web process "
