@@ -53,7 +53,7 @@ async def stream_glove(url: str, session: str, token: str, config: SimConfig, sp
     stream's clock starts, not while it streams); ``binary``: MessagePack instead of JSON; ``stop``: an
     event (``threading.Event``) that ends the stream early once set."""
     msgs = messages if messages is not None else await asyncio.to_thread(source_messages, config)   # off the loop
-    data = encoded if encoded is not None else encoded_messages(msgs, binary)
+    data = encoded if encoded is not None else await asyncio.to_thread(encoded_messages, msgs, binary)   # off the loop too
     if len(data) != len(msgs):
         raise ValueError(f"{len(data)} encoded messages for {len(msgs)} messages")
     pub = Publisher(url, session, token, hand=config.hand, source=f"fingertrack-glove {config.motion}", binary=binary)

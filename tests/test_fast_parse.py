@@ -222,6 +222,8 @@ DECODE_HOSTILE = [
     '["a\tb"]', '["\x7f"]', '{"detail":"\\"quoted\\" \\\\ [[[{{"}', '{"k\\"ey":"\\\\"}',
     # keys: a duplicate keeps its first place and its last value
     '{"a":1,"b":2,"a":3}', '{"type":"frame","type":"gesture"}',
+    # a type that is no string (no message's: the value, or the standard path's error where msgspec refuses)
+    '{"type":[]}', '{"type":{"a":1}}', '{"type":[],"x":"\\ud800"}', '{"type":{},"t":NaN}',
     # text that is not one JSON value
     "", " ", "[1,2,]", "[1]x", "1 2", "tru", "01", "{1:2}", '\ufeff{"a":1}',
     # nesting: at the limit, one beyond it at the root, in a frame's field (refused with the path) and
@@ -290,7 +292,24 @@ def test_fast_decode_reads_the_services_own_messages_and_gives_the_standard_valu
                 {"type": "error", "code": "invalid_json", "detail": 'not valid JSON: "x" \\ [['},
                 {"type": "hello", "protocol": 1, "session": "s", "server": "fingertrack"}, {"type": "sync", "id": 7}]
     assert {m["type"] for m in outputs} >= {"frame", "gesture"} and len(outputs) > 30
+    from unittest import mock
+
+    from service.protocol import wire
+
+    def never(*_args, **_kwargs):
+        raise AssertionError("the standard path read one of the service's own messages")
     for message in outputs:
         for binary in (False, True):
-            fast, standard, fast_read = _both_ways(encode(message, binary), binary)
+            data = encode(message, binary)
+            fast, standard, fast_read = _both_ways(data, binary)
             assert fast == standard and fast_read
+            with mock.patch.object(wire.json, "loads", never), mock.patch.object(wire.msgpack, "unpackb", never):
+                assert repr(decode(data, binary)) == fast[1]          # decode itself takes the fast path
+
+
+def test_a_type_that_is_no_string_is_an_unknown_type_not_a_crash():
+    for text in ('{"type":[]}', '{"type":{"a":1}}', '{"type":[],"x":"\\ud800"}'):
+        for data in (text, text.encode("utf-8", "surrogatepass")):
+            with pytest.raises(ProtocolError) as err:
+                parse_input(data)
+            assert err.value.code == "unknown_type"

@@ -283,7 +283,8 @@ nobody checks) takes the standard path."""
 
 
 def fast_fields_only(raw: dict) -> bool:
-    keys = FAST_KEYS.get(raw.get("type"))
+    kind = raw.get("type")
+    keys = FAST_KEYS.get(kind) if type(kind) is str else None     # a list or an object is no key (nor a sample)
     if keys is None or not raw.keys() <= keys:
         return False
     samples = raw.get("samples")
