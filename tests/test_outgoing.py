@@ -177,3 +177,64 @@ def test_ready_made_frames_are_written_only_to_an_open_connection_without_extens
     closing.transport.closing = True
     for p in [*refused, closing]:
         assert not p.write_frames(b"\x81\x01x") and not p.transport.written
+
+
+def test_ready_made_frames_wait_for_room_and_go_only_to_a_connected_socket():
+    """``send_outputs`` waits while the connection's buffers are full (``writable`` clear) before it writes,
+    as the ASGI send does, and is watched meanwhile (``sending``, which ``drop_stuck`` reads); a socket no
+    longer connected gets its outputs through ASGI's send (which raises as it would), never as a write."""
+    from types import SimpleNamespace
+
+    from starlette.websockets import WebSocketState
+
+    from service.api.routes import socket
+
+    class Wire:
+        def __init__(self):
+            self.writable, self.written = asyncio.Event(), []
+
+        def write_frames(self, data):
+            self.written.append(data)
+            return True
+
+    class Connection:                        # hashable, as a WebSocket is (``sending``'s key)
+        def __init__(self, state):
+            self.state, self.application_state = SimpleNamespace(wire=Wire(), binary=False), state
+            self.app = SimpleNamespace(state=SimpleNamespace(sessions=SimpleNamespace(sending={})))
+
+    def connection(state=WebSocketState.CONNECTED):
+        return Connection(state)
+
+    messages = [outgoing.Outgoing({"type": "gesture", "t": float(k), "gesture": "point"}) for k in range(3)]
+
+    async def full_then_drained():
+        ws = connection()
+        task = asyncio.create_task(socket.send_outputs(ws, messages))
+        for _ in range(20):                  # turns of the loop: the task runs until it waits
+            await asyncio.sleep(0)
+        waited = (not task.done(), ws.state.wire.written[:], ws in ws.app.state.sessions.sending)
+        ws.state.wire.writable.set()
+        await task
+        return waited, ws.state.wire.written, ws.app.state.sessions.sending
+
+    (pending, written_while_full, watched), written, sending = asyncio.run(full_then_drained())
+    assert pending and written_while_full == [] and watched
+    assert written == [b"".join(m.wire(False) for m in messages)] and sending == {}
+
+    sent = []
+
+    async def asgi_send(ws, message):
+        sent.append(message)
+
+    async def gone():
+        ws = connection(WebSocketState.DISCONNECTED)
+        ws.state.wire.writable.set()
+        original = socket.send
+        socket.send = asgi_send
+        try:
+            await socket.send_outputs(ws, messages)
+        finally:
+            socket.send = original
+        return ws.state.wire.written
+
+    assert asyncio.run(gone()) == [] and sent == messages
