@@ -14,7 +14,7 @@ from service.estimators.chain import ChainHand
 from service.model.units import DEG
 from service.pipeline.hand import HandSession
 from service.pipeline.tracked import TrackedHand
-from service.protocol import parse_message
+from service.protocol import encode, parse_message
 from service.sim.errors import OpticalModel
 from service.sim.session import SimConfig, simulate
 
@@ -136,20 +136,28 @@ def test_the_steady_tick_cached_code_is_stale_once_a_kernel_it_calls_changes():
         cache_file._source_stamp = stamp
 
 
-def _glove_stream(seed: int, t0: float, t1: float, missing: tuple, gone: float, lost: tuple):
+def _glove_stream(seed: int, t0: float, t1: float, missing: tuple, gone: float, lost: tuple, duration_s: float = 0.8,
+                  metacarpus_every: int = 0, reference: tuple | None = None):
     """A short realistic recording at 1 kHz whose samples arrive in bursts, 20 ticks in one ``imu_batch``
     (so a message releases the ticks of several poses at once, each run of them ended by a frame), with
     random readings between ``t0`` and ``t1`` (a gyro axis at full scale now and then), one sensor's sample
     left out at the ticks ``missing``, the tick ``gone`` left out whole (a step of two ticks) and the optics lost from ``lost[0]`` to ``lost[1]`` s (then back, their
-    window filling again)."""
+    window filling again). ``metacarpus_every``: a back-of-hand IMU, every so many of its samples kept;
+    ``reference``: a reference pose held from ``reference[0]`` to ``reference[1]`` s, sent at the start."""
     rng = np.random.default_rng(seed)
-    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=0.8,
-                       rate_hz=1000.0, optical=OpticalModel(occlusions_s=(lost,)))
-    out, burst = [], []
+    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=duration_s,
+                       rate_hz=1000.0, optical=OpticalModel(occlusions_s=(lost,)), metacarpus_imu=metacarpus_every > 0)
+    out, burst, back_of_hand = [], [], 0
     for k, m in enumerate(simulate(config).messages(include_truth=False)):
         if m["type"] != "imu":
             out.append(parse_message(m))
+            if reference is not None and m["type"] == "calibration":
+                out.append(parse_message({"type": "reference_pose", "t0": reference[0], "t1": reference[1], "pose": "flat"}))
             continue
+        if m["id"] == "metacarpus":
+            back_of_hand += 1
+            if back_of_hand % metacarpus_every:
+                continue
         if (m["id"] == "index.2" and any(abs(m["t"] - u) < 1e-9 for u in missing)) or abs(m["t"] - gone) < 1e-9:
             continue
         if t0 <= m["t"] < t1:
@@ -202,9 +210,39 @@ def test_the_steady_ticks_released_together_in_one_call_equal_them_tick_by_tick(
     reference = TrackedHand()
     b = [o for m in messages for o in reference.handle(m)]
     assert len(runs) == count and len(a) > 60
-    _assert_same(a, b)
+    # the same kernels on the same values: the same bits
+    assert [encode(m, False) for m in a] == [encode(m, False) for m in b]
     for u, v in zip(_state(fused) + _clocks(fused), _state(reference) + _clocks(reference)):
-        np.testing.assert_allclose(u, v, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(u, v)
+
+
+@pytest.mark.parametrize("case", ["reference pose", "back-of-hand IMU"])
+def test_a_run_ends_where_a_reference_pose_is_due_and_none_runs_while_the_back_of_hand_imu_is_live(case, monkeypatch):
+    """A reference pose due in the middle of a run's ticks ends it there (its tick applies it, as tick by
+    tick), and a back-of-hand IMU that is live keeps the ticks out of runs (its sample aids the hand's motion
+    at every tick): the same messages, bit for bit, as with no run at all."""
+    if case == "reference pose":
+        messages = _glove_stream(9, 0.0, 0.0, (), -1.0, (0.9, 0.95), duration_s=0.5, reference=(0.40, 0.4285))
+    else:
+        messages = _glove_stream(6, 0.0, 0.0, (), -1.0, (0.9, 0.95), duration_s=0.5, metacarpus_every=25)
+    runs = []
+    advance_run = ChainHand.advance_run
+
+    def counted(self, kernel, head, ts, estimators, rows):
+        out = advance_run(self, kernel, head, ts, estimators, rows)
+        runs.append((list(ts), None if out is None else out[0]))
+        return out
+
+    monkeypatch.setattr(ChainHand, "advance_run", counted)
+    fused = TrackedHand()
+    a = [encode(o, False) for m in messages for o in fused.handle(m)]
+    assert sum(1 for _, n in runs if n) >= (20 if case == "reference pose" else 2)    # (before the IMU was live)
+    if case == "reference pose":
+        assert fused._session.counters.references_applied == 1
+        assert any(abs(ts[-1] - 0.429) < 1e-9 and n == len(ts) for ts, n in runs)     # a run ended at the tick it is due
+    monkeypatch.setattr(HandSession, "_steady_run", lambda self, t: None)
+    reference = TrackedHand()
+    assert a == [encode(o, False) for m in messages for o in reference.handle(m)]
 
 
 def _clocks(hand: TrackedHand) -> list:

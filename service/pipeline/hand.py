@@ -594,9 +594,17 @@ class HandSession:
         ref_t = self._references[0].t1 if self._references else math.inf
         if frame_t is None or t + 1e-9 >= frame_t or t + 1e-9 >= ref_t:
             return None
-        # the ticks of the run: ready, with the same sensors, until a frame or a reference pose is due
+        # the checks that need no other tick first (an occlusion, a back-of-hand IMU: every tick refused)
+        fits, together = self._mount_fits, self._together_phi
+        if not (self._tracking and together is not None and fits and fits.compiled and self._advanced_together_again()):
+            return None
+        fingers = together[1]
         pending = self._pending
         tick = pending[t]
+        if not (tick.keys() >= self._finger_sensor_ids and METACARPUS_SENSOR_ID not in tick
+                and all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)) or self._hand_imu.live(t):
+            return None
+        # the ticks of the run: ready, with the same sensors, until a frame or a reference pose is due
         ids = tuple(tick)
         ts, ticks = [t], [tick]
         for u in sorted(pending)[1:]:
@@ -608,13 +616,6 @@ class HandSession:
             if u + 1e-9 >= frame_t or u + 1e-9 >= ref_t:
                 break
         if len(ts) < 2:
-            return None
-        fits, together = self._mount_fits, self._together_phi
-        if not (self._tracking and together is not None and fits and fits.compiled and self._advanced_together_again()):
-            return None
-        fingers = together[1]
-        if not (tick.keys() >= self._finger_sensor_ids and METACARPUS_SENSOR_ID not in tick
-                and all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)) or self._hand_imu.live(t):
             return None
         n, k = len(ts), len(ids)
         raw = np.fromiter(chained.from_iterable(chained.from_iterable(tk.values() for tk in ticks)), float,
