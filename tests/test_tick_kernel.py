@@ -172,11 +172,8 @@ def _glove_stream(seed: int, t0: float, t1: float, missing: tuple, gone: float, 
     return out
 
 
-def test_the_steady_ticks_released_together_in_one_call_equal_them_tick_by_tick(monkeypatch):
-    missing = (0.345, 0.466)
-    # the optics lost from the pose at 0.5333 s on: the frame tick 0.523 (the last of its run) is the first
-    # tick this pose covers; their window full again 0.15 s after they are back
-    messages = _glove_stream(5, 0.3, 0.5, missing, 0.372, (0.525, 0.565))
+def _counted_runs(monkeypatch) -> list:
+    """Every ``ChainHand.advance_run`` from now on, as its ticks and how many the kernel did (None: no run)."""
     runs = []
     advance_run = ChainHand.advance_run
 
@@ -186,6 +183,15 @@ def test_the_steady_ticks_released_together_in_one_call_equal_them_tick_by_tick(
         return out
 
     monkeypatch.setattr(ChainHand, "advance_run", counted)
+    return runs
+
+
+def test_the_steady_ticks_released_together_in_one_call_equal_them_tick_by_tick(monkeypatch):
+    missing = (0.345, 0.466)
+    # the optics lost from the pose at 0.5333 s on: the frame tick 0.523 (the last of its run) is the first
+    # tick this pose covers; their window full again 0.15 s after they are back
+    messages = _glove_stream(5, 0.3, 0.5, missing, 0.372, (0.525, 0.565))
+    runs = _counted_runs(monkeypatch)
     fused = TrackedHand()
     a = [o for m in messages for o in fused.handle(m)]
     done = [u for ts, n in runs if n for u in ts[:n]]
@@ -225,15 +231,7 @@ def test_a_run_ends_where_a_reference_pose_is_due_and_none_runs_while_the_back_o
         messages = _glove_stream(9, 0.0, 0.0, (), -1.0, (0.9, 0.95), duration_s=0.5, reference=(0.40, 0.4285))
     else:
         messages = _glove_stream(6, 0.0, 0.0, (), -1.0, (0.9, 0.95), duration_s=0.5, metacarpus_every=25)
-    runs = []
-    advance_run = ChainHand.advance_run
-
-    def counted(self, kernel, head, ts, estimators, rows):
-        out = advance_run(self, kernel, head, ts, estimators, rows)
-        runs.append((list(ts), None if out is None else out[0]))
-        return out
-
-    monkeypatch.setattr(ChainHand, "advance_run", counted)
+    runs = _counted_runs(monkeypatch)
     fused = TrackedHand()
     a = [encode(o, False) for m in messages for o in fused.handle(m)]
     assert sum(1 for _, n in runs if n) >= (20 if case == "reference pose" else 2)    # (before the IMU was live)
