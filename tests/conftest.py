@@ -156,9 +156,23 @@ def _capture_service_messages():
             _SENT.append(bytes(data))
         await send_bytes(self, data)
 
+    # ready-made frames written past Starlette (``DrainingWebSocket.write_frames``): each frame's payload
+    from sent_capture.ws_frames import payloads
+    from service.api.server import DrainingWebSocket
+    write_frames = DrainingWebSocket.write_frames
+
+    def written(self, data):
+        done = write_frames(self, data)
+        if done:
+            with _SENT_LOCK:
+                _SENT.extend(payloads(data))
+        return done
+
     WebSocket.send_text, WebSocket.send_bytes = text, binary
+    DrainingWebSocket.write_frames = written
     yield ServiceMessageCheck()
     WebSocket.send_text, WebSocket.send_bytes = send_text, send_bytes
+    DrainingWebSocket.write_frames = write_frames
 
 
 @pytest.fixture(scope="session")

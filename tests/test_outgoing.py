@@ -168,15 +168,16 @@ def test_ready_made_frames_are_written_only_to_an_open_connection_without_extens
             setattr(target, name, value)
         return p
 
+    frame = outgoing.ws_frame(b'{"type":"sync","id":1}', False)     # (recorded as sent: a service message)
     ok = protocol()
-    assert ok.write_frames(b"\x81\x01x") and ok.transport.written == [b"\x81\x01x"]
+    assert ok.write_frames(frame) and ok.transport.written == [frame]
     refused = [protocol(disconnected=True), protocol(close_sent=True), protocol(handshake_complete=False),
                protocol(initial_response=(403, [], b"")), protocol(_draining=True), protocol(state=State.CLOSING),
                protocol(extensions=[PerMessageDeflate(False, False, 12, 12)]), protocol(expect_continuation_frame=True)]
     closing = protocol()
     closing.transport.closing = True
     for p in [*refused, closing]:
-        assert not p.write_frames(b"\x81\x01x") and not p.transport.written
+        assert not p.write_frames(frame) and not p.transport.written
 
 
 def test_ready_made_frames_wait_for_room_and_go_only_to_a_connected_socket():

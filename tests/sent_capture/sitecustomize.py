@@ -7,9 +7,12 @@ appended to ``<dir>/<pid>.sent`` (one ``os.write`` per record on an ``O_APPEND``
 waits in a buffer when the process is killed), and the suite validates the records against the
 published schema after each test, as it validates the messages of in-process services.
 
+Ready-made frames written past Starlette (``service.api.server.DrainingWebSocket.write_frames``) are
+recorded too, each frame's payload as one record.
+
 Record: one byte ``T`` (text) or ``B`` (binary), the payload's length as 4 bytes big-endian, the
-payload (UTF-8 text or the MessagePack bytes). Starlette is patched when it is first imported, so
-processes that never import it (hand workers, tools) are not touched."""
+payload (UTF-8 text or the MessagePack bytes). Starlette and the server module are patched when they are
+first imported, so processes that never import them (hand workers, tools) are not touched."""
 import importlib.abc
 import os
 import struct
@@ -19,19 +22,20 @@ _DIR = os.environ.get("FINGERTRACK_TEST_SENT_DIR")
 _MODULE = "starlette.websockets"
 
 
+def _record(kind: bytes, payload: bytes) -> None:
+    fd = os.open(os.path.join(_DIR, f"{os.getpid()}.sent"), os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
+    try:
+        os.write(fd, kind + struct.pack(">I", len(payload)) + payload)
+    finally:
+        os.close(fd)
+
+
 def _patch(module) -> None:
     ws_class = module.WebSocket
     if getattr(ws_class, "_sent_capture", False):
         return
-    path = os.path.join(_DIR, f"{os.getpid()}.sent")
     send_text, send_bytes = ws_class.send_text, ws_class.send_bytes
-
-    def record(kind: bytes, payload: bytes) -> None:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o600)
-        try:
-            os.write(fd, kind + struct.pack(">I", len(payload)) + payload)
-        finally:
-            os.close(fd)
+    record = _record
 
     async def text(self, data):
         record(b"T", data.encode("utf-8"))
@@ -45,11 +49,30 @@ def _patch(module) -> None:
     ws_class._sent_capture = True
 
 
+def _patch_wire(module) -> None:
+    from ws_frames import payloads
+
+    protocol = module.DrainingWebSocket
+    write_frames = protocol.write_frames
+
+    def written(self, data):
+        done = write_frames(self, data)
+        if done:
+            for payload in payloads(data):
+                _record(b"T", payload.encode("utf-8")) if isinstance(payload, str) else _record(b"B", payload)
+        return done
+    protocol.write_frames = written
+
+
+_PATCHES = {_MODULE: _patch, "service.api.server": _patch_wire}
+
+
 class _PatchOnImport(importlib.abc.MetaPathFinder):
-    """Finds nothing itself: wraps the loader of ``starlette.websockets`` to patch it once loaded."""
+    """Finds nothing itself: wraps the loader of each module in ``_PATCHES`` to patch it once loaded."""
 
     def find_spec(self, fullname, path, target=None):
-        if fullname != _MODULE:
+        patch = _PATCHES.get(fullname)
+        if patch is None:
             return None
         sys.meta_path.remove(self)
         try:
@@ -63,7 +86,7 @@ class _PatchOnImport(importlib.abc.MetaPathFinder):
 
         def exec_and_patch(module):
             exec_module(module)
-            _patch(module)
+            patch(module)
         spec.loader.exec_module = exec_and_patch
         return spec
 
