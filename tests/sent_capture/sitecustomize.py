@@ -50,7 +50,14 @@ def _patch(module) -> None:
 
 
 def _patch_wire(module) -> None:
-    from ws_frames import payloads
+    # ws_frames beside this file, loaded by its path: a process may have dropped this folder from sys.path
+    # by the time the server module is imported (pytest-xdist's workers do)
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("_sent_capture_ws_frames",
+                                                  os.path.join(os.path.dirname(os.path.abspath(__file__)), "ws_frames.py"))
+    frames = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(frames)
+    payloads = frames.payloads
 
     protocol = module.DrainingWebSocket
     write_frames = protocol.write_frames
