@@ -19,6 +19,7 @@ import struct
 import sys
 
 _DIR = os.environ.get("FINGERTRACK_TEST_SENT_DIR")
+_HERE = os.path.dirname(os.path.abspath(__file__))     # now: a test may change the working directory later
 _MODULE = "starlette.websockets"
 
 
@@ -50,11 +51,10 @@ def _patch(module) -> None:
 
 
 def _patch_wire(module) -> None:
-    # ws_frames beside this file, loaded by its path: a process may have dropped this folder from sys.path
-    # by the time the server module is imported (pytest-xdist's workers do)
+    # ws_frames beside this file, loaded by its path (``import ws_frames`` failed in the suite's test
+    # processes on a clean clone, its folder not found on sys.path by then)
     import importlib.util
-    spec = importlib.util.spec_from_file_location("_sent_capture_ws_frames",
-                                                  os.path.join(os.path.dirname(os.path.abspath(__file__)), "ws_frames.py"))
+    spec = importlib.util.spec_from_file_location("_sent_capture_ws_frames", os.path.join(_HERE, "ws_frames.py"))
     frames = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(frames)
     payloads = frames.payloads
