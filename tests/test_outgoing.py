@@ -120,6 +120,51 @@ def test_a_session_s_cached_series_count_as_labels_does_and_start_again_after_th
     assert 'fingertrack_messages_in_total{session="a"} 1.0' in text and 'messages_out_total{session="a"}' not in text
 
 
+def test_the_metrics_text_is_the_client_library_s_byte_for_byte_as_series_come_and_go():
+    """``Metrics.render``: its own writer (each series' line heads formatted once) gives what
+    ``prometheus_client.generate_latest`` gives, for admins and others, with every kind of series, label
+    values to escape, special values, and series removed and made again; a registry it does not know
+    (a gauge set to a function) is left to the library."""
+    import random
+
+    from prometheus_client import generate_latest
+
+    from service.api.metrics import Metrics, _WithoutSessions
+
+    metrics, rng = Metrics(), random.Random(7)
+
+    def same() -> None:
+        for admin in (True, False):
+            expected = generate_latest(metrics.registry if admin else _WithoutSessions(metrics.registry))
+            assert metrics._exposition.render(admin) == expected
+            assert metrics.render(admin) == expected
+
+    same()
+    for i in range(12):
+        series = metrics.of_session(f"hand-{i}")
+        series.messages_in.inc(rng.random() * 1e7)
+        for _ in range(rng.randrange(4)):
+            series.latency.observe(rng.random() * 0.03)
+        if i % 3:
+            series.messages_out.inc()
+        metrics.behind.labels(f"hand-{i}").set(float("nan") if i == 5 else rng.random() * 1e8)
+        same()
+    metrics.errors.labels('odd "code" \\ with\na line').inc()
+    metrics.disconnects.labels("x").inc(1e300)
+    metrics.connection_gc.observe(0.25)
+    metrics.worker_restarts.inc()
+    metrics.sessions.set(-3)
+    metrics.subscribers.set(float("inf"))
+    same()
+    metrics.forget_session("hand-4")
+    same()
+    metrics.of_session("hand-4").latency.observe(0.001)      # the same name, a new series
+    same()
+    metrics.sessions.set_function(lambda: 42)
+    assert metrics._exposition.render(True) is None
+    assert b"fingertrack_sessions 42.0" in metrics.render()
+
+
 def test_a_messages_websocket_frame_is_built_once_as_the_protocol_library_builds_it():
     """``Outgoing.wire``: the frame a server writes for ``send_text``/``send_binary`` (no extension), for
     every length encoding (7, 7+16 and 7+64 bits), built once per format."""
