@@ -53,3 +53,78 @@ def test_bad_load_arguments_are_refused(tmp_path):
         main(["bench", "load", "--hands", "0", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):
         main(["bench", "load", "--subscribers", "0", "--out", str(tmp_path)])
+
+
+def _frame(seq, hand, t):
+    """A frame as the service sends it, down to its nested fingers and joints (skipped unread)."""
+    return {"type": "frame", "t": t, "seq": seq, "hand": hand,
+            "fingers": {"index": {"mcp": 0.1, "pip": 0.2, "dip": 0.2, "mode": "optical"}},
+            "joints": {"palm": {"position": [0.0, 1.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0]}},
+            "status": {"imu": {"index.1": "ok"}, "latency_ms": 1.0}}
+
+
+def test_the_load_subscriber_passes_every_frame_on_and_counts_what_does_not_decode():
+    """A real WebSocket server sends a load-generator subscriber a repeated seq, a frame of the other
+    hand, a frame without its seq, a frame in two fragments, a MessagePack frame, a ping, text that is
+    not JSON and a gesture: every whole frame is passed on with its fields, the integrity check finds
+    the repeated seq and the foreign hand, and the two undecodable messages are counted, not lost."""
+    import asyncio
+    import json
+
+    import msgspec
+    from websockets.asyncio.server import serve
+
+    from service.bench.loadclients import LeanSubscription
+
+    async def handler(ws):
+        await ws.send(json.dumps({"type": "hello", "protocol": 1}))
+        for seq, hand in [(1, "right"), (2, "right"), (2, "right"), (3, "left")]:
+            await ws.send(json.dumps(_frame(seq, hand, seq / 90)))
+        await ws.send(json.dumps({k: v for k, v in _frame(4, "right", 0.0).items() if k != "seq"}))
+        text = json.dumps(_frame(5, "right", 5 / 90))
+        await ws.send([text[:40], text[40:]])                          # two fragments
+        await ws.send(msgspec.msgpack.encode(_frame(6, "right", 6 / 90)))
+        await ws.ping()
+        await ws.send("{not json")
+        await ws.send(json.dumps({"type": "gesture", "t": 0.1, "gesture": "point", "event": "start"}))
+        await ws.wait_closed()
+
+    async def main():
+        async with serve(handler, "127.0.0.1", 0) as server:
+            port = server.sockets[0].getsockname()[1]
+            rows = []
+            sub = LeanSubscription(f"http://127.0.0.1:{port}", "a", "token",
+                                   lambda m, arrival: rows.append((arrival, 0.0, m.seq, m.hand, m.t)))
+            sub.start()
+            while sub.gestures < 1 and sub.reconnects == 0:            # the gesture comes last
+                await asyncio.sleep(0.01)
+            await sub.close()
+            return rows, sub
+
+    rows, sub = asyncio.run(asyncio.wait_for(main(), 60))
+    assert [r[2] for r in rows] == [1, 2, 2, 3, 5, 6]
+    assert [r[3] for r in rows] == ["right", "right", "right", "left", "right", "right"]
+    assert rows[-1][4] == 6 / 90 and sub.server_hello is not None and sub.reconnects == 0
+    assert _integrity({("a", 0): rows}, {"a": "right"}) == 2         # the repeated seq, the left hand's frame
+    assert sub.malformed_count == 2 and sub.others == 0
+
+
+def test_a_load_subscriber_refused_by_the_service_says_so_when_closed():
+    import asyncio
+
+    from websockets.asyncio.server import serve
+
+    from service.bench.loadclients import LeanSubscription
+
+    async def main():
+        async with serve(lambda ws: ws.wait_closed(), "127.0.0.1", 0,
+                         process_request=lambda conn, request: conn.respond(403, "bad token\n")) as server:
+            port = server.sockets[0].getsockname()[1]
+            sub = LeanSubscription(f"http://127.0.0.1:{port}", "a", "token", lambda m, arrival: None)
+            sub.start()
+            while sub.failure is None:
+                await asyncio.sleep(0.01)
+            with pytest.raises(ConnectionRefusedError, match="HTTP 403"):
+                await sub.close()
+
+    asyncio.run(asyncio.wait_for(main(), 60))

@@ -88,8 +88,9 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     ``spec["indices"]``. ``ready()`` once everything is simulated and subscribed; ``start_at()`` gives
     the common start (``time.time()``) of every generator process; ``stop`` (a ``threading.Event``),
     once set, ends the gloves' streams early."""
-    from clients.client import Subscription
     from clients.glove import encoded_messages, source_messages, stream_glove
+
+    from .loadclients import LeanSubscription
 
     urls, viewer, subscribers, seconds, binary = spec["urls"], spec["viewer"], spec["subscribers"], spec["seconds"], spec["binary"]
     indices = spec["indices"]
@@ -108,18 +109,19 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     last_send = {n: 0.0 for n in names}
     first_send = {n: 0.0 for n in names}
     received = {(n, k): [] for n in names for k in range(subscribers)}      # (arrival, latency, seq, hand, t)
-    subs = {(n, k): Subscription(urls[(i + k) % len(urls)], n, viewer, binary=binary)
+
+    def on_frame_for(name, rows):
+        def on_frame(msg, arrival):
+            sent = last_send[name]
+            rows.append((arrival, arrival - sent if sent > 0 else np.nan, msg.seq, msg.hand, msg.t))
+        return on_frame
+
+    # read as they arrive, decoded only for the fields checked (``loadclients``)
+    subs = {(n, k): LeanSubscription(urls[(i + k) % len(urls)], n, viewer, on_frame_for(n, received[(n, k)]),
+                                     binary=binary)
             for i, n in zip(indices, names) for k in range(subscribers)}
-
-    async def collect(key):
-        name = key[0]
-        async for msg in subs[key]:
-            if msg["type"] == "frame":
-                now = time.perf_counter()
-                received[key].append((now, now - last_send[name] if last_send[name] > 0 else np.nan,
-                                      msg["seq"], msg["hand"], msg["t"]))
-
-    tasks = [asyncio.create_task(collect(key)) for key in subs]
+    for s in subs.values():
+        s.start()
     deadline = time.monotonic() + 120.0
     while not all(s.server_hello is not None for s in subs.values()) and time.monotonic() < deadline:
         await asyncio.sleep(0.05)                            # the subscriptions are open before any data
@@ -145,12 +147,8 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     # a subscriber that reconnects loses what its old connection had queued: neither delivered nor dropped
     reconnects = sum(s.reconnects for s in subs.values())
     glove_reconnects = sum(getattr(p, "reconnects", 0) for p in pubs)
-    for s in subs.values():
-        await s.close()
-    for t in tasks:
-        t.cancel()
-    for r in await asyncio.gather(*tasks, return_exceptions=True):
-        if isinstance(r, BaseException) and not isinstance(r, asyncio.CancelledError):
+    for r in await asyncio.gather(*(s.close() for s in subs.values()), return_exceptions=True):
+        if isinstance(r, BaseException):
             raise RuntimeError(f"a subscriber failed: {r!r}") from r
     # a frame's delay behind the source's schedule: its arrival minus the wall time at which the data
     # of its tick were due to be sent (the first message was sent at first_send, source time m[0][0])
@@ -167,6 +165,9 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             "hands_of": {n: c.hand for n, c in zip(names, configs)}, "accounts": accounts,
             "delays": delays, "beyond_alignment": beyond, "alignment": align,
             "subscriber_reconnects": reconnects, "glove_reconnects": glove_reconnects, "errors": errors,
+            "malformed": sum(s.malformed_count for s in subs.values()),
+            "malformed_examples": [repr(m) for s in subs.values() for m in s.malformed][:10],
+            "gestures": sum(s.gestures for s in subs.values()), "other_messages": sum(s.others for s in subs.values()),
             "wall_s": wall, "generator_cpu_s": generator_cpu}
 
 
@@ -297,6 +298,9 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
             "service_cpu_until_drained_s": None if service0 is None or service2 is None else service2 - service0,
             "until_drained_wall_s": busy_wall,
             "errors": sum(r["errors"] for r in results),
+            "malformed": sum(r["malformed"] for r in results),
+            "malformed_examples": [m for r in results for m in r["malformed_examples"]][:10],
+            "gestures": sum(r["gestures"] for r in results), "other_messages": sum(r["other_messages"] for r in results),
             "service_cpu_s": None if service0 is None or service1 is None else service1 - service0}
 
 
@@ -475,7 +479,10 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                "max": float(delay.max())} if delay.size else None),
         "behind_schedule_beyond_alignment_ms": _quantiles(beyond), "alignment_wait_ms": _quantiles(align),
         "frames_unaccounted": int(sum(max(0, a["expected"] - a["delivered"] - a["dropped"]) for a in accounts.values())),
-        "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]),
+        # a frame that did not decode, or lacked its seq, hand or time, is a violation too
+        "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]) + lvl["malformed"],
+        "malformed_examples": lvl["malformed_examples"],
+        "subscriber_gestures": lvl["gestures"], "subscriber_other_messages": lvl["other_messages"],
         "hand_worker_restarts": sum(x.get("worker", {}).get("restarts", 0) for x in every),
         "source_errors": int(lvl["errors"]),
         "subscriber_reconnects": lvl["subscriber_reconnects"], "glove_reconnects": lvl["glove_reconnects"],
