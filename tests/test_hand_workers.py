@@ -333,7 +333,7 @@ def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
 class _Peer:
     """A ``hands.worker.Worker`` run by a thread of this process, and the web process's end of its socket."""
 
-    def __init__(self):
+    def __init__(self, preload: bool = False):
         import socket
         import threading
 
@@ -342,6 +342,8 @@ class _Peer:
         self.mod = hands_worker
         self.ours, theirs = socket.socketpair()
         self.worker = hands_worker.Worker(theirs, _settings(1))
+        if preload:                                 # as the process's main does once it has said it is ready
+            self.worker.preload()
         self.thread = threading.Thread(target=self.worker.run, daemon=True)
         self.thread.start()
         self.received: list = []
@@ -409,6 +411,45 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_loads_an_estimator_s_
         peer.until(lambda: any(m[0] == "cfgrep" for m in peer.received), "b's change")
         reply, = [m for m in peer.received if m[0] == "cfgrep"]
         assert reply[1:3] == [2, 1] and reply[3]["estimator"] == "vector" and reply[4] is None, reply
+    finally:
+        release.set()
+        peer.close()
+
+
+def test_a_worker_loads_the_cached_estimators_kernels_before_any_switch_and_a_switch_meanwhile_waits_for_them(monkeypatch):
+    """``preload_kernels``: once ready, a worker loads the kernels of the estimators found in the disk cache
+    in a thread, before any session asks for them, while it serves its sessions; a change to one of them
+    that comes meanwhile waits for that load (it starts no second one) and applies once it is done."""
+    import threading
+
+    from service.api import sessions
+    from service.api.hands import worker as hands_worker
+
+    entered, release, loads = threading.Event(), threading.Event(), []
+
+    def held_warm(name, params=None):
+        loads.append(name)
+        entered.set()
+        assert release.wait(120.0), "the test never released the loading"
+    monkeypatch.setattr(hands_worker, "cached_not_warm", lambda: ["vector"])
+    monkeypatch.setattr(hands_worker, "warm", held_warm)
+    monkeypatch.setattr(hands_worker, "is_warm", lambda name: name != "vector" or (loads and release.is_set()))
+    monkeypatch.setattr(hands_worker, "needs_compiling", lambda name: False)
+    monkeypatch.setattr(sessions, "warm_ahead", lambda name, params=None: None)
+    peer = _Peer(preload=True)
+    try:
+        assert entered.wait(120.0), "the cached kernels' loading never began"      # no session, no change yet
+        msgs = [m for _, m in _messages("right", 1.0, 5)]
+        peer.send([["open", 1, "a", None], ["open", 2, "b", None], ["cfg", 2, 1, {"estimator": "vector"}]])
+        peer.send([["src", 1, n, m] for n, m in enumerate(msgs, 1)])
+        peer.until(lambda: len(peer.replies(1)) == len(msgs), "session a's replies")
+        assert any(m[0] == "out" and m[1] == 1 and m[3][0] == "frame" for m in peer.received)
+        assert not any(m[0] == "cfgrep" for m in peer.received)      # b's change waits for the load under way
+        release.set()
+        peer.until(lambda: any(m[0] == "cfgrep" for m in peer.received), "b's change")
+        reply, = [m for m in peer.received if m[0] == "cfgrep"]
+        assert reply[1:3] == [2, 1] and reply[3]["estimator"] == "vector" and reply[4] is None, reply
+        assert loads == ["vector"]                  # loaded once, ahead of the change
     finally:
         release.set()
         peer.close()

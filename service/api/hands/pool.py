@@ -121,14 +121,17 @@ has caught up to a tenth of it), s"""
 class WorkerLink:
     """One worker slot: its process (replaced when it dies), the socket to it and its sessions."""
 
-    def __init__(self, pool: "HandPool", slot: int, estimator: str | None = None):
+    def __init__(self, pool: "HandPool", slot: int, estimator: str | None = None, preload: bool = False):
         self.pool = pool
         self.slot = slot
         self.isolated = estimator is not None
         """the worker of one session on a costly estimator (``estimator``, the one it loads before it is
         ready), ``hand_worker_isolated_nice`` nicer than this process from its start (module docstring)"""
-        self.given = (pool.worker_settings if estimator is None else
-                      {**pool.worker_settings, "estimator": estimator, "hand_worker_nice": 0})
+        self.given = {**pool.worker_settings, "preload_kernels": preload and pool.settings.preload_kernels,
+                      **({} if estimator is None else {"estimator": estimator, "hand_worker_nice": 0})}
+        """its settings; ``preload``: it loads the cached estimators' kernels once ready (``ServiceSettings.
+        preload_kernels``): the spare, which the next session switched to one of them takes, and, only when
+        such a session stays on its shared worker (``hand_worker_isolate`` off), the shared workers"""
         self.proc: asyncio.subprocess.Process | None = None
         self.pid: int | None = None
         self.ready = asyncio.Event()
@@ -453,7 +456,7 @@ class HandPool:
         self.metrics = metrics
         self.worker_settings = {"estimator": settings.estimator, "output_rate_hz": settings.output_rate_hz,
                                 "hand_worker_nice": settings.hand_worker_nice}
-        self.links = [WorkerLink(self, i) for i in range(settings.hand_workers)]
+        self.links = [WorkerLink(self, i, preload=not settings.hand_worker_isolate) for i in range(settings.hand_workers)]
         """the shared workers"""
         self.isolated: list[WorkerLink] = []
         """the workers of one session each, and the spare (module docstring)"""
@@ -484,7 +487,7 @@ class HandPool:
         wanted = self.settings.hand_worker_isolate and self.settings.hand_worker_spare and not self.closing
         if not wanted or self.spare is not None or len(self.isolated) >= self.settings.hand_worker_isolated_max:
             return
-        link = self.spare = WorkerLink(self, next(self._isolated_slots), estimator=self.settings.estimator)
+        link = self.spare = WorkerLink(self, next(self._isolated_slots), estimator=self.settings.estimator, preload=True)
         self.isolated.append(link)
         link.starting = asyncio.get_running_loop().create_task(self._start_spare(link))
 
