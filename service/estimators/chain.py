@@ -1155,7 +1155,7 @@ class ChainHand:
 
     def _cross_offsets(self) -> np.ndarray:
         """``cross_offsets`` where it fits the stacked sensors, else zeros."""
-        n = int(self._sensor_start[-1])
+        n = self._starts[1][-1]
         b = self.cross_offsets
         if b is not None and b.ndim == 2 and b.shape[0] == n and b.shape[1] in (2, 3):
             return b

@@ -281,7 +281,8 @@ class HandSession:
         self.optics = OpticalTrack(self.settings.pose_window_s, self.settings.pose_timeout_s)
         self.counters = Counters()
         self._pending: dict[float, dict[str, list[float]]] = {}    # t -> id -> gyr + acc (six numbers)
-        self._last_sample: dict[str, tuple[float, np.ndarray, int]] = {}   # id -> t, its tick's readings (k, 2, 3), row
+        self._samples: dict[str, tuple[float, np.ndarray, int]] = {}   # id -> t, its tick's readings (k, 2, 3), row
+        self._samples_due: tuple | None = None  # the last tick's (t, ids, readings), not yet in ``_samples``
         self._processed_t: float | None = None
         self._newest_imu_t: float | None = None
         self._next_frame_t: float | None = None
@@ -327,9 +328,10 @@ class HandSession:
             if cached is not None:
                 return cached
         sensors: dict[str, SensorStatusDict] = {}
+        samples = self._last_sample
         for fs in self._fingers.values():
             for s in fs.geom.sensors:
-                last = self._last_sample.get(s.id)
+                last = samples.get(s.id)
                 age = None if last is None else round(now - last[0], 6)
                 sensors[s.id] = {"age_s": age, "silent": s.id not in fs.active_sensors}
         if complete and all(v["age_s"] == 0.0 for v in sensors.values()):
@@ -411,6 +413,11 @@ class HandSession:
         """The frames of every tick that is ready, each yielded as soon as its tick is processed (a
         message that completes several ticks need not hold the first frame back until the last)."""
         yield from self._process_ready()
+
+    def tick_ready(self) -> bool:
+        """Whether a pending tick is ready to be processed (``ready_frames`` would process one more)."""
+        pending = self._pending
+        return bool(pending) and self._ready(min(pending))
 
     def _drop(self, reason: str, count: int = 1) -> None:
         setattr(self.counters, reason, getattr(self.counters, reason) + count)
@@ -559,20 +566,21 @@ class HandSession:
     def _process_ready(self) -> Iterator[HandFrame]:
         pending = self._pending
         while pending:
-            if not self._ready(min(pending)):
+            t = min(pending)
+            if not self._ready(t):
                 return                          # (most messages: no tick ready, no floating-point setting needed)
-            frames = None
             # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
-            # under one setting (never held across a ``yield``: the caller's own setting applies there)
+            # under one setting (never held across a ``yield``: the caller's own setting applies there);
+            # each tick's time and readiness found once
             with np.errstate(all="ignore"):
-                while pending:
-                    t = min(pending)
-                    if not self._ready(t):
-                        break
+                while True:
                     frames = self._steady_run(t)
                     if frames is None:
                         frames = self._process_tick(t, pending.pop(t))
-                    if frames:
+                    if frames or not pending:
+                        break
+                    t = min(pending)
+                    if not self._ready(t):
                         break
             if not frames:
                 return
@@ -594,20 +602,27 @@ class HandSession:
         ref_t = self._references[0].t1 if self._references else math.inf
         if frame_t is None or t + 1e-9 >= frame_t or t + 1e-9 >= ref_t:
             return None
-        # the checks that need no other tick first (an occlusion, a back-of-hand IMU: every tick refused)
+        pending = self._pending
+        if len(pending) < 2:
+            return None
+        # the cheap checks that need no other tick first (an occlusion, a back-of-hand IMU: every tick refused)
         fits, together = self._mount_fits, self._together_phi
-        if not (self._tracking and together is not None and fits and fits.compiled and self._advanced_together_again()):
+        if not (self._tracking and together is not None and fits and fits.compiled):
+            return None
+        tick = pending[t]
+        if METACARPUS_SENSOR_ID in tick or self._hand_imu.live(t):
+            return None
+        # then a second tick ready (at 200 Hz a message releases one tick: nothing more to check)
+        later = sorted(pending)[1:]
+        if not self._ready(later[0]):
             return None
         fingers = together[1]
-        pending = self._pending
-        tick = pending[t]
-        if not (tick.keys() >= self._finger_sensor_ids and METACARPUS_SENSOR_ID not in tick
-                and all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)) or self._hand_imu.live(t):
+        if not (self._advanced_together_again() and tick.keys() >= self._finger_sensor_ids and _all_live(fingers)):
             return None
         # the ticks of the run: ready, with the same sensors, until a frame or a reference pose is due
         ids = tuple(tick)
         ts, ticks = [t], [tick]
-        for u in sorted(pending)[1:]:
+        for u in later:
             nxt = pending[u]
             if not self._ready(u) or tuple(nxt) != ids:
                 break
@@ -665,8 +680,7 @@ class HandSession:
         fingers = self._fingers.values()
         again = self._advanced_together_again()
         # every finger sensor sampled in this tick and live: no finger's sensors can have changed
-        settled = tick.keys() >= self._finger_sensor_ids and \
-            all(len(fs.active_sensors) == len(fs.sensor_ids) for fs in fingers)
+        settled = tick.keys() >= self._finger_sensor_ids and _all_live(fingers)
         # a steady tick (every finger advanced together again, the optics tracking, the compiled fits on):
         # its compiled calls in one (``tick_kernel``), which writes the corrected readings below
         steady = settled and again and tracking and usable and bool(fits) and fits.compiled
@@ -752,10 +766,25 @@ class HandSession:
         self._apply_references(t)
         return self._emit_frames(t)
 
+    @property
+    def _last_sample(self) -> dict[str, tuple[float, np.ndarray, int]]:
+        """Each sensor's last sample: sensor id -> its time, its tick's readings (k, 2, 3) (corrected) and its
+        row of them; the last tick's taken in when it is read (``_take_samples``)."""
+        due = self._samples_due
+        if due is not None:
+            self._samples_due = None
+            t, ids, readings = due
+            self._samples.update(zip(ids, zip(repeat(t), repeat(readings), range(len(ids)))))
+        return self._samples
+
     def _take_samples(self, t: float, ids: tuple, readings: np.ndarray) -> None:
         """The tick's readings (corrected) as each of its sensors' last sample: its time and its row of
-        ``readings`` (one loop in C)."""
-        self._last_sample.update(zip(ids, zip(repeat(t), repeat(readings), range(len(ids)))))
+        ``readings``. Kept as the tick until the samples are read (``_last_sample``): a tick with the same
+        sensors in the same order replaces the one before it whole (the steady ticks: nothing reads them)."""
+        due = self._samples_due
+        if due is not None and due[1] != ids:
+            self._last_sample                       # the tick before into the samples first
+        self._samples_due = (t, ids, readings)
         self._tick_readings = readings
 
     def _advanced_together_again(self) -> bool:
@@ -763,9 +792,16 @@ class HandSession:
         holds that call's angles and estimator: the steady state of a hand whose sensors are all live. (A
         finger rebuilt since has a new ``FingerState`` or angles, a diverged one ended the record.)"""
         together = self._together_phi
+        if together is None:
+            return False
+        phi, advanced = together
         fingers = self._fingers.values()
-        return together is not None and len(together[1]) == len(fingers) and \
-            all(fs is g and fs.phi.base is together[0] for fs, g in zip(fingers, together[1]))
+        if len(advanced) != len(fingers):
+            return False
+        for fs, g in zip(fingers, advanced):
+            if fs is not g or fs.phi.base is not phi:
+                return False
+        return True
 
     def _fit_mountings(self, fits: HandMountings, rows: np.ndarray, raw: np.ndarray, hand: BaseMotion,
                        again: bool) -> None:
@@ -827,8 +863,9 @@ class HandSession:
         return readings[row]
 
     def _live_sensors(self, geom: FingerGeometry, t: float) -> tuple[str, ...]:
+        samples = self._last_sample
         return tuple(s.id for s in geom.sensors
-                     if s.id in self._last_sample and t - self._last_sample[s.id][0] <= self.settings.sensor_timeout_s)
+                     if s.id in samples and t - samples[s.id][0] <= self.settings.sensor_timeout_s)
 
     def _prepare_finger(self, fs: FingerState, t: float, tick: dict) -> bool:
         """Rebuild the finger's estimator if its live sensors changed; whether it has any to update."""
@@ -1071,6 +1108,14 @@ def _tracked_dict(optics_tracking: bool, measured: tuple[tuple[str, bool], ...])
     """``name -> tracked`` of the 26 joints (``joint_tracked_list``), one dict per combination (a hand
     has few), shared by the frames that have it: never modified."""
     return dict(zip(JOINT_NAMES, joint_tracked_list(optics_tracking, measured)))
+
+
+def _all_live(fingers) -> bool:
+    """Whether every finger's sensors are all live (a loop: cheaper than ``all`` over a generator)."""
+    for fs in fingers:
+        if len(fs.active_sensors) != len(fs.sensor_ids):
+            return False
+    return True
 
 
 def _all_finite(*arrays: np.ndarray) -> bool:
