@@ -497,13 +497,34 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_builds_a_moved_in_ses
         peer.close()
 
 
-def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_its_message():
+def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_its_message(monkeypatch):
     """At 1 kHz a pose completes about eleven ticks, the first of which makes the frame: the worker
     sends that frame before it processes the others (their time was in every frame's latency). A
-    message alone in its batch, or in a small batch (two here): each frame in a write of its own,
-    never in the write of its message's reply. Many messages in one batch: the earlier ones' outputs
-    go in one write with their replies (fewer writes for a busy worker), each output before its reply."""
+    message alone in its batch, or in a small batch (two here): each frame goes in a write before the
+    next tick is processed, in a write of its own while its message has ticks left, else (the frame of
+    its message's last tick) in the write of its message's reply, before the reply (one write, not two).
+    Many messages in one batch: the earlier ones' outputs go in one write with their replies (fewer
+    writes for a busy worker), each output before its reply."""
+    from service.pipeline.hand import HandSession
+
+    events: list[str] = []                          # "tick", "frame" (a tick that made one), "send" (a write)
+    emit_frames = HandSession._emit_frames
+
+    def noted(self, t):
+        frames = emit_frames(self, t)
+        events.append("frame" if frames else "tick")
+        return frames
+
+    monkeypatch.setattr(HandSession, "_emit_frames", noted)
     peer = _Peer()
+    send = peer.worker.send
+
+    def noted_send():
+        if peer.worker.out:
+            events.append("send")
+        send()
+
+    peer.worker.send = noted_send
     try:
         config = SimConfig(motion="sequence", hand="right", noise="white", seed=7, duration_s=0.6, rate_hz=1000.0)
         msgs = list(enumerate((m for _, m in source_messages(config)), 2))
@@ -512,16 +533,29 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
         peer.until(lambda: len(peer.replies(1)) == 1, "the hello answered")
         third = len(msgs) // 3
         for size, part in ((1, msgs[:third]), (2, msgs[third:2 * third])):
-            start = len(peer.writes)
+            start, first_event = len(peer.writes), len(events)
             for k in range(0, len(part), size):
                 batch = part[k:k + size]
                 peer.send([["src", 1, n, m] for n, m in batch])
                 peer.until(lambda: len(peer.replies(1)) == batch[-1][0], f"message {batch[-1][0]} answered")
             writes = peer.writes[start:]
             assert sum(x[0] == "out" and x[3][0] == "frame" for w in writes for x in w) >= 10, size
-            for w in writes:                        # a frame (with its events) per write, never with its reply
-                outs, reps = {x[2] for x in w if x[0] == "out"}, {x[2] for x in w if x[0] == "rep"}
-                assert sum(x[0] == "out" and x[3][0] == "frame" for x in w) <= 1 and not outs & reps, (size, w)
+            alone = with_reply = 0
+            for w in writes:                        # a frame (with its events) per write, before its reply
+                assert sum(x[0] == "out" and x[3][0] == "frame" for x in w) <= 1, (size, w)
+                for i, x in enumerate(w):
+                    if x[0] == "out" and x[3][0] == "frame":
+                        replied = any(y[0] == "rep" and y[2] == x[2] for y in w)
+                        assert not any(y[0] == "rep" and y[2] == x[2] for y in w[:i]), (size, w)
+                        alone += not replied
+                        with_reply += replied
+            assert alone >= 5 and with_reply >= 1, (size, alone, with_reply)
+            # every frame is written before the next tick is processed
+            seen = events[first_event:]
+            made = [i for i, e in enumerate(seen) if e == "frame"]
+            assert len(made) >= 10
+            for i in made:
+                assert seen[i + 1:i + 2] == ["send"], (size, seen[i:i + 4])
         # the rest in one batch: outputs and replies together, each output before its reply
         start = len(peer.writes)
         peer.send([["src", 1, n, m] for n, m in msgs[2 * third:]])
@@ -537,6 +571,7 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
                 assert x[2] not in replied, "an output came after its message's reply"
     finally:
         peer.close()
+
 
 def test_what_a_session_s_new_worker_cannot_restore_is_told_to_its_source_before_any_reply():
     """A session opened from a state whose stored hello and calibration (each with a field of the wrong

@@ -58,6 +58,11 @@ class TrackedHand:
         ``outputs``."""
         return self._session.accept(message)
 
+    def tick_ready(self) -> bool:
+        """Whether ``outputs`` would process another tick now (then the outputs so far have later work
+        behind them)."""
+        return self._session.tick_ready()
+
     def outputs(self) -> Iterator[list[FrameDict | GestureDict]]:
         """For each frame that is ready, as soon as it is: the frame message and its gesture events."""
         for frame in self._session.ready_frames():

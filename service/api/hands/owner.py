@@ -41,7 +41,8 @@ class OutputSink:
     seq_offset: int = 0
     last_seq: int = 0
     last_t: float | None = None
-    last_angles: dict = field(default_factory=dict)
+    last_fingers: dict | None = None
+    """the last frame's ``fingers`` (its ``last_angles`` made from it when asked)"""
     pending: list = field(default_factory=list)
     binary: bool = True
     dropped: int = 0
@@ -58,7 +59,13 @@ class OutputSink:
                 self.seq_offset = seq0 + max(1, math.ceil((msg["t"] - t0) * self.rate_hz)) + 1 - msg["seq"]
                 self.resume_after = None
             msg["seq"] += self.seq_offset
-            self.last_seq, self.last_t = msg["seq"], msg["t"]
-            self.last_angles = {f: {j: v for j, v in a.items() if j != "mode"} for f, a in msg["fingers"].items()}
+            self.last_seq, self.last_t, self.last_fingers = msg["seq"], msg["t"], msg["fingers"]
         self.pending.append(item.packed() if self.packed else msg)
         return 0
+
+    @property
+    def last_angles(self) -> dict:
+        """The last frame's joint angles per finger (without the modes): the session's state for its next
+        owner, made when that is asked for, not at every frame."""
+        fingers = self.last_fingers or {}
+        return {f: {j: v for j, v in a.items() if j != "mode"} for f, a in fingers.items()}

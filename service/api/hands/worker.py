@@ -81,8 +81,9 @@ import msgpack
 from ...pipeline.gc_policy import serving_gc
 from ...protocol import PROTOCOL_VERSION, ProtocolError, parse_input, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
+from ...pipeline.hand import NOTHING_DROPPED
 from ...estimators.warm import (cached_not_warm, compile_command, is_warm, needs_compiling, sharing_the_interpreter, warm,
-                                  warm_ahead)
+                                warm_ahead)
 from ..config import ServiceSettings
 from ..metrics import Metrics
 from ..outgoing import Outgoing
@@ -202,23 +203,27 @@ class OwnedHand:
 
     def handle_valid(self, raw: dict, msg, emit=None) -> list[list[str]]:
         """A validated source message through the hand (``handle``). ``emit``: called after each frame
-        (with its gesture events) is in ``sink.pending``, before the message's later ticks are processed
-        (a pose at 1 kHz releases about eleven ticks, the first of which makes the frame)."""
+        (with its gesture events) is in ``sink.pending`` when the message has later ticks to process (a
+        pose at 1 kHz releases about eleven ticks, the first of which makes the frame); a frame of its last
+        tick stays in ``sink.pending``, to go back with the message's reply (``Worker.dispatch``)."""
         if self.resume_angles is not None and (ref := resume_reference(self.resume_angles, raw)) is not None:
             self.resume_angles = None
             try:
                 self.live.hand.accept(parse_message(ref))
             except (ProtocolError, ValueError):
                 pass                                # angles the protocol refuses: start as a new session
+        hand = self.live.hand
         try:
-            dropped = self.live.hand.accept(msg)
-            for group in self.live.hand.outputs():
+            dropped = hand.accept(msg)
+            for group in hand.outputs():
                 for out in group:
                     self.sink.put(Outgoing(out), 0.0)
-                if emit is not None:
+                if emit is not None and hand.tick_ready():
                     emit()
         except Exception as err:                    # bad input, or a defect (logged in one line)
             return [list(failure_reply(self.live.name, msg, err))]
+        if dropped is NOTHING_DROPPED:              # (almost every message)
+            return []
         return [list(reply) for reply in drop_replies(msg, dropped)]
 
 
@@ -312,16 +317,14 @@ class Worker:
                 return
             n, raw = message[2], message[3]
             errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw, self.emitter(owned, sid, n, at_once))
-            self.out.extend(owned.encoded(sid, n))
-            self.out.append(["rep", sid, n, errors])
+            self.replied(owned, sid, n, ["rep", sid, n, errors], at_once)
         elif kind == "chk":
             owned = self.hands.get(sid)
             if owned is None:
                 return
             n = message[2]
             errors, accepted = owned.check(message[3], message[4], self.emitter(owned, sid, n, at_once))
-            self.out.extend(owned.encoded(sid, n))
-            self.out.append(["rep", sid, n, errors, accepted])
+            self.replied(owned, sid, n, ["rep", sid, n, errors, accepted], at_once)
         elif kind == "fmt":
             if (owned := self.hands.get(sid)) is not None:
                 owned.binary = bool(message[2])
@@ -343,6 +346,16 @@ class Worker:
                                       if needs_compiling(name) else self.load(name))
             self.waiting.append(message)
             self.apply_waiting()
+
+    def replied(self, owned: OwnedHand, sid: int, n: int, reply: list, at_once: bool) -> None:
+        """Source message ``n``'s outputs not sent yet, then its ``reply``; with ``at_once``, sent now if it
+        has outputs (the frame of its last tick: one write with its reply, ``OwnedHand.handle_valid``)."""
+        outs = owned.encoded(sid, n)
+        self.out.extend(outs)
+        self.out.append(reply)
+        if at_once and outs:
+            with contextlib.suppress(OSError):      # the web process is gone: the run loop finds it out
+                self.send()
 
     def emitter(self, owned: OwnedHand, sid: int, n: int, at_once: bool):
         """What sends source message ``n``'s outputs made so far, with everything queued before them
