@@ -497,7 +497,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         except ValidationError as err:
             raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
         print(cpu.run(args.out, seconds=args.seconds, repeats=args.repeats, estimator=args.estimator,
-                      params=params, profile=args.profile, batched=args.batch))
+                      params=params, profile=args.profile, batched=args.batch, worker=args.worker))
         print(f"wrote {args.out}/results.json, summary.md" + (", profile.txt" if args.profile else ""))
         return 0
     if args.which == "gestures":
@@ -712,6 +712,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--batch", action="store_true",
                    help="each tick's IMU samples in one imu_batch message, as the glove streams them (default: one "
                         "imu message per sample, as in a recording)")
+    b.add_argument("--worker", action="store_true",
+                   help="also run each pass through a hand worker's handling of its session's messages (validation, "
+                        "pipeline, encoding and framing of its outputs, as the web process sends them), its total apart")
 
     b = benchmark("load", "service load: several hands at once, subscribers per hand",
                   "Hands streamed at once into a fresh service process per load level, with subscribers per hand: "

@@ -11,6 +11,10 @@ message per sensor and sample, poses at 90 Hz; with ``--batch`` each tick's samp
   the optical fit, the OpenXR joints, the gesture recogniser, the outgoing messages);
 * ``encode``: every output message encoded once as JSON text (``protocol.encode``).
 
+With ``--worker`` each repeat also runs the recording through a hand worker's handling of its session's
+messages (``_pass_worker``: ``api.hands.worker.Worker.dispatch`` as the web process sends them, validation,
+pipeline, each output encoded and each write framed; the socket's system calls not counted), its total apart.
+
 Each message goes through all three stages before the next is read, as in a session, under the
 serving process's garbage-collector policy (``api.server.serving_gc``).
 
@@ -78,6 +82,59 @@ def _pass_total(lines: list[str], settings: PipelineSettings) -> tuple[float, in
     return total, frames
 
 
+class _Discarded:
+    """The web process's end of a hand worker's socket, for ``_pass_worker``: every write dropped (counted)."""
+
+    def __init__(self):
+        self.writes = 0
+
+    def sendall(self, data: bytes) -> None:
+        self.writes += 1
+
+
+def worker_messages(lines: list[str]) -> list[list]:
+    """The recording's messages as the web process hands them to a session's hand worker (``api.hands.worker``,
+    session number 1): a sample or pose as its JSON text, validated there (``chk``); anything else
+    validated by the web process and packed once (``src``)."""
+    import msgpack
+    import orjson
+
+    out = []
+    for n, line in enumerate(lines):
+        raw = orjson.loads(line)
+        if raw["type"] in ("imu", "imu_batch", "pose"):
+            out.append(["chk", 1, n, line, False])
+        else:
+            out.append(["src", 1, n, msgpack.packb(raw)])
+    return out
+
+
+def _pass_worker(messages: list[list], settings: PipelineSettings) -> tuple[float, int]:
+    """A hand worker's handling of the recording (``--worker``): each message through ``Worker.dispatch`` as one
+    read of the web process's socket (its frames sent as soon as they are made, its reply and the rest at
+    the end of the message: a hand alone in its worker), every output encoded there and each write framed
+    for the socket (which drops it), under the serving process's garbage-collector policy; its CPU time.
+    Not counted: the socket's system calls and the worker's read loop (``Worker.run``)."""
+    from ..api.config import ServiceSettings
+    from ..api.hands import worker as hands_worker
+    from ..api.server import serving_gc
+
+    service = ServiceSettings(estimator=settings.estimator, output_rate_hz=settings.output_rate_hz,
+                              record_all=False, record_dir=None)
+    worker = hands_worker.Worker(_Discarded(), service)
+    owned = worker.hands[1] = hands_worker.OwnedHand("bench", service, worker.metrics, None)
+    if settings.estimator_params:
+        owned.live.update_config({"estimator": settings.estimator, "estimator_params": settings.estimator_params})
+    clock = time.process_time
+    with serving_gc():
+        t0 = clock()
+        for message in messages:
+            worker.dispatch(message, at_once=True)
+            worker.send()
+        total = clock() - t0
+    return total, owned.sink.last_seq
+
+
 def clock_read_cpu_us(reads: int = 20000) -> float:
     """CPU time one read of the CPU-time clock (``time.process_time``) costs, microseconds."""
     clock = time.process_time
@@ -116,7 +173,7 @@ def _pass(lines: list[str], settings: PipelineSettings) -> tuple[dict, int]:
 
 
 def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator: str = "chain",
-        params: dict | None = None, profile: bool = False, batched: bool = False) -> str:
+        params: dict | None = None, profile: bool = False, batched: bool = False, worker: bool = False) -> str:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = PipelineSettings(estimator=estimator, estimator_params=params or {})
@@ -126,15 +183,23 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
     t0 = time.process_time()
     _pass(lines[: max(1, int(len(lines) / seconds))], settings)      # about a second: kernels loaded (or compiled)
     warm_cpu = time.process_time() - t0
-    runs, totals = [], []
+    runs, totals, workers = [], [], []
+    messages = worker_messages(lines) if worker else []
+    if worker:
+        _pass_worker(messages[: max(1, int(len(messages) / seconds))], settings)
     clock_us = [clock_read_cpu_us()]
-    for _ in range(repeats):                        # the two kinds of pass interleaved: the same conditions
+    for _ in range(repeats):                        # the kinds of pass interleaved: the same conditions
         total, frames = _pass_total(lines, settings)
         totals.append(total)
         cpu, staged_frames = _pass(lines, settings)
         runs.append(cpu)
         if staged_frames != frames:
             raise RuntimeError(f"the passes disagree: {frames} and {staged_frames} frames")
+        if worker:
+            total, worker_frames = _pass_worker(messages, settings)
+            workers.append(total)
+            if worker_frames != frames:
+                raise RuntimeError(f"the passes disagree: {frames} and {worker_frames} frames (hand worker)")
     clock_us.append(clock_read_cpu_us())
     staged = [sum(r.values()) for r in runs]
     best = min(range(repeats), key=lambda i: staged[i])
@@ -149,6 +214,9 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
         "clock_reads_per_s_of_data": 3 * len(lines) / data_s,
         "load_average_1min": [load_before, _load_average()],
     }
+    if worker:
+        result["worker_totals"] = workers
+        result["worker_cpu_s_per_s"] = {"best": min(workers) / data_s, "median": statistics.median(workers) / data_s}
     top = ""
     if profile:
         prof = cProfile.Profile()
@@ -199,4 +267,8 @@ def _summary(r: dict) -> str:
     lines.append(f"| stages' sum (with the clock reads) | {b:.4f} (median {m:.4f}) | {100 * b:.2f} (median {100 * m:.2f}) |")
     b, m = r["cpu_s_per_s"]["best"], r["cpu_s_per_s"]["median"]
     lines.append(f"| **total** (clock read per pass) | **{b:.4f}** (median {m:.4f}) | **{100 * b:.2f}** (median {100 * m:.2f}) |")
+    if "worker_cpu_s_per_s" in r:
+        b, m = r["worker_cpu_s_per_s"]["best"], r["worker_cpu_s_per_s"]["median"]
+        lines.append(f"| **in a hand worker** (`Worker.dispatch`: validation, pipeline, encoding, framing) | **{b:.4f}** "
+                     f"(median {m:.4f}) | **{100 * b:.2f}** (median {100 * m:.2f}) |")
     return "\n".join(lines)
