@@ -114,6 +114,7 @@ def test_a_load_subscriber_refused_by_the_service_says_so_when_closed():
 
     from websockets.asyncio.server import serve
 
+    from clients.client import Refused
     from service.bench.loadclients import LeanSubscription
 
     async def main():
@@ -124,7 +125,136 @@ def test_a_load_subscriber_refused_by_the_service_says_so_when_closed():
             sub.start()
             while sub.failure is None:
                 await asyncio.sleep(0.01)
-            with pytest.raises(ConnectionRefusedError, match="HTTP 403"):
+            with pytest.raises(Refused, match="HTTP 403"):
                 await sub.close()
 
     asyncio.run(asyncio.wait_for(main(), 60))
+
+
+def test_the_load_gloves_send_every_message_from_one_timer_and_one_held_glove_holds_no_other():
+    """Two gloves streamed by ``stream_gloves`` to a real WebSocket server that answers glove a's
+    ``sync`` only once glove b has sent everything: a stops at its flow-control limit (16 unconfirmed
+    messages) while b streams on to its end; then a finishes. Each glove's server gets exactly the
+    texts given, in order, and hello once."""
+    import asyncio
+    import json
+    import time
+
+    from websockets.asyncio.server import serve
+
+    from service.bench.loadclients import LeanGlove, stream_gloves, ws_frames
+
+    got = {"a": [], "b": []}
+    b_done = answer_a = None
+
+    def messages(name):
+        out = [(0.0, {"type": "hello", "protocol": 1, "hand": "right", "source": name})]
+        out.append((0.0, {"type": "calibration"}))
+        out += [(0.001 * k, {"type": "imu", "t": 0.001 * k, "id": "index.1", "gyr": [0, 0, k], "acc": [0, 9.81, 0]})
+                for k in range(100)]
+        return out
+
+    async def main():
+        nonlocal b_done, answer_a
+        b_done, answer_a = asyncio.Event(), asyncio.Event()
+        msgs = {n: messages(n) for n in got}
+
+        async def handler(ws):
+            name = ws.request.path.split("?")[0].rsplit("/", 1)[-1]
+            held_syncs = []
+
+            async def answer_later():                     # a's syncs, once b is through
+                await answer_a.wait()
+                for i in held_syncs:
+                    await ws.send(json.dumps({"type": "sync", "id": i}))
+                held_syncs.clear()
+            later = asyncio.create_task(answer_later())
+            async for data in ws:
+                m = json.loads(data)
+                if m["type"] == "sync":
+                    if name == "a" and not later.done():
+                        held_syncs.append(m["id"])
+                    else:
+                        await ws.send(json.dumps({"type": "sync", "id": m["id"]}))
+                    continue
+                got[name].append(data)
+                if m["type"] == "hello":
+                    await ws.send(json.dumps({"type": "hello", "protocol": 1}))
+                if name == "b" and len(got["b"]) == len(msgs["b"]):
+                    b_done.set()
+
+        async with serve(handler, "127.0.0.1", 0) as server:
+            url = f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+            gloves = [LeanGlove(url, n, "token", max_unconfirmed=16) for n in got]
+            await asyncio.gather(*(g.open(msgs[n][0][1]) for g, n in zip(gloves, got)))
+            texts = {n: [json.dumps(m) for _, m in msgs[n]] for n in got}
+            sent = {n: [] for n in got}
+            stream = asyncio.create_task(stream_gloves(
+                gloves, [msgs[n] for n in got], [ws_frames(texts[n]) for n in got],
+                [lambda w, m, n=n: sent[n].append(m) for n in got], start=time.perf_counter()))
+            await b_done.wait()
+            held = len(got["a"])
+            answer_a.set()
+            await stream
+            for g in gloves:
+                await g.close()
+            return texts, held, sent
+
+    texts, held, sent = asyncio.run(asyncio.wait_for(main(), 60))
+    assert held == 1 + 16                                    # hello, then the 16 messages flow control allows
+    for n in ("a", "b"):                                    # hello as the glove encodes it, the rest as given
+        assert json.loads(got[n][0]) == json.loads(texts[n][0]) and got[n][1:] == texts[n][1:]
+        assert len(sent[n]) == len(texts[n])
+
+
+def test_a_load_glove_whose_connection_drops_reconnects_and_streams_on():
+    """The server closes a glove's first connection (1011) after 10 data messages: the glove connects
+    again, sends hello and its calibration again, and streams on from where it was, in order, to its
+    last message; the messages lost with the connection are counted (``unconfirmed_at_drops``)."""
+    import asyncio
+    import contextlib
+    import json
+    import time
+
+    from websockets.asyncio.server import serve
+    from websockets.exceptions import ConnectionClosed
+
+    from service.bench.loadclients import LeanGlove, stream_gloves, ws_frames
+
+    msgs = [(0.0, {"type": "hello", "protocol": 1, "hand": "left", "source": "g"}), (0.0, {"type": "calibration"})]
+    msgs += [(0.001 * k, {"type": "imu", "t": 0.001 * k, "id": "index.1", "gyr": [0, 0, k], "acc": [0, 9.81, 0]})
+             for k in range(100)]
+    texts = [json.dumps(m) for _, m in msgs]
+    connections = []
+
+    async def handler(ws):
+        got = []
+        connections.append(got)
+        with contextlib.suppress(ConnectionClosed):
+            async for data in ws:
+                m = json.loads(data)
+                if m["type"] == "sync":
+                    await ws.send(json.dumps({"type": "sync", "id": m["id"]}))
+                    continue
+                got.append(data)
+                if m["type"] == "hello":
+                    await ws.send(json.dumps({"type": "hello", "protocol": 1}))
+                if len(connections) == 1 and len(got) == 12:         # hello, calibration, 10 samples
+                    await ws.close(1011, "going away")
+
+    async def main():
+        async with serve(handler, "127.0.0.1", 0) as server:
+            glove = LeanGlove(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "g", "token")
+            await glove.open(msgs[0][1])
+            await stream_gloves([glove], [msgs], [ws_frames(texts)], [lambda w, m: None], start=time.perf_counter())
+            await glove.close()
+            return glove
+
+    glove = asyncio.run(asyncio.wait_for(main(), 60))
+    assert glove.reconnects == 1 and len(connections) == 2
+    first, second = connections                 # (the server may read a few more before its close is through)
+    assert len(first) >= 12 and first[1:] == texts[1:len(first)]
+    assert json.loads(second[0])["type"] == "hello" and second[1] == texts[1]      # calibration sent again
+    resumed = texts.index(second[2])
+    assert len(first) <= resumed and second[2:] == texts[resumed:]                   # in order, to the end
+    assert glove.unconfirmed_at_drops >= resumed - len(first)

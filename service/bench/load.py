@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..protocol import PROTOCOL_VERSION
 from ..sim.session import SimConfig
 from .process import bound_to_this_process, service_process, torn_down_on_signal
 
@@ -88,18 +89,18 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     ``spec["indices"]``. ``ready()`` once everything is simulated and subscribed; ``start_at()`` gives
     the common start (``time.time()``) of every generator process; ``stop`` (a ``threading.Event``),
     once set, ends the gloves' streams early."""
-    from clients.glove import encoded_messages, source_messages, stream_glove
+    from clients.glove import encoded_messages, source_messages
 
-    from .loadclients import LeanSubscription
+    from .loadclients import LeanGlove, LeanSubscription, stream_gloves, ws_frames
 
     urls, viewer, subscribers, seconds, binary = spec["urls"], spec["viewer"], spec["subscribers"], spec["seconds"], spec["binary"]
     indices = spec["indices"]
     configs = [SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=i,
                          hand="right" if i % 2 == 0 else "left") for i in indices]
-    # simulate every glove, and encode its messages, before the clock starts, so that they all stream
-    # together and the gloves only send bytes ready made while they stream
+    # simulate every glove, and encode and frame its messages, before the clock starts, so that they all
+    # stream together and the gloves only write bytes ready made while they stream
     msgs = [source_messages(c) for c in configs]
-    encoded = [encoded_messages(m, binary) for m in msgs]
+    frames = [ws_frames(encoded_messages(m, binary)) for m in msgs]
     # the simulated messages are millions of objects that live to the end: a full collection scanning them
     # took 0.65 s for two hands of 150 s, and paused the gloves and subscribers mid-stream (taken for the
     # service's delay); kept out of the collector's generations from here on
@@ -107,7 +108,6 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     gc.freeze()
     names = [f"load-{i}" for i in indices]
     last_send = {n: 0.0 for n in names}
-    first_send = {n: 0.0 for n in names}
     received = {(n, k): [] for n in names for k in range(subscribers)}      # (arrival, latency, seq, hand, t)
 
     def on_frame_for(name, rows):
@@ -122,6 +122,12 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             for i, n in zip(indices, names) for k in range(subscribers)}
     for s in subs.values():
         s.start()
+    # the gloves connected (hello sent) before the clock starts too
+    gloves = [LeanGlove(urls[i % len(urls)], n, spec["source"], binary=binary) for i, n in zip(indices, names)]
+    await asyncio.gather(*(g.open(m[0][1] if m[0][1]["type"] == "hello" else
+                                  {"type": "hello", "protocol": PROTOCOL_VERSION, "hand": c.hand,
+                                   "source": f"fingertrack-glove {c.motion}"})
+                           for g, m, c in zip(gloves, msgs, configs)))
     deadline = time.monotonic() + 120.0
     while not all(s.server_hello is not None for s in subs.values()) and time.monotonic() < deadline:
         await asyncio.sleep(0.05)                            # the subscriptions are open before any data
@@ -131,22 +137,22 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     def on_send_for(name):
         def on_send(wall, _msg):
             last_send[name] = wall
-            if first_send[name] == 0.0:
-                first_send[name] = wall
         return on_send
 
     cpu0, wall0 = time.process_time(), time.perf_counter()
-    pubs = await asyncio.gather(*(stream_glove(urls[i % len(urls)], n, spec["source"], c, on_send=on_send_for(n),
-                                               messages=m, binary=binary, stop=stop, encoded=e)
-                                  for i, n, c, m, e in zip(indices, names, configs, msgs, encoded)))
+    first_send = {n: wall0 for n in names}   # every glove's schedule starts then (its first message is due)
+    await stream_gloves(gloves, msgs, frames, [on_send_for(n) for n in names], wall0, stop)   # one timer for all
+    await asyncio.sleep(0.1)
     wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-    for p in pubs:
-        await p.close()                                       # returns once the service has handled everything sent (sync)
+    # each glove closes once the service has handled everything it sent (sync)
+    for r in await asyncio.gather(*(g.close() for g in gloves), return_exceptions=True):
+        if isinstance(r, BaseException):
+            raise RuntimeError(f"a glove failed: {r!r}") from r
     accounts = await _until_delivered(urls, names, received, subscribers, spec["admin"], indices)
-    errors = sum(len(p.errors) for p in pubs)                 # after closing: replies to the last messages included
+    errors = sum(len(g.errors) for g in gloves)               # after closing: replies to the last messages included
     # a subscriber that reconnects loses what its old connection had queued: neither delivered nor dropped
     reconnects = sum(s.reconnects for s in subs.values())
-    glove_reconnects = sum(getattr(p, "reconnects", 0) for p in pubs)
+    glove_reconnects = sum(g.reconnects for g in gloves)
     for r in await asyncio.gather(*(s.close() for s in subs.values()), return_exceptions=True):
         if isinstance(r, BaseException):
             raise RuntimeError(f"a subscriber failed: {r!r}") from r

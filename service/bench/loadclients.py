@@ -9,6 +9,10 @@ the transport's own callbacks, with no task, queue or future per message:
   as it arrives; a message that does not decode, or a frame without those fields, is counted
   (``malformed_count``), not dropped silently. It reconnects with back-off, as
   ``clients.client.Subscription`` does, counting ``reconnects``.
+* ``LeanGlove`` streams a simulated glove's messages, each framed (masked) before the clock starts
+  (``ws_frames``) and written as it is, with ``clients.client.Publisher``'s flow control (a ``sync``
+  every 64 messages, at most 256 unconfirmed) and its reconnect (hello and calibration sent again);
+  ``stream_gloves`` sends every glove of a process from one timer: at each wake, every message due.
 """
 from __future__ import annotations
 
@@ -19,11 +23,12 @@ from typing import Callable
 import msgspec
 from websockets.client import ClientProtocol
 from websockets.exceptions import InvalidStatus
-from websockets.frames import Opcode
+from websockets.frames import Frame, Opcode
 from websockets.http11 import Response
 from websockets.uri import parse_uri
 
-from clients.client import FATAL_CLOSE_CODES, Backoff, _path, _shown, _url
+from clients.client import FATAL_CLOSE_CODES, Backoff, Refused, _path, _shown, _url
+from service.protocol import decode, encode
 
 
 class Received(msgspec.Struct):
@@ -58,6 +63,9 @@ class _LeanConnection(asyncio.Protocol):
         self._lost: asyncio.Future | None = None
         self._parts: list[bytes] = []
         self._binary_message = False
+        self.failure: Refused | None = None
+        self._closing = False
+        self._task: asyncio.Task | None = None
 
     async def _connect(self) -> None:
         """Open the connection and complete the handshake; raises ``InvalidStatus`` (refused) or
@@ -74,6 +82,14 @@ class _LeanConnection(asyncio.Protocol):
 
     def connection_made(self, transport) -> None:
         self.transport = transport
+
+    def _send(self, data: str | bytes) -> None:
+        """One message through the protocol (text for ``str``, binary for ``bytes``)."""
+        if isinstance(data, str):
+            self.proto.send_text(data.encode())
+        else:
+            self.proto.send_binary(data)
+        self._flush()
 
     def _flush(self) -> None:
         for data in self.proto.data_to_send():
@@ -118,6 +134,28 @@ class _LeanConnection(asyncio.Protocol):
     def _message(self, data: bytes, binary: bool, arrival: float) -> None:
         raise NotImplementedError
 
+    def _refusal(self, err: BaseException | None = None) -> Refused | None:
+        """What refused this client for good (``clients.client``'s rule): an HTTP status other than 429
+        and 5xx (``err``), or a closing code that means so; None where retrying may help."""
+        if isinstance(err, InvalidStatus):
+            status = err.response.status_code
+            return None if status == 429 or status >= 500 else Refused(f"{_shown(self.url)}: HTTP {status}")
+        code = self.proto.close_code if self.proto is not None else None
+        if code in FATAL_CLOSE_CODES:
+            return Refused(f"{_shown(self.url)}: closed by the service ({code}: {self.proto.close_reason})")
+        return None
+
+    async def _end(self) -> None:
+        """Closed for good (no reconnect): the closing handshake, the background task stopped, and what
+        refused this client for good raised, if anything did."""
+        self._closing = True
+        await self._close()
+        if self._task is not None:
+            self._task.cancel()
+            await asyncio.gather(self._task, return_exceptions=True)
+        if self.failure is not None:
+            raise self.failure
+
     async def _close(self, timeout_s: float = 10.0) -> None:
         """The closing handshake (code 1000), then the TCP connection closed (at the latest after
         ``timeout_s``)."""
@@ -152,32 +190,23 @@ class LeanSubscription(_LeanConnection):
         self.reconnects = 0
         self.malformed: list = []
         self.malformed_count = 0
-        self.failure: BaseException | None = None
-        self._closing = False
-        self._task: asyncio.Task | None = None
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run())
 
     async def _run(self) -> None:
         while not self._closing:
+            err = None
             try:
                 await self._connect()
                 self.backoff.reset()
                 await self._lost
-            except InvalidStatus as err:
-                status = err.response.status_code
-                if status != 429 and status < 500:
-                    self.failure = ConnectionRefusedError(f"{_shown(self.url)}: HTTP {status}")
-                    return
-            except (OSError, ConnectionError):
-                pass
+            except (InvalidStatus, OSError) as failed:
+                err = failed
             if self._closing:
                 return
-            code = self.proto.close_code if self.proto is not None else None
-            if code in FATAL_CLOSE_CODES:
-                self.failure = ConnectionRefusedError(f"{_shown(self.url)}: closed by the service ({code}: "
-                                                      f"{self.proto.close_reason})")
+            self.failure = self._refusal(err)
+            if self.failure is not None:
                 return
             self.reconnects += 1
             await asyncio.sleep(self.backoff.next())
@@ -206,10 +235,238 @@ class LeanSubscription(_LeanConnection):
             self.malformed.append(what)
 
     async def close(self) -> None:
-        self._closing = True
-        await self._close()
-        if self._task is not None:
-            self._task.cancel()
-            await asyncio.gather(self._task, return_exceptions=True)
-        if self.failure is not None:
-            raise self.failure
+        await self._end()
+
+
+def ws_frames(encoded: list[str | bytes]) -> list[bytes]:
+    """Each message (text for ``str``, binary for ``bytes``) as the client's WebSocket frame on the
+    wire: unfragmented, masked with its own random key (RFC 6455 5.3), ready to write as it is."""
+    return [Frame(Opcode.TEXT, m.encode(), fin=True).serialize(mask=True) if isinstance(m, str)
+            else Frame(Opcode.BINARY, m, fin=True).serialize(mask=True) for m in encoded]
+
+
+class LeanGlove(_LeanConnection):
+    """A glove's source connection (``/v1/ingest/<session>``): ``open(hello)`` connects and sends
+    ``hello`` (``hello`` and the last calibration again after a reconnect); ``write(frame, message)``
+    writes one message's ready frame (``ws_frames``) when ``ready()``, i.e. connected, the transport
+    not paused, and fewer than ``max_unconfirmed`` messages (``max_unconfirmed_bytes`` bytes) not yet
+    confirmed by an answered ``sync`` (one goes out every quarter of it, as ``Publisher`` does).
+    ``on_ready()`` is called when it becomes ready again. ``errors`` keeps the service's error replies
+    (``Received``-like dicts); ``close()`` waits for the service to have handled everything sent."""
+
+    def __init__(self, url: str, session: str, token: str, binary: bool = False, max_unconfirmed: int = 256,
+                 max_unconfirmed_bytes: int = 8 << 20, backoff: Backoff | None = None, max_errors: int = 1000):
+        super().__init__(_url(url, _path("ingest", session), token, binary))
+        self.binary = binary
+        self.max_unconfirmed, self.max_unconfirmed_bytes = max_unconfirmed, max_unconfirmed_bytes
+        self.backoff = backoff or Backoff()
+        self.errors: list[dict] = []
+        self.max_errors = max_errors
+        self.reconnects = self.unconfirmed_at_drops = 0
+        self.on_ready: Callable[[], None] = lambda: None
+        self.hello: dict | None = None
+        self.calibration: bytes | None = None
+        self.connected = self._paused = False
+        self._sent = self._sent_bytes = self._confirmed = self._confirmed_bytes = 0
+        self._sync_id = 0
+        self._marks: dict[int, tuple[int, int]] = {}
+        self._waiters: dict[int, asyncio.Future] = {}
+        self._server_hello: asyncio.Future | None = None
+
+    async def open(self, hello: dict) -> None:
+        """Connect and send ``hello``; raises what refused it (an ``error`` reply, an HTTP status)."""
+        self.hello = hello
+        loop = asyncio.get_running_loop()
+        self._server_hello = loop.create_future()
+        await self._connect()
+        self._sent = self._sent_bytes = self._confirmed = self._confirmed_bytes = 0
+        self._marks.clear()
+        self._send(encode(hello, self.binary))
+        reply = await self._server_hello
+        if reply.get("type") == "error":
+            raise Refused(f"{_shown(self.url)}: {reply.get('code')}: {reply.get('detail')}")
+        if self.calibration is not None:
+            self.transport.write(self.calibration)
+        self.connected = True
+
+    def ready(self) -> bool:
+        if not self.connected or self._paused:
+            return False
+        unconfirmed = self._sent - self._confirmed
+        return unconfirmed < self.max_unconfirmed and (
+            unconfirmed == 0 or self._sent_bytes - self._confirmed_bytes < self.max_unconfirmed_bytes)
+
+    def write(self, frame: bytes, message: dict) -> None:
+        """Write one message's ready frame (the caller checked ``ready()``)."""
+        if message.get("type") == "calibration":
+            self.calibration = frame
+        self.transport.write(frame)
+        self._sent += 1
+        self._sent_bytes += len(frame)
+        if self._sent % max(1, self.max_unconfirmed // 4) == 0 or not self.ready():
+            self._send_sync()
+
+    def _send_sync(self, waiter: asyncio.Future | None = None) -> None:
+        self._sync_id += 1
+        self._marks[self._sync_id] = (self._sent, self._sent_bytes)
+        if waiter is not None:
+            self._waiters[self._sync_id] = waiter
+        self._send(encode({"type": "sync", "id": self._sync_id}, self.binary))
+
+    def _message(self, data: bytes, binary: bool, arrival: float) -> None:
+        try:
+            msg = decode(data if binary else data.decode(), binary=binary)
+        except ValueError as err:                   # kept as an error reply
+            msg = {"type": "error", "code": "undecodable_reply", "detail": str(err)}
+        kind = msg.get("type") if isinstance(msg, dict) else None
+        if self._server_hello is not None and not self._server_hello.done():
+            self._server_hello.set_result(msg if isinstance(msg, dict) else {"type": "error", "code": "bad_reply"})
+        elif kind == "error":
+            if len(self.errors) < self.max_errors:
+                self.errors.append(msg)
+        elif kind == "sync":
+            mark = self._marks.pop(msg.get("id"), None)
+            waiter = self._waiters.pop(msg.get("id"), None)
+            if waiter is not None and not waiter.done():
+                waiter.set_result(None)
+            if mark is not None:
+                was = self.ready()
+                self._confirmed = max(self._confirmed, mark[0])
+                self._confirmed_bytes = max(self._confirmed_bytes, mark[1])
+                if not was and self.ready():
+                    self.on_ready()
+
+    def pause_writing(self) -> None:
+        self._paused = True
+
+    def resume_writing(self) -> None:
+        self._paused = False
+        if self.ready():
+            self.on_ready()
+
+    def connection_lost(self, exc) -> None:
+        super().connection_lost(exc)
+        for waiter in self._waiters.values():
+            if not waiter.done():
+                waiter.set_exception(ConnectionError("the connection closed before the service answered sync"))
+        self._waiters.clear()
+        if self._server_hello is not None and not self._server_hello.done():
+            self._server_hello.set_exception(exc or ConnectionError("closed before the service's hello"))
+        if self.connected and not self._closing:
+            self.connected = False
+            self.unconfirmed_at_drops += self._sent - self._confirmed
+            self._task = asyncio.get_running_loop().create_task(self._reconnect())
+        self.connected = False
+
+    async def _reconnect(self) -> None:
+        """After a drop: connect again with back-off (hello and calibration resent), then ``on_ready``;
+        refused for good: ``failure``, and the glove stays closed."""
+        err = None
+        while not self._closing:
+            self.failure = self._refusal(err)
+            if self.failure is not None:
+                return
+            self.reconnects += 1
+            await asyncio.sleep(self.backoff.next())
+            try:
+                await self.open(self.hello)
+            except Refused as refused:
+                self.failure = refused
+                return
+            except (InvalidStatus, OSError) as failed:
+                err = failed
+                continue
+            self.backoff.reset()
+            self.on_ready()
+            return
+
+    async def close(self, sync_timeout_s: float = 30.0) -> None:
+        """Once the service has answered a last ``sync`` (it has handled everything sent; at most
+        ``sync_timeout_s``), the closing handshake; raises what refused it for good, if anything did."""
+        if self.connected:
+            waiter = asyncio.get_running_loop().create_future()
+            self._send_sync(waiter)
+            try:
+                await asyncio.wait_for(waiter, sync_timeout_s)
+            except (asyncio.TimeoutError, ConnectionError):
+                pass
+        await self._end()
+
+
+PER_WAKE = 32
+"""at most this many messages of one glove per wake of ``stream_gloves`` (a glove far behind catches up
+over several turns of the loop, the subscribers read in between)"""
+
+
+async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float, dict]]], frames: list[list[bytes]],
+                        on_send: list[Callable[[float, dict], None]], start: float, stop=None) -> None:
+    """Stream every glove in real time from one timer: glove i's message j is due ``messages[i][j][0] -
+    messages[i][0][0]`` s after ``start`` (``time.perf_counter()``) and written as ``frames[i][j]``; at
+    each wake every glove that is ``ready()`` writes what is due, the gloves taken in turn from a
+    different one each wake (a glove not ready, e.g. held by flow control, waits without holding the
+    others), then ``on_send[i](time.perf_counter(), message)``. A ``hello`` is not written
+    (``LeanGlove.open`` sent it). ``stop``: a ``threading.Event`` that ends the stream early once set."""
+    loop = asyncio.get_running_loop()
+    t0 = loop.time() + (start - time.perf_counter())
+    due = [[t0 + (a - m[0][0]) for a, _ in m] for m in messages]
+    turn = [0]
+    pos = [0] * len(gloves)
+    done = loop.create_future()
+    timer: list = [None, 0.0]                       # the pending wake and its time
+
+    def wake(when: float | None = None) -> None:
+        if timer[0] is not None:
+            timer[0].cancel()
+        timer[0], timer[1] = (loop.call_soon(fire), loop.time()) if when is None else (loop.call_at(when, fire), when)
+
+    def fire() -> None:
+        now = max(loop.time(), timer[1])
+        timer[0] = None
+        if stop is not None and stop.is_set():
+            done.set_result(None)
+            return
+        nearest, behind = None, False
+        turn[0] = (turn[0] + 1) % len(gloves)
+        for i in range(turn[0] - len(gloves), turn[0]):
+            i %= len(gloves)
+            glove = gloves[i]
+            j, d, n = pos[i], due[i], len(due[i])
+            sent = 0
+            while j < n and d[j] <= now and glove.ready() and sent < PER_WAKE:
+                msg = messages[i][j][1]
+                if msg.get("type") != "hello":
+                    glove.write(frames[i][j], msg)
+                on_send[i](time.perf_counter(), msg)
+                j += 1
+                sent += 1
+            pos[i] = j
+            if j < n and glove.failure is None:
+                if d[j] <= now:
+                    behind = behind or glove.ready()
+                elif nearest is None or d[j] < nearest:
+                    nearest = d[j]
+        if all(pos[i] >= len(due[i]) or g.failure is not None for i, g in enumerate(gloves)):
+            done.set_result(None)
+        elif behind:
+            wake()
+        elif nearest is not None:
+            wake(nearest)
+
+    def on_ready() -> None:                         # a glove held back may write again
+        if not done.done() and (timer[0] is None or timer[1] > loop.time()):
+            wake()
+
+    for g in gloves:
+        g.on_ready = on_ready
+    wake()
+    if stop is not None:
+        async def watch():
+            while not done.done():
+                await asyncio.sleep(0.05)
+                if stop.is_set() and not done.done():
+                    wake()
+        watcher = loop.create_task(watch())
+        await done
+        watcher.cancel()
+    else:
+        await done
