@@ -660,6 +660,44 @@ async def _answer_all(live, turns: int = 30) -> None:
             live.on_reply(n, [], True)
 
 
+def _in_order_over_seeds(order) -> int:
+    """``order(seed)`` (the worker's types, the types fed, how many went the quick way) over six seeds: the
+    worker got every message in order each time; how many went the quick way in all."""
+    quick = 0
+    for seed in range(6):
+        got, expected, n = asyncio.run(order(seed))
+        assert got == expected, seed
+        quick += n
+    return quick
+
+
+async def _random_stream(rnd, msgs: list[dict], ws, live, sent, reader, backlog, processor) -> list[str]:
+    """A hello and ``msgs`` fed to the ingest route in random interleavings (data whose head the reader knows
+    and data only the processor decodes, syncs, the worker answering at random turns) until the worker got
+    them all and every sync was answered, then the connection's end; the types fed, in order."""
+    expected, syncs = ["hello"], 0
+    ws.feed(HELLO)
+    for m in msgs:
+        if m["type"] in ("imu_batch", "pose") and rnd.random() < 0.3:     # type last: the processor's path
+            m = {**{k: v for k, v in m.items() if k != "type"}, "type": m["type"]}
+        ws.feed(m)
+        expected.append(m["type"])
+        if rnd.random() < 0.1:
+            syncs += 1
+            ws.feed({"type": "sync", "id": syncs})
+        for _ in range(rnd.randrange(3)):
+            await asyncio.sleep(0)
+        if live._pending and rnd.random() < 0.5:
+            live.on_reply(min(live._pending), [], True)
+    while len(_source_types(sent)) < len(expected) or sum(s["type"] == "sync" for s in ws.sent) < syncs:
+        await _answer_all(live, 1)
+    ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+    await reader
+    backlog.close()
+    await processor
+    return expected
+
+
 def test_the_ingest_reader_hands_data_on_itself_only_in_order_and_only_after_its_own_connection_s_hello():
     """The ingest route's reader hands a data message on itself only while the processor waits with nothing
     queued: over random interleavings (data whose head the reader knows and data only the processor decodes,
@@ -676,32 +714,12 @@ def test_the_ingest_reader_hands_data_on_itself_only_in_order_and_only_after_its
     data = next(m for m in msgs if m["type"] == "imu_batch")
 
     async def order(seed):
-        rnd = random.Random(seed)
         settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
         ws, backlog, processor, reader = _route(live, settings, metrics)
         by_reader = []
         forwardable = live.forwardable
         live.forwardable = lambda data: by_reader.append(forwardable(data)) or by_reader[-1]
-        expected, syncs = ["hello"], 0
-        ws.feed(HELLO)
-        for m in msgs:
-            if m["type"] in ("imu_batch", "pose") and rnd.random() < 0.3:     # type last: the processor's path
-                m = {**{k: v for k, v in m.items() if k != "type"}, "type": m["type"]}
-            ws.feed(m)
-            expected.append(m["type"])
-            if rnd.random() < 0.1:
-                syncs += 1
-                ws.feed({"type": "sync", "id": syncs})
-            for _ in range(rnd.randrange(3)):
-                await asyncio.sleep(0)
-            if live._pending and rnd.random() < 0.5:
-                live.on_reply(min(live._pending), [], True)
-        while len(_source_types(sent)) < len(expected) or sum(s["type"] == "sync" for s in ws.sent) < syncs:
-            await _answer_all(live, 1)
-        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
-        await reader
-        backlog.close()
-        await processor
+        expected = await _random_stream(random.Random(seed), msgs, ws, live, sent, reader, backlog, processor)
         return _source_types(sent), expected, sum(x is not None for x in by_reader)
 
     async def takeover():
@@ -746,12 +764,7 @@ def test_the_ingest_reader_hands_data_on_itself_only_in_order_and_only_after_its
         await processor
         return [(s["type"], s.get("code")) for s in ws.sent if s["type"] != "hello"]
 
-    handed = 0
-    for seed in range(6):
-        got, expected, by_reader = asyncio.run(order(seed))
-        assert got == expected, seed
-        handed += by_reader
-    assert handed > 0
+    assert _in_order_over_seeds(order) > 0
     errors, to_worker = asyncio.run(takeover())
     assert errors == ["expected_hello"] and to_worker == ["hello"]
     assert asyncio.run(defect()) == [("error", "internal_error"), ("sync", None)]
@@ -876,3 +889,127 @@ def test_a_flood_of_syncs_is_bounded_by_the_backlog_while_the_worker_or_the_sour
     assert 0 < most <= 8 and 0 < held <= 16, (most, held)
     assert refused and all(r["code"] == "overloaded" for r in refused), refused[:3]
     assert answered == sorted(answered) and len(answered) + len(refused) == flood, (answered, len(refused))
+
+
+def test_the_server_s_way_in_hands_data_on_as_it_arrives_only_in_order_and_within_the_rate_limit():
+    """``routes.ingest._Door.intake`` (the server offers a text message as it arrives while nothing waits in
+    its queue before it): over random interleavings (data whose head is known and data only the processor
+    decodes, calibrations, syncs, the worker answering at random turns) the worker gets every source message in
+    the order received, and the way in did take some; past the rate limit it takes none and the reader
+    refuses them (``rate_limited``) in their places, between the answers to the syncs around them."""
+    import json
+    import random
+
+    from service.api.backlog import IngestBacklog
+    from service.api.routes import ingest as route
+    from service.api.routes.socket import send_error
+
+    msgs = [m for m in _glove(0.3, 3) if m["type"] != "hello"]
+
+    def door_of(live, settings, metrics):
+        ws, _, processor, reader = _route(live, settings, metrics)     # (its reader is replaced below)
+        reader.cancel()
+        processor.cancel()
+        backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
+        processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics))
+        door = route._Door(ws, "s", live, backlog, processor, settings, metrics)
+        taken = []
+
+        def feed(message):                          # as ``server.DrainingWebSocket`` offers a message
+            text = message if isinstance(message, str) else json.dumps(message, separators=(",", ":"))
+            if ws.inbox.empty() and door.intake(text):
+                taken.append(text)
+            else:
+                ws.inbox.put_nowait({"type": "websocket.receive", "text": text})
+        ws.feed = feed
+        live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
+        return ws, backlog, processor, asyncio.create_task(door.read()), taken
+
+    async def order(seed):
+        settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
+        ws, backlog, processor, reader, taken = door_of(live, settings, metrics)
+        expected = await _random_stream(random.Random(seed), msgs, ws, live, sent, reader, backlog, processor)
+        return _source_types(sent), expected, len(taken)
+
+    async def limited():
+        settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=5)
+        ws, backlog, processor, reader, taken = door_of(live, settings, metrics)
+        ws.feed(HELLO)
+        await _answer_all(live, 10)
+        data = [m for m in msgs if m["type"] == "imu_batch"][:12]
+        ws.feed({"type": "sync", "id": 1})
+        for m in data:
+            ws.feed(m)
+            await _answer_all(live, 3)
+        ws.feed({"type": "sync", "id": 2})
+        deadline = time.monotonic() + 60            # (bounds a failure only)
+        while len(ws.sent) < 1 + 1 + (12 - _source_types(sent).count("imu_batch")) + 1:
+            assert time.monotonic() < deadline, ws.sent
+            await _answer_all(live, 1)
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await reader
+        backlog.close()
+        await processor
+        return [(s["type"], s.get("code", s.get("id"))) for s in ws.sent if s["type"] != "hello"], \
+            _source_types(sent), len(taken)
+
+    assert _in_order_over_seeds(order) > 0
+    replies, to_worker, taken = asyncio.run(limited())
+    # a bucket of 5: the hello and the first sync took 2; 3 data messages pass (one more if the bucket refilled
+    # meanwhile), the others are refused in their places; the last sync is answered or refused
+    passed = to_worker.count("imu_batch")
+    assert 3 <= passed <= 4 and 1 <= taken <= passed
+    assert replies[:-1] == [("sync", 1)] + [("error", "rate_limited")] * (12 - passed)
+    assert replies[-1] in (("sync", 2), ("error", "rate_limited"))
+
+
+def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_real_server(monkeypatch):
+    """A real server and worker: data messages the route takes as they arrive (``_Door.intake``: some are, a
+    count of the real method's takes) go to the worker in order, each invalid one answered by the worker
+    in its place, and every sync after the error replies of the messages before it."""
+    import json
+
+    import websockets
+
+    from service.api.routes import ingest as route
+    from service.api.server import ServerThread
+
+    taken = []
+    intake = route._Door.intake
+
+    def counted(self, text):
+        took = intake(self, text)
+        taken.append(took)
+        return took
+    monkeypatch.setattr(route._Door, "intake", counted)
+    token = "source-token"
+    settings = ServiceSettings.load(port=0, tokens={token: "source"}, hand_workers=1, hand_worker_isolate=False)
+    batches = [m for m in _glove(1.0, 4) if m["type"] == "imu_batch"][:40]
+
+    async def run(url):
+        got = []
+        async with websockets.connect(f"{url}/v1/ingest/s?token={token}") as ws:
+            await ws.send(json.dumps(HELLO))
+            got.append(json.loads(await ws.recv())["type"])
+            expected = []
+            for k, m in enumerate(batches):
+                if k % 5 == 2:                      # its head is a data message's; its body is not valid
+                    m = {"type": "imu_batch", "samples": [{"t": m["samples"][0]["t"], "id": "index.1",
+                                                           "gyr": [0.0, 0.0], "acc": [0.0, 9.81, 0.0]}]}
+                    expected.append(("error", k))
+                await ws.send(json.dumps(m, separators=(",", ":")))
+                if k % 8 == 7:
+                    await ws.send(json.dumps({"type": "sync", "id": k}))
+                    expected.append(("sync", k))
+            while len(got) < 1 + len(expected):
+                reply = json.loads(await asyncio.wait_for(ws.recv(), 60))
+                got.append(("sync", reply["id"]) if reply["type"] == "sync" else ("error", reply["code"]))
+        return got, expected
+
+    with ServerThread(settings) as server:
+        got, expected = asyncio.run(run(server.ws_url))
+    assert got[0] == "hello"
+    # each invalid message's error before the sync after it, none after; their codes the worker's
+    shown = [("error", "invalid_message") if kind == "error" else (kind, k) for kind, k in expected]
+    assert got[1:] == shown
+    assert any(taken)

@@ -37,8 +37,23 @@ class DrainingWebSocket(WebSocketsSansIOProtocol):
     messages of up to ``ws_max_size`` each (4 x ``max_message_bytes``), plus one read, wait here: 16 times
     what uvicorn's own rule let wait."""
     _draining = False
+    intake = None
+    """``intake(text) -> bool``, set by the app's route (``routes.ingest``): a received text message offered to
+    the app at once, in this callback, while nothing waits in the queue for the app before it; ``True``: taken
+    (no queue, no wake of the app's task, no ASGI ``receive`` for it), ``False``: queued as usual."""
 
     def send_receive_event_to_app(self) -> None:
+        intake = self.intake
+        if intake is not None and self.curr_msg_data_type == "text" and len(self.frames) == 1 \
+                and not self.close_sent and self.queue.empty():
+            try:
+                text = self.frames[0].decode()
+            except UnicodeDecodeError:
+                pass                                          # refused below, as uvicorn does (1007)
+            else:
+                if intake(text):
+                    self.frames = []
+                    return
         paused, self.read_paused = self.read_paused, True     # (so that uvicorn does not pause here)
         try:
             super().send_receive_event_to_app()

@@ -242,6 +242,10 @@ class LiveSession:
         waited for before it goes on: ``None`` here (a session whose hand runs here does the work then)."""
         return None
 
+    def forward(self, msg) -> None:
+        """Hand on a message ``forwardable`` gave, at once (never called here: it gives none)."""
+        raise NotImplementedError
+
     async def ingest(self, raw: dict, parsed) -> Dropped | None:
         """Run one validated source message through the hand and fan the outputs out; after each
         frame it yields to the event loop so the subscribers' senders go out before the next tick.

@@ -827,14 +827,19 @@ class ProcessSession(LiveSession):
         kind = data_type(text)
         return None if kind is None else Unchecked(kind, text, False)
 
+    def forward(self, parsed: "Unchecked") -> None:
+        """A data message to the worker, which validates it (``ingest``, or the route's reader at once for one
+        ``forwardable`` gave: the worker has room for it then)."""
+        self._send_source(parsed.type, ["chk", parsed.data, parsed.binary], None)
+        if self.recorder is not None:               # recording began since it was received: as validated
+            self._record_unchecked(parsed)
+
     async def ingest(self, raw: dict, parsed) -> None:
         while len(self._pending) >= WINDOW:         # backpressure: the source waits for the worker
             self._replied.clear()
             await self._replied.wait()
         if isinstance(parsed, Unchecked):
-            self._send_source(parsed.type, ["chk", parsed.data, parsed.binary], None)
-            if self.recorder is not None:           # recording began since it was received: as validated
-                self._record_unchecked(parsed)
+            self.forward(parsed)
             return None
         self.metrics.of_session(self.name).messages_in.inc()
         if self.recorder is not None:

@@ -120,11 +120,17 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
     live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
     processor = asyncio.create_task(_process(ws, session, live, backlog, metrics))
+    door = _Door(ws, session, live, backlog, processor, settings, metrics)
+    wire = getattr(ws.state, "wire", None)
+    if wire is not None:                     # the server hands such messages over as they arrive (``_Door.intake``)
+        wire.intake = door.intake
     try:
         # in a task of its own: each wait for a message suspends and resumes its few frames, not the two dozen
         # of the server's and the framework's layers around this route
-        await asyncio.create_task(_read(ws, session, live, backlog, processor, settings, metrics))
+        await asyncio.create_task(door.read())
     finally:
+        if wire is not None:
+            wire.intake = None
         backlog.close()                      # what was received is still processed (its replies go nowhere)
         await asyncio.gather(processor, return_exceptions=True)
         release(ws)
@@ -133,38 +139,104 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
             live.touch()
 
 
+class _Door:
+    """The connection's reading side: every received message admitted (size, rate), then handed to the
+    session at once (a data message its worker validates, while the processor waits with nothing queued:
+    ``LiveSession.forwardable``), or queued for the processor, or refused with a reply in its place.
+
+    ``read`` reads the connection all the time (``backlog.py``: pings and pongs keep passing) until it ends
+    or the processor is done. ``intake`` is the server's way in for a text message as it arrives
+    (``server.DrainingWebSocket``), taken only while ``read`` waits for the next message with nothing
+    received before it left waiting: a message handed on at once then goes there as ``read`` would hand
+    it on, without a turn of the loop, a wake of ``read`` and the ASGI layers' receive per message (a
+    quarter of the web process's time per glove message)."""
+
+    def __init__(self, ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, processor: asyncio.Task,
+                 settings: ServiceSettings, metrics: Metrics):
+        self.ws, self.session, self.live, self.backlog, self.processor = ws, session, live, backlog, processor
+        self.settings, self.metrics = settings, metrics
+        self.bucket = TokenBucket(settings.rate_limit_msgs_per_s)
+        self.waiting = False
+        """``read`` waits for the next message and everything received before was taken"""
+
+    async def read(self) -> None:
+        ws = self.ws
+        try:
+            while not self.processor.done():
+                self.waiting = True
+                try:
+                    data = await ws.receive()
+                finally:
+                    self.waiting = False
+                if data["type"] == "websocket.disconnect":
+                    break
+                if not self.take(data):
+                    await self.close_overloaded()
+                    break
+        except (WebSocketDisconnect, RuntimeError):   # RuntimeError: the processor closed the connection
+            pass
+
+    def intake(self, text: str) -> bool:
+        """A text message as it arrives: ``True`` if taken here (handed on at once to the session, as ``read``
+        would have); ``False``: not now (it goes to ``read`` through the server's queue)."""
+        if not self.waiting or self.processor.done():
+            return False
+        data = {"type": "websocket.receive", "text": text}
+        msg = self.forwardable(data, _size(data))
+        if msg is None or not self.bucket.take():
+            return False                     # (a failed take uses no token: ``read`` asks again)
+        if not self.forward(msg):
+            asyncio.get_running_loop().create_task(self.close_overloaded())
+        return True
+
+    def forwardable(self, data: dict, size: int):
+        """The message, if it may go to the session at once (within the size limit, the processor waiting
+        with nothing queued, the session's source this connection and greeted); else ``None``."""
+        backlog = self.backlog
+        if size > self.settings.max_message_bytes or not backlog.greeted or not backlog.idle() \
+                or self.live.source is not self.ws:
+            return None
+        return self.live.forwardable(data)
+
+    def take(self, data: dict) -> bool:
+        """One received message: handed on, queued for the processor, or refused (the reply in its place,
+        after the replies to every earlier one). ``False``: the connection must close (overloaded)."""
+        size = _size(data)
+        msg = self.forwardable(data, size)
+        if msg is not None and self.bucket.take():
+            return self.forward(msg)
+        backlog = self.backlog
+        refused = _admit(size, self.settings, self.bucket)
+        if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
+            self.live.overloaded += 1
+            self.metrics.overloaded.labels(self.session).inc()
+            refused = _overload_reply(data, backlog)
+        return refused is None or self.refuse(refused)
+
+    def forward(self, msg) -> bool:
+        """``msg`` to the session (``LiveSession.forward``); a defect is answered in the message's place, as
+        the processor does. ``False``: the connection must close (overloaded)."""
+        try:
+            self.live.forward(msg)
+            return True
+        except Exception as err:
+            return self.refuse(failure_reply(self.session, msg, err))
+
+    def refuse(self, reply: tuple[str, str]) -> bool:
+        if self.backlog.put_reply(reply):
+            return True
+        self.metrics.disconnects.labels("overloaded").inc()
+        return False
+
+    async def close_overloaded(self) -> None:
+        await _close_quietly(self.ws, WS_TRY_AGAIN_LATER, close_reason(
+            f"overloaded: {self.backlog.max_reply_bytes} bytes of replies to refused messages wait; send less"))
+
+
 async def _read(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, processor: asyncio.Task,
                 settings: ServiceSettings, metrics: Metrics) -> None:
-    """Read the connection all the time (``backlog.py``: pings and pongs keep passing) into the backlog
-    until it ends or the processor is done."""
-    bucket = TokenBucket(settings.rate_limit_msgs_per_s)
-    try:
-        while not processor.done():
-            data = await ws.receive()
-            if data["type"] == "websocket.disconnect":
-                break
-            size = _size(data)
-            refused = _admit(size, settings, bucket)
-            if refused is None and backlog.greeted and backlog.idle() and live.source is ws \
-                    and (msg := live.forwardable(data)) is not None:
-                # the processor waits with nothing queued and would hand it on as it is: here, as it would
-                try:
-                    await live.ingest(None, msg)
-                    continue
-                except Exception as err:     # a defect: answered in the message's place, as the processor does
-                    refused = failure_reply(session, msg, err)
-            if refused is None and not backlog.put(data, size, lambda: _is_data(data)):
-                live.overloaded += 1
-                metrics.overloaded.labels(session).inc()
-                refused = _overload_reply(data, backlog)
-            # a refusal is answered in the message's place, after the replies to every earlier one
-            if refused is not None and not backlog.put_reply(refused):
-                metrics.disconnects.labels("overloaded").inc()
-                await _close_quietly(ws, WS_TRY_AGAIN_LATER, close_reason(
-                    f"overloaded: {backlog.max_reply_bytes} bytes of replies to refused messages wait; send less"))
-                break
-    except (WebSocketDisconnect, RuntimeError):   # RuntimeError: the processor closed the connection
-        pass
+    """The connection's reading side without the server's way in (``_Door.read``)."""
+    await _Door(ws, session, live, backlog, processor, settings, metrics).read()
 
 
 async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, metrics: Metrics) -> None:
