@@ -158,7 +158,8 @@ def test_switching_a_session_to_an_estimator_not_loaded_in_its_worker_does_not_s
     a's stream time after the reply, so that a short switch is judged too.) Without a worker of its own for
     the switched session (``hand_worker_isolate``; ``tests/test_hand_pool.py`` has that case): the
     switch happens in the worker that serves a."""
-    with ServerThread(_settings(1, hand_worker_isolate=False)) as server:
+    # (without the kernels loaded ahead, which would leave no load to the switch)
+    with ServerThread(_settings(1, hand_worker_isolate=False, preload_kernels=False)) as server:
         async def run():
             frames: list = []
             sub = Subscription(server.ws_url, "a", VIEWER)
@@ -418,40 +419,46 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_loads_an_estimator_s_
 
 def test_a_worker_loads_the_cached_estimators_kernels_before_any_switch_and_a_switch_meanwhile_waits_for_them(monkeypatch):
     """``preload_kernels``: once ready, a worker loads the kernels of the estimators found in the disk cache
-    in a thread, before any session asks for them, while it serves its sessions; a change to one of them
-    that comes meanwhile waits for that load (it starts no second one) and applies once it is done."""
+    in a thread, one after another, before any session asks for them, while it serves its sessions; a
+    change to one of them that comes meanwhile waits for that load (it starts no second one) and applies
+    once that one is loaded, while the next still loads."""
     import threading
 
     from service.api import sessions
     from service.api.hands import worker as hands_worker
 
-    entered, release, loads = threading.Event(), threading.Event(), []
+    entered = {"vector": threading.Event(), "ekf": threading.Event()}
+    release = {"vector": threading.Event(), "ekf": threading.Event()}
+    loads, loaded = [], set()
 
     def held_warm(name, params=None):
         loads.append(name)
-        entered.set()
-        assert release.wait(120.0), "the test never released the loading"
-    monkeypatch.setattr(hands_worker, "cached_not_warm", lambda: ["vector"])
+        entered[name].set()
+        assert release[name].wait(600.0), "the test never released the loading"   # (past the 120 s a wait for the worker takes)
+        loaded.add(name)
+    monkeypatch.setattr(hands_worker, "cached_not_warm", lambda: ["vector", "ekf"])
     monkeypatch.setattr(hands_worker, "warm", held_warm)
-    monkeypatch.setattr(hands_worker, "is_warm", lambda name: name != "vector" or (loads and release.is_set()))
+    monkeypatch.setattr(hands_worker, "is_warm", lambda name: name not in entered or name in loaded)
     monkeypatch.setattr(hands_worker, "needs_compiling", lambda name: False)
     monkeypatch.setattr(sessions, "warm_ahead", lambda name, params=None: None)
     peer = _Peer(preload=True)
     try:
-        assert entered.wait(120.0), "the cached kernels' loading never began"      # no session, no change yet
+        assert entered["vector"].wait(120.0), "the cached kernels' loading never began"   # no session, no change yet
         msgs = [m for _, m in _messages("right", 1.0, 5)]
         peer.send([["open", 1, "a", None], ["open", 2, "b", None], ["cfg", 2, 1, {"estimator": "vector"}]])
         peer.send([["src", 1, n, m] for n, m in enumerate(msgs, 1)])
         peer.until(lambda: len(peer.replies(1)) == len(msgs), "session a's replies")
         assert any(m[0] == "out" and m[1] == 1 and m[3][0] == "frame" for m in peer.received)
         assert not any(m[0] == "cfgrep" for m in peer.received)      # b's change waits for the load under way
-        release.set()
+        release["vector"].set()
         peer.until(lambda: any(m[0] == "cfgrep" for m in peer.received), "b's change")
         reply, = [m for m in peer.received if m[0] == "cfgrep"]
         assert reply[1:3] == [2, 1] and reply[3]["estimator"] == "vector" and reply[4] is None, reply
-        assert loads == ["vector"]                  # loaded once, ahead of the change
+        assert not release["ekf"].is_set()          # applied while the next one still loads
+        assert entered["ekf"].wait(120.0) and loads == ["vector", "ekf"]   # each loaded once, ahead of the change
     finally:
-        release.set()
+        for event in release.values():
+            event.set()
         peer.close()
 
 

@@ -160,9 +160,36 @@ def test_the_metrics_text_is_the_client_library_s_byte_for_byte_as_series_come_a
     same()
     metrics.of_session("hand-4").latency.observe(0.001)      # the same name, a new series
     same()
+    metrics.forget_session("hand-7")                         # ... made again with no render between
+    metrics.of_session("hand-7").messages_in.inc(2)
+    same()
+    kept = len(metrics._exposition._heads)
+    metrics.render(False)                                    # a render without the session series keeps theirs
+    assert len(metrics._exposition._heads) == kept
+    metrics.forget_session("hand-8")
+    same()
+    assert len(metrics._exposition._heads) < kept            # a removed session's are dropped
     metrics.sessions.set_function(lambda: 42)
     assert metrics._exposition.render(True) is None
     assert b"fingertrack_sessions 42.0" in metrics.render()
+
+
+def test_the_metrics_text_comes_from_the_client_library_once_the_service_s_writer_fails(monkeypatch, caplog):
+    """A prometheus_client whose internals the writer does not know (its attributes renamed): one warning,
+    then ``generate_latest``'s text at every scrape; /metrics never fails."""
+    from prometheus_client import generate_latest
+
+    from service.api import metrics as metrics_module
+
+    metrics = metrics_module.Metrics()
+    metrics.of_session("a").messages_in.inc()
+    import types
+    monkeypatch.setattr(metrics_module, "_om", types.SimpleNamespace())  # its internals renamed (as 0.20-0.22's are)
+    with caplog.at_level("WARNING", logger="service.api.metrics"):
+        assert metrics.render() == generate_latest(metrics.registry)
+        assert metrics.render() == generate_latest(metrics.registry)
+    assert metrics._exposition is None
+    assert sum("exposition writer failed" in r.message for r in caplog.records) == 1
 
 
 def test_a_messages_websocket_frame_is_built_once_as_the_protocol_library_builds_it():

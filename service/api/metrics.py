@@ -7,12 +7,16 @@ formatted label string for every line at every scrape, 7.5 ms of the event loop 
 lines), each time a monitoring system asks."""
 from __future__ import annotations
 
+import logging
+
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Summary, generate_latest
 from prometheus_client import metrics as _client_metrics
 from prometheus_client.openmetrics import exposition as _om
 from prometheus_client.registry import Collector
 from prometheus_client.utils import floatToGoString
 
+
+log = logging.getLogger(__name__)
 
 class Metrics:
     def __init__(self) -> None:
@@ -42,7 +46,8 @@ class Metrics:
                                           0.006, 0.0075, 0.01, 0.015, 0.02, 0.05, 0.1, 0.5))
 
         self._series: dict[str, SessionSeries] = {}
-        self._exposition = _Exposition(self.registry)
+        self._exposition: _Exposition | None = _Exposition(self.registry)
+        """the fast writer (``render``); ``None`` once it failed: ``generate_latest`` from then on"""
 
     def of_session(self, name: str) -> SessionSeries:
         """The session's per-message series, looked up once (``labels`` on every message cost more than
@@ -64,7 +69,14 @@ class Metrics:
     def render(self, admin: bool = True) -> bytes:
         """The exposition text; without ``admin``, series labelled by session are left out (session
         names are not every role's business)."""
-        text = self._exposition.render(admin)
+        text = None
+        if self._exposition is not None:
+            try:
+                text = self._exposition.render(admin)
+            except Exception:                       # prometheus_client's internals differ (another version)
+                log.warning("metrics: the service's exposition writer failed; prometheus_client's own writes "
+                            "/metrics from now on", exc_info=True)
+                self._exposition = None
         return text if text is not None else generate_latest(self.registry if admin else _WithoutSessions(self.registry))
 
 
@@ -185,7 +197,8 @@ class _Exposition:
             if created:
                 out.append(_help(name + "_created", family._documentation, "gauge"))
                 out.extend(created)
-        if len(seen) != len(self._heads):               # series removed since (``forget_session``)
+        if with_sessions and len(seen) != len(self._heads):  # series removed since (``forget_session``); a render
+            # without the session series saw only some: it keeps the others
             self._heads = {k: v for k, v in self._heads.items() if k in seen}
         return "".join(out).encode("utf-8")
 

@@ -434,7 +434,7 @@ class Worker:
         loaded = []
         for name, job in list(self.warming.items()):
             if isinstance(job, threading.Thread):
-                if not job.is_alive():
+                if not job.is_alive() or is_warm(name):     # (a thread loading several: each once it is loaded)
                     loaded.append(name)
                     del self.warming[name]
             elif job.poll() is not None:
