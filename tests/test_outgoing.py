@@ -311,3 +311,86 @@ def test_ready_made_frames_wait_for_room_and_go_only_to_a_connected_socket():
         return ws.state.wire.written
 
     assert asyncio.run(gone()) == [] and sent == messages
+
+
+def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_turn_else_it_wakes():
+    """``routes.stream``: while a subscriber's sender waits with nothing queued, what is queued within a turn
+    of the loop goes out in one write of its ready-made frames at the end of that turn, without waking the
+    sender, and is counted (``messages_out``); while the connection's buffers are full, or it does not take
+    ready-made frames, the sender is woken and sends them in order as before (waiting for room, or
+    through ASGI)."""
+    from types import SimpleNamespace
+
+    from starlette.websockets import WebSocketState
+
+    from service.api.metrics import Metrics
+    from service.api.routes import stream
+    from service.api.sessions import Subscriber
+
+    class Wire:
+        def __init__(self):
+            self.writable, self.written, self.takes = asyncio.Event(), [], True
+            self.writable.set()
+
+        def write_frames(self, data):
+            if self.takes:
+                self.written.append(data)
+            return self.takes
+
+    class Connection:
+        def __init__(self):
+            self.state, self.application_state = SimpleNamespace(wire=Wire(), binary=False), WebSocketState.CONNECTED
+            self.app = SimpleNamespace(state=SimpleNamespace(sessions=SimpleNamespace(sending={})))
+            self.texts = []
+
+        async def send_text(self, text):
+            self.texts.append(text)
+
+    class Wake(asyncio.Event):
+        woken = 0
+
+        async def wait(self):
+            await super().wait()
+            self.woken += 1
+
+    frames = [outgoing.Outgoing({"type": "frame", "t": float(k), "seq": k}) for k in range(9)]
+
+    async def run():
+        ws, sub, metrics = Connection(), Subscriber(100, 100, wake=Wake()), Metrics()
+        sessions = SimpleNamespace(closing=False)
+        closer = asyncio.get_running_loop().create_future()
+        sender = asyncio.create_task(stream._send_all(ws, "s", False, sub, closer, sessions, metrics))
+        while sub.writer is None:
+            await asyncio.sleep(0)
+        hello = ws.texts[:]
+        for f in frames[:3]:                         # one turn: one write, the sender not woken
+            sub.put(f, 0.0)
+        await asyncio.sleep(0)
+        at_once = (ws.state.wire.written[:], sub.wake.woken, sub.writer is not None)
+        ws.state.wire.writable.clear()               # full: the sender wakes and waits for room
+        for f in frames[3:5]:
+            sub.put(f, 0.0)
+        for _ in range(10):
+            await asyncio.sleep(0)
+        while_full = (len(ws.state.wire.written), sub.writer is None)
+        ws.state.wire.writable.set()
+        while sub.writer is None or sub.queue:
+            await asyncio.sleep(0)
+        ws.state.wire.takes = False                  # no ready-made frames: through ASGI, by the sender
+        for f in frames[5:]:
+            sub.put(f, 0.0)
+        while len(ws.texts) < 1 + 4:
+            await asyncio.sleep(0)
+        closer.set_result(None)
+        sub.wake.set()
+        await sender
+        out = metrics.render().decode()
+        return hello, at_once, while_full, ws.state.wire.written, ws.texts[1:], out
+
+    hello, at_once, while_full, written, texts, out = asyncio.run(run())
+    assert len(hello) == 1
+    assert at_once == ([b"".join(f.wire(False) for f in frames[:3])], 0, True)
+    assert while_full == (1, True)
+    assert written == [at_once[0][0], b"".join(f.wire(False) for f in frames[3:5])]
+    assert texts == [f.text() for f in frames[5:]]
+    assert 'fingertrack_messages_out_total{session="s"} 9.0' in out

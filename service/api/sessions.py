@@ -23,7 +23,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -56,6 +56,11 @@ class Subscriber:
     dropped: int = 0
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     closed: bool = False
+    writer: Callable[[], None] | None = None
+    """set by the subscriber's sender while it waits with nothing queued (``routes.stream``): called once per
+    turn of the loop after messages were queued, to write them there and then, in place of a wake of the
+    sender (its task's turn and its wait's future cost the web process more than the write of a frame)"""
+    _writing_soon: bool = False
 
     def put(self, message: Outgoing, t_ingest: float) -> int:
         """Queue a message; returns how many frames were dropped to make room."""
@@ -74,8 +79,20 @@ class Subscriber:
             raise SubscriberTooSlow()
         self.queue.append((message.type, message, t_ingest))
         self.dropped += dropped
-        self.wake.set()
+        if self.writer is None:
+            self.wake.set()
+        elif not self._writing_soon:
+            self._writing_soon = True
+            asyncio.get_running_loop().call_soon(self._write_soon)
         return dropped
+
+    def _write_soon(self) -> None:
+        self._writing_soon = False
+        if self.writer is not None and self.queue:      # (else the sender woke meanwhile: it sends them)
+            try:
+                self.writer()
+            except Exception:                           # a defect: the sender sends them, and meets it itself
+                self.wake.set()
 
     def pop(self):
         kind, msg, t = self.queue.popleft()

@@ -6,9 +6,11 @@ for ``subscriber_send_timeout_s`` is dropped (``socket.drop_stuck``); shutdown c
 from __future__ import annotations
 
 import asyncio
+import itertools
 import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocketState
 
 from ..deps import WS_GOING_AWAY, WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
@@ -35,11 +37,40 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
                     sessions: Sessions, metrics: Metrics) -> None:
     """The server's hello, then the subscriber's queue as it fills, until the peer leaves, the subscriber
     is closed (too slow) or the server shuts down."""
+    def counted(since: list[float]) -> None:
+        series, now = metrics.of_session(session), time.perf_counter()
+        series.messages_out.inc(len(since))
+        for t0 in since:
+            series.latency.observe(now - t0)
+
+    def write_queued() -> None:
+        """While the sender waits with nothing queued: what was queued since, written at once as the sender
+        would write it (``send_outputs``' ready-made frames) while the connection takes them so; else the
+        sender is woken and sends them (it waits while the buffers are full, or sends through ASGI)."""
+        wire, binary = getattr(ws.state, "wire", None), ws.state.binary
+        while sub.queue:
+            if wire is None or closer.done() or sessions.closing or sub.closed or not wire.writable.is_set() \
+                    or ws.application_state is not WebSocketState.CONNECTED:
+                sub.wake.set()
+                return
+            batch = list(itertools.islice(sub.queue, SEND_BATCH))
+            data = batch[0][1].wire(binary) if len(batch) == 1 else b"".join(m.wire(binary) for _, m, _ in batch)
+            if not wire.write_frames(data):
+                sub.wake.set()
+                return
+            for _ in batch:
+                sub.pop()
+            counted([t0 for _, _, t0 in batch])
+
     try:
         await send(ws, server_hello(session, waiting=waiting))
         while not closer.done():
             if not sub.queue:
-                await sub.wake.wait()
+                sub.writer = write_queued
+                try:
+                    await sub.wake.wait()
+                finally:
+                    sub.writer = None
             if sessions.closing or (sub.closed and not sub.queue):
                 reason = "server shutting down" if sessions.closing else "subscriber too slow: gesture events would be lost"
                 # 1013 "try again later": a client that fell behind may reconnect (1008 means refused)
@@ -52,10 +83,7 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
                     batch.append(msg)
                     since.append(t0)
                 await send_outputs(ws, batch)
-                series, now = metrics.of_session(session), time.perf_counter()
-                series.messages_out.inc(len(batch))
-                for t0 in since:
-                    series.latency.observe(now - t0)
+                counted(since)
     except (WebSocketDisconnect, RuntimeError):
         pass
 
