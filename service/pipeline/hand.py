@@ -294,6 +294,7 @@ class HandSession:
         self._together = ChainHand()        # the fingers advanced in one kernel call per tick
         self._layouts: dict[tuple, _TogetherLayout] = {}
         self._together_phi: tuple[np.ndarray, list[FingerState]] | None = None   # their last angles, all in one array
+        self._phi_slices: tuple[list, list[slice]] | None = None   # (phalanx_start, each finger's slice of the angles)
         self._tick_ids: tuple[str, ...] | None = None          # the sensor ids of the tick being processed
         self._tick_readings: np.ndarray | None = None          # and their corrected readings (k, 2, 3)
         self._references: list[ReferencePose] = []
@@ -950,14 +951,24 @@ class HandSession:
                 layout.mode_names.clear()
             names = layout.mode_names[tuple(modes)] = [
                 finger_mode(modes[sensor_start[f]:sensor_start[f + 1]]) for f in range(len(fingers))]
-        for f, fs in enumerate(fingers):
-            finger_phi = phi[phalanx_start[f]:phalanx_start[f + 1]]
-            if not finite and not _all_finite(finger_phi):
+        kept = self._phi_slices
+        if kept is None or kept[0] is not phalanx_start:
+            # each finger's slice of the angles, kept while the same fingers are stacked (the same list)
+            kept = self._phi_slices = (phalanx_start, [slice(a, b) for a, b in zip(phalanx_start, phalanx_start[1:])])
+        if finite:
+            for fs, part, name in zip(fingers, kept[1], names):
+                fs.phi = phi[part]
+                fs.mode = name
+            self._together_phi = (phi, fingers)
+            return
+        for fs, part, name in zip(fingers, kept[1], names):
+            finger_phi = phi[part]
+            if not _all_finite(finger_phi):
                 self._reset_finger(fs)
                 continue
             fs.phi = finger_phi
-            fs.mode = names[f]
-        self._together_phi = (phi, fingers) if finite else None
+            fs.mode = name
+        self._together_phi = None
 
     def _together_layout(self, fingers: list[FingerState]) -> "_TogetherLayout":
         """How this tick's readings reach the fingers advanced together, kept per tick order of sensor
