@@ -927,6 +927,7 @@ class ChainHand:
         ``gyro_angle_cross_offsets``), taken off the cross axes' reading for the gyro's angle; None (or
         another shape): none taken off."""
         self._no_offsets = np.zeros((0, 2))
+        self._untracked: tuple[list, np.ndarray] | None = None   # the estimators' untracked flags, as a list and an array
 
     @staticmethod
     def takes(estimator, t: float) -> bool:
@@ -1089,8 +1090,11 @@ class ChainHand:
         which are untracked, and the array of the joint angles the kernel writes."""
         dts = np.array([t - e._t_last for e in estimators])
         self._jp[3] = self._delta_step(t, dts)
-        untracked = np.array([e._hand_untracked for e in estimators])
-        return dts, untracked, np.empty(self._phal.shape[0])
+        flags = [e._hand_untracked for e in estimators]
+        kept = self._untracked
+        if kept is None or kept[0] != flags:    # (the kernels only read it: one array while the flags stay)
+            kept = self._untracked = (flags, np.array(flags))
+        return dts, kept[1], np.empty(self._phal.shape[0])
 
     def _end(self, t: float, estimators: list[Chain], phi: np.ndarray) -> tuple:
         """``advance``'s steps after the kernel (the mode codes read out before the next call writes them)."""
