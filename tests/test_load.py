@@ -36,6 +36,7 @@ def test_the_load_spread_over_two_generator_processes_is_accounted_for_as_from_o
     assert lv["alignment_wait_ms"]["p50"] >= PipelineSettings().reorder_window_s * 1e3 - 1e-6
     assert lv["behind_schedule_beyond_alignment_ms"] is not None
     assert 0.0 < lv["generator_cpu_share_max"] and lv["generator_cpu_share"] >= lv["generator_cpu_share_max"]
+    assert 0.0 <= lv["generator_system_cpu_s_per_hand_s"] <= lv["generator_cpu_s_per_hand_s"] and lv["generator_cpu_s_per_hand_s"] > 0.0
 
 
 def test_the_integrity_check_sees_reordering_and_cross_talk():

@@ -12,7 +12,8 @@ level it reports:
 - glove send -> subscriber receive latency (as ``bench latency``: the time since the glove sent its
   latest message of that session) over all frames of all subscribers;
 - integrity: every subscriber's frame ``seq`` strictly increasing and every frame's ``hand`` that of
-  its own session (no cross-talk between sessions), and ``error`` messages the gloves received;
+  its own session (no cross-talk between sessions), a message that does not decode or a frame without
+  its ``seq``, ``hand`` or ``t`` counted as a violation too, and ``error`` messages the gloves received;
 - backlog: how long after the last message the service still needed to process what it had been
   sent and deliver its last frames (the run waits for every frame to be received or counted as dropped);
 - CPU: the service process's CPU time during the streaming window as a share of one core (Linux
@@ -20,9 +21,11 @@ level it reports:
   2-core machine the gloves, the subscribers and the service compete for the same cores.
 
 The gloves and subscribers run in load-generator processes (``GENERATOR_HANDS`` hands each, or
-``--generators N``), started together once each has simulated its gloves and opened its subscriptions;
-each reports its frames, and the frames' delay behind the source's schedule beyond the pipeline's
-alignment wait (``_timing``), back as JSON.
+``--generators N``), started together once each has simulated its gloves, framed their messages,
+connected them and opened its subscriptions; a process's gloves are sent from one timer and its
+subscribers read each frame for the checked fields only as it arrives (``loadclients``). Each reports
+its frames, and the frames' delay behind the source's schedule beyond the pipeline's alignment wait
+(``_timing``), back as JSON.
 """
 from __future__ import annotations
 
@@ -139,11 +142,12 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             last_send[name] = wall
         return on_send
 
-    cpu0, wall0 = time.process_time(), time.perf_counter()
+    cpu0, sys0, wall0 = time.process_time(), os.times().system, time.perf_counter()
     first_send = {n: wall0 for n in names}   # every glove's schedule starts then (its first message is due)
     await stream_gloves(gloves, msgs, frames, [on_send_for(n) for n in names], wall0, stop)   # one timer for all
     await asyncio.sleep(0.1)
     wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    generator_sys = os.times().system - sys0
     # each glove closes once the service has handled everything it sent (sync)
     for r in await asyncio.gather(*(g.close() for g in gloves), return_exceptions=True):
         if isinstance(r, BaseException):
@@ -174,7 +178,7 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             "malformed": sum(s.malformed_count for s in subs.values()),
             "malformed_examples": [repr(m) for s in subs.values() for m in s.malformed][:10],
             "gestures": sum(s.gestures for s in subs.values()), "other_messages": sum(s.others for s in subs.values()),
-            "wall_s": wall, "generator_cpu_s": generator_cpu}
+            "wall_s": wall, "generator_cpu_s": generator_cpu, "generator_system_cpu_s": generator_sys}
 
 
 def _generator_main() -> int:
@@ -300,6 +304,7 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
             "glove_reconnects": sum(r["glove_reconnects"] for r in results),
             "wall_s": wall, "drain_s": drain, "generator_cpu_s": sum(r["generator_cpu_s"] for r in results),
             "generator_processes": len(results), "generator_cpu_share": sum(shares),
+            "generator_system_cpu_s": sum(r["generator_system_cpu_s"] for r in results),
             "generator_cpu_share_max": max(shares),
             "service_cpu_until_drained_s": None if service0 is None or service2 is None else service2 - service0,
             "until_drained_wall_s": busy_wall,
@@ -510,6 +515,9 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                    / (hands * seconds)),
         "generator_processes": lvl["generator_processes"],
         "generator_cpu_share_max": lvl["generator_cpu_share_max"],
+        # the generator's CPU seconds (user + system; system alone) per second of one hand's data
+        "generator_cpu_s_per_hand_s": lvl["generator_cpu_s"] / (hands * seconds),
+        "generator_system_cpu_s_per_hand_s": lvl["generator_system_cpu_s"] / (hands * seconds),
         "stream_wall_s": lvl["wall_s"],
         "drain_after_stream_s": lvl["drain_s"],
     }
