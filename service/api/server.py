@@ -9,7 +9,6 @@ import time
 
 import uvicorn
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
-from websockets.frames import apply_mask
 from websockets.protocol import State
 
 from .app import create_app
@@ -94,81 +93,10 @@ class DrainingWebSocket(WebSocketsSansIOProtocol):
         # uvicorn's timer of a close in progress: the app's end does not close the socket before it
         self.close_timer = self.loop.call_later(self.DRAIN_S, self.transport.close)
 
-    _split: bytearray | None = None
-    """the received bytes not yet split into frames, once this protocol splits them (``data_received``)"""
-    _splitting: bool | None = None
-    """None until the handshake's request has been read; then whether this protocol splits the frames"""
-    _before: bytes = b""
-    HANDSHAKE_SEEN_MAX = 1 << 16
-    SPLIT_FRAMES = True
-    """whether frames are split here (``data_received``; ``False``: by the library, as uvicorn does)"""
-
     def data_received(self, data: bytes) -> None:
-        """The connection's bytes. After a handshake whose request came alone (the client waited for the
-        answer, as clients do), the frames are split here: a complete, masked, unfragmented text frame
-        within the size limit while the connection is open, and no extension, goes to the app as the
-        library and uvicorn would give it (``_text_frame``: the same checks, none of their per-frame layers,
-        a quarter of this process's time per glove message); every other frame goes whole to the library
-        (which is then where it would have been: between two frames), and one longer than the limit, with
-        everything after it, as it arrives (the library refuses it at its header: close 1009)."""
-        if self._draining:
-            return                          # the rest of a frame already refused, dropped; the peer's end closes
-        if self._split is not None:
-            self._split += data
-            self._split_frames()
-            return
-        if self._splitting is None:
-            self._before += data
-        super().data_received(data)
-        if self._splitting is None and (self.handshake_initiated or len(self._before) > self.HANDSHAKE_SEEN_MAX):
-            end = self._before.find(b"\r\n\r\n")
-            self._splitting = (self.SPLIT_FRAMES and self.handshake_initiated and end + 4 == len(self._before)
-                               and self.conn.max_fragment_size is None and not self._draining)
-            self._before = b""
-            if self._splitting:
-                self._split = bytearray()
-
-    def _split_frames(self) -> None:
-        buf, at = self._split, 0
-        while not self._draining:
-            size = len(buf) - at
-            if size < 2:
-                break
-            head1, head2 = buf[at], buf[at + 1]
-            length, start = head2 & 0x7F, at + 2
-            if length == 126:
-                if size < 4:
-                    break
-                length, start = int.from_bytes(buf[at + 2:at + 4], "big"), at + 4
-            elif length == 127:
-                if size < 10:
-                    break
-                length, start = int.from_bytes(buf[at + 2:at + 10], "big"), at + 10
-            limit = self.conn.max_message_size
-            if limit is not None and length > limit:            # refused by the library at its header
-                rest = bytes(buf[at:])
-                self._split = None
-                buf.clear()
-                WebSocketsSansIOProtocol.data_received(self, rest)
-                return
-            masked = head2 & 0x80
-            end = start + (4 if masked else 0) + length
-            if len(buf) < end:
-                break
-            if head1 == 0x81 and masked and self.conn.state is State.OPEN and not self.close_sent \
-                    and self.conn.current_size is None and not self.conn.extensions:
-                self._text_frame(apply_mask(buf[start + 4:end], buf[start:start + 4]))
-            else:
-                WebSocketsSansIOProtocol.data_received(self, bytes(buf[at:end]))
-            at = end
-        if self._split is buf:
-            del buf[:at]
-
-    def _text_frame(self, payload: bytes) -> None:
-        """A whole text message, as uvicorn's ``handle_text`` takes one from the library."""
-        self.curr_msg_data_type = "text"
-        self.frames = [payload]
-        self.send_receive_event_to_app()
+        if not self._draining:
+            super().data_received(data)
+        # else: the rest of a frame already refused, dropped; the peer's end of input closes the socket
 
 
 def uvicorn_config(settings: ServiceSettings, app=None) -> uvicorn.Config:
