@@ -259,3 +259,21 @@ def test_a_load_glove_whose_connection_drops_reconnects_and_streams_on():
     resumed = texts.index(second[2])
     assert len(first) <= resumed and second[2:] == texts[resumed:]                   # in order, to the end
     assert glove.unconfirmed_at_drops >= resumed - len(first)
+
+
+@pytest.mark.parametrize("clients", ["lean", "product"])
+def test_the_generator_alone_streams_every_glove_and_reads_a_frame_per_pose(clients, capsys):
+    """``python -m service.bench.generator_alone``: the sink sends each of a session's two subscribers a
+    frame per pose its glove sent, and every one of them is read, with either kind of client."""
+    import json
+
+    from clients.glove import source_messages
+    from service.bench.generator_alone import main as alone
+    from service.sim.session import SimConfig
+
+    assert alone(["--hands", "1", "--seconds", "1", "--clients", clients]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    config = SimConfig(motion="random", t_m_s=1.0, noise="both", hand_motion="slow-rotation", seed=0, hand="right")
+    poses = sum(1 for _, m in source_messages(config) if m["type"] == "pose")
+    assert out["clients"] == clients and out["frames_received"] == out["frames_sent"] == 2 * poses
+    assert out["cpu_ms_per_hand_s"] > 0.0
