@@ -277,3 +277,119 @@ def test_the_generator_alone_streams_every_glove_and_reads_a_frame_per_pose(clie
     poses = sum(1 for _, m in source_messages(config) if m["type"] == "pose")
     assert out["clients"] == clients and out["frames_received"] == out["frames_sent"] == 2 * poses
     assert out["cpu_ms_per_hand_s"] > 0.0
+
+
+def _imu_messages(n: int) -> list:
+    out = [(0.0, {"type": "hello", "protocol": 1, "hand": "right", "source": "g"})]
+    return out + [(0.001 * k, {"type": "imu", "t": 0.001 * k, "id": "index.1", "gyr": [0, 0, k], "acc": [0, 9.81, 0]})
+                  for k in range(n)]
+
+
+def test_a_load_glove_refused_for_good_while_flow_control_holds_it_ends_the_stream_with_the_refusal():
+    """The service answers no ``sync`` (the glove is held at its 16 unconfirmed messages), then closes it
+    with 1008 (refused for good): ``stream_gloves`` ends (it waited for a wake that never came) and the
+    glove's close raises the refusal."""
+    import asyncio
+    import json
+    import time
+
+    from websockets.asyncio.server import serve
+
+    from clients.client import Refused
+    from service.bench.loadclients import LeanGlove, stream_gloves, ws_frames
+
+    msgs = _imu_messages(500)
+
+    async def handler(ws):
+        count = 0
+        async for data in ws:
+            m = json.loads(data)
+            if m["type"] == "hello":
+                await ws.send(json.dumps({"type": "hello", "protocol": 1}))
+            elif m["type"] != "sync":               # syncs never answered
+                count += 1
+                if count == 16:
+                    await asyncio.sleep(0.2)        # the glove is held by then
+                    await ws.close(1008, "refused for the test")
+                    return
+
+    async def main():
+        async with serve(handler, "127.0.0.1", 0) as server:
+            glove = LeanGlove(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "g", "token", max_unconfirmed=16)
+            await glove.open(msgs[0][1])
+            frames = ws_frames([json.dumps(m) for _, m in msgs])
+            await stream_gloves([glove], [msgs], [frames], [lambda w, m: None], time.perf_counter())
+            with pytest.raises(Refused, match="1008"):
+                await glove.close(sync_timeout_s=1.0)
+
+    asyncio.run(asyncio.wait_for(main(), 60))
+
+
+def test_a_load_glove_whose_service_sent_its_close_frame_holds_no_other_glove_back():
+    """The service sends glove a a close frame (1013) and closes TCP only later (a busy server): glove a
+    writes nothing meanwhile (its connection is closing) and glove b, in the same process and timer, sends
+    every message without waiting for a's TCP close; a reconnects and both end."""
+    import asyncio
+    import json
+    import time
+
+    from websockets.frames import Close, Frame, Opcode
+    from websockets.http11 import Request
+    from websockets.server import ServerProtocol
+
+    from service.bench.loadclients import LeanGlove, stream_gloves, ws_frames
+
+    tcp_close_after_s = 5.0
+    closes: list = []
+
+    class Service(asyncio.Protocol):
+        def connection_made(self, transport):
+            self.transport, self.proto, self.count, self.closing = transport, ServerProtocol(), 0, False
+            self.path = ""
+
+        def data_received(self, data):
+            if self.closing:
+                return                              # reads and drops, as a draining server may
+            self.proto.receive_data(data)
+            for event in self.proto.events_received():
+                if isinstance(event, Request):
+                    self.path = event.path.split("?")[0]
+                    self.proto.send_response(self.proto.accept(event))
+                elif event.opcode is Opcode.TEXT:
+                    m = json.loads(event.data)
+                    if m["type"] in ("hello", "sync"):
+                        reply = {"type": "hello", "protocol": 1} if m["type"] == "hello" else m
+                        self.proto.send_text(json.dumps(reply).encode())
+                    elif self.path.endswith("/a") and not closes:
+                        self.count += 1
+                        if self.count == 30:
+                            self.transport.write(Frame(Opcode.CLOSE, Close(1013, "busy").serialize()).serialize(mask=False))
+                            self.closing = True
+                            closes.append(time.perf_counter())
+                            asyncio.get_running_loop().call_later(tcp_close_after_s, self.transport.close)
+                            return
+            for chunk in self.proto.data_to_send():
+                if chunk:
+                    self.transport.write(chunk)
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        errors: list = []
+        loop.set_exception_handler(lambda _, context: errors.append(context.get("exception")))
+        server = await loop.create_server(Service, "127.0.0.1", 0)
+        url = f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+        gloves = [LeanGlove(url, n, "token") for n in "ab"]
+        msgs = [_imu_messages(400), _imu_messages(400)]
+        for glove, m in zip(gloves, msgs):
+            await glove.open(m[0][1])
+        sent_b: list = []
+        await stream_gloves(gloves, msgs, [ws_frames([json.dumps(x) for _, x in m]) for m in msgs],
+                            [lambda w, m: None, lambda w, m: sent_b.append(w)], time.perf_counter())
+        for glove in gloves:
+            await glove.close(sync_timeout_s=1.0)
+        server.close()
+        return errors, sent_b, gloves[0].reconnects
+
+    errors, sent_b, reconnects = asyncio.run(asyncio.wait_for(main(), 60))
+    assert not errors and len(sent_b) == 401 and reconnects >= 1
+    assert sent_b[-1] < closes[0] + tcp_close_after_s      # b did not wait for a's TCP close

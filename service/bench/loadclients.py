@@ -22,6 +22,7 @@ from typing import Callable
 
 import msgspec
 from websockets.client import ClientProtocol
+from websockets.protocol import State
 from websockets.exceptions import InvalidStatus
 from websockets.frames import Frame, Opcode
 from websockets.http11 import Response
@@ -290,8 +291,8 @@ class LeanGlove(_LeanConnection):
         self.connected = True
 
     def ready(self) -> bool:
-        if not self.connected or self._paused:
-            return False
+        if not self.connected or self._paused or self.proto.state is not State.OPEN:
+            return False                            # (closing: the service's close frame came, the TCP close not yet)
         unconfirmed = self._sent - self._confirmed
         return unconfirmed < self.max_unconfirmed and (
             unconfirmed == 0 or self._sent_bytes - self._confirmed_bytes < self.max_unconfirmed_bytes)
@@ -365,6 +366,7 @@ class LeanGlove(_LeanConnection):
         while not self._closing:
             self.failure = self._refusal(err)
             if self.failure is not None:
+                self.on_ready()                     # the stream counts it as ended (it may wait for no other wake)
                 return
             self.reconnects += 1
             await asyncio.sleep(self.backoff.next())
@@ -372,6 +374,7 @@ class LeanGlove(_LeanConnection):
                 await self.open(self.hello)
             except Refused as refused:
                 self.failure = refused
+                self.on_ready()
                 return
             except (InvalidStatus, OSError) as failed:
                 err = failed
