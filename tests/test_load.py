@@ -393,3 +393,119 @@ def test_a_load_glove_whose_service_sent_its_close_frame_holds_no_other_glove_ba
     errors, sent_b, reconnects = asyncio.run(asyncio.wait_for(main(), 60))
     assert not errors and len(sent_b) == 401 and reconnects >= 1
     assert sent_b[-1] < closes[0] + tcp_close_after_s      # b did not wait for a's TCP close
+
+
+def _raw_server_port(handle):
+    """A raw TCP server (``asyncio.start_server``) of ``handle(reader, writer)``: the WebSocket handshake and
+    frames written by hand, so that a test can answer as no WebSocket library would."""
+    import asyncio
+    return asyncio.start_server(handle, "127.0.0.1", 0)
+
+
+def _accept(request: str) -> bytes:
+    import base64
+    import hashlib
+
+    key = next(line.split(":", 1)[1].strip() for line in request.split("\r\n")
+               if line.lower().startswith("sec-websocket-key"))
+    accept = base64.b64encode(hashlib.sha1((key + "258EAFA5-E914-47DA-95CA-C5AB0DC85B11").encode()).digest()).decode()
+    return (f"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Accept: {accept}\r\n\r\n").encode()
+
+
+def _text(obj) -> bytes:
+    import json
+    payload = json.dumps(obj).encode()
+    return b"\x81" + bytes([len(payload)]) + payload
+
+
+def test_a_load_subscriber_fails_with_what_ended_it_a_bad_handshake_or_a_defect_on_its_message_path():
+    """A handshake answered 101 without ``Upgrade`` (no HTTP status to retry on) and an exception in the
+    frame callback each end the subscriber, and its close raises it (before, the first was swallowed and
+    the second became silent reconnects)."""
+    import asyncio
+
+    from websockets.exceptions import InvalidUpgrade
+
+    from service.bench.loadclients import LeanSubscription
+
+    async def no_upgrade(reader, writer):
+        await reader.readuntil(b"\r\n\r\n")
+        writer.write(b"HTTP/1.1 101 Switching Protocols\r\nContent-Length: 0\r\n\r\n")
+        await writer.drain()
+        writer.close()
+
+    async def one_frame(reader, writer):
+        writer.write(_accept((await reader.readuntil(b"\r\n\r\n")).decode()))
+        writer.write(_text({"type": "hello", "protocol": 1}) + _text({"type": "frame", "seq": 1, "hand": "right", "t": 0.0}))
+        await writer.drain()
+        await asyncio.sleep(30)
+
+    def broken(frame, arrival):
+        raise KeyError("a defect in the frame callback")
+
+    async def run(handle, on_frame):
+        server = await _raw_server_port(handle)
+        try:
+            sub = LeanSubscription(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "a", "t", on_frame)
+            sub.start()
+            while not sub._task.done() and sub.failure is None:
+                await asyncio.sleep(0.01)
+            try:
+                await sub.close()
+            except Exception as err:
+                return err, sub.reconnects
+            return None, sub.reconnects
+        finally:
+            server.close()
+
+    err, _ = asyncio.run(asyncio.wait_for(run(no_upgrade, lambda f, a: None), 60))
+    assert isinstance(err, InvalidUpgrade)
+    err, reconnects = asyncio.run(asyncio.wait_for(run(one_frame, broken), 60))
+    assert isinstance(err, KeyError) and reconnects == 0
+
+
+def test_a_load_subscriber_s_refused_connection_closed_late_does_not_end_the_next_one():
+    """The first handshake gets a 503 whose TCP close comes 1 s later, after the subscriber connected again:
+    the late close of the old connection does not end the new one, whose frames all arrive."""
+    import asyncio
+
+    from clients.client import Backoff
+    from service.bench.loadclients import LeanSubscription
+
+    connections = []
+
+    async def handle(reader, writer):
+        first = not connections
+        connections.append(writer)
+        request = (await reader.readuntil(b"\r\n\r\n")).decode()
+        if first:
+            writer.write(b"HTTP/1.1 503 Service Unavailable\r\nContent-Length: 0\r\n\r\n")
+            await writer.drain()
+            await asyncio.sleep(1.0)
+            writer.close()
+            return
+        writer.write(_accept(request) + _text({"type": "hello", "protocol": 1}))
+        for i in range(20):
+            writer.write(_text({"type": "frame", "seq": i, "hand": "right", "t": i / 90}))
+            await writer.drain()
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(30)
+
+    async def main():
+        server = await _raw_server_port(handle)
+        seqs: list = []
+        sub = LeanSubscription(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "a", "t",
+                               lambda frame, arrival: seqs.append(frame.seq), backoff=Backoff(0.1, seed=1))
+        sub.start()
+        while len(seqs) < 20 and len(connections) < 3:
+            await asyncio.sleep(0.01)
+        reconnects = sub.reconnects
+        for writer in connections:
+            writer.transport.abort()
+        await sub.close()
+        server.close()
+        return seqs, reconnects, len(connections)
+
+    seqs, reconnects, connections_seen = asyncio.run(asyncio.wait_for(main(), 60))
+    assert seqs == list(range(20)) and reconnects == 1 and connections_seen == 2

@@ -64,7 +64,8 @@ class _LeanConnection(asyncio.Protocol):
         self._lost: asyncio.Future | None = None
         self._parts: list[bytes] = []
         self._binary_message = False
-        self.failure: Refused | None = None
+        self.failure: Exception | None = None
+        """what refused it for good (``Refused``), or a defect on its message path"""
         self._closing = False
         self._task: asyncio.Task | None = None
 
@@ -72,6 +73,10 @@ class _LeanConnection(asyncio.Protocol):
         """Open the connection and complete the handshake; raises ``InvalidStatus`` (refused) or
         ``OSError``/``ConnectionError``."""
         loop = asyncio.get_running_loop()
+        if self.transport is not None and not self.transport.is_closing():
+            self.transport.abort()                  # the last connection ends first: its late close or EOF
+        if self._lost is not None and not self._lost.done():   # would reach the new one (one protocol object)
+            await self._lost
         self.proto = ClientProtocol(self.uri, max_size=None)
         self._opened, self._lost = loop.create_future(), loop.create_future()
         self._parts = []
@@ -100,6 +105,14 @@ class _LeanConnection(asyncio.Protocol):
                 self.transport.write_eof()
 
     def data_received(self, data: bytes) -> None:
+        try:
+            self._received(data)
+        except Exception as err:                    # a defect on the message path: the run fails with it
+            self.failure = err                      # (asyncio would close the connection and it reconnect)
+            self._closing = True
+            self.transport.abort()
+
+    def _received(self, data: bytes) -> None:
         arrival = time.perf_counter()
         self.proto.receive_data(data)
         for event in self.proto.events_received():
@@ -152,8 +165,11 @@ class _LeanConnection(asyncio.Protocol):
         self._closing = True
         await self._close()
         if self._task is not None:
+            died = self._task.done() and not self._task.cancelled() and self._task.exception()
             self._task.cancel()
             await asyncio.gather(self._task, return_exceptions=True)
+            if died:                                # e.g. a handshake that failed other than by a status
+                raise died
         if self.failure is not None:
             raise self.failure
 

@@ -278,6 +278,7 @@ def run_condition(cache: str = "warm", sessions: int = 4, hand_workers: int | No
             "frames_unaccounted": sum(max(0, a["expected"] - a["delivered"] - a["dropped"]) for a in lvl["accounts"].values()),
             "frames_dropped": sum(a["dropped"] for a in lvl["accounts"].values()),
             "source_errors": lvl["errors"], "probe": lvl["probe"],
+            "malformed": lvl["malformed"], "malformed_examples": lvl["malformed_examples"],
             "service_cpu_share": None if lvl["service_cpu_s"] is None else lvl["service_cpu_s"] / lvl["wall_s"],
             "generator_cpu_share": lvl["generator_cpu_share"], "load_average_1min": [load_before, load_after]}
 
@@ -316,7 +317,8 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
                   f"{' (' + str(c['cache_files_removed']) + ' cached files removed)' if c['cache'] == 'cold' else ''}"
                   f"{stop}; load average {load}", "",
                   f"{len(c['switches'])} of {c['planned']} planned switches ran; frames delivered {c['frames_delivered']}, "
-                  f"dropped {c['frames_dropped']}, unaccounted {c['frames_unaccounted']}, source errors {c['source_errors']}; "
+                  f"dropped {c['frames_dropped']}, unaccounted {c['frames_unaccounted']}, source errors {c['source_errors']}, "
+                  f"messages that did not decode or lacked a frame's seq, hand or t {c.get('malformed', 0)}; "
                   f"service CPU {_f(None if c['service_cpu_share'] is None else 100 * c['service_cpu_share'], '{:.0f}')} % "
                   f"of a core, generator {100 * c['generator_cpu_share']:.0f} %.", "",
                   "| # | estimator | its kernels | request, s | applied | other sessions' stall, max ms (same worker) | "
