@@ -1013,3 +1013,49 @@ def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_r
     shown = [("error", "invalid_message") if kind == "error" else (kind, k) for kind, k in expected]
     assert got[1:] == shown
     assert any(taken)
+
+
+def test_an_intake_that_fails_leaves_the_connection_and_its_messages_to_the_app_s_receive(monkeypatch, caplog):
+    """A defect in ``_Door.intake`` (it raises at its third message): one log line, and that message and every
+    later one of the connection go through the app's receive, each answered in order, the connection
+    open (before, the exception escaped the server's callback: the connection was aborted, no close frame,
+    the rest of the read lost)."""
+    import json
+
+    import websockets
+
+    from service.api.routes import ingest as route
+    from service.api.server import ServerThread
+
+    calls = []
+    intake = route._Door.intake
+
+    def failing(self, text):
+        calls.append(text)
+        if len(calls) == 3:
+            raise RuntimeError("a defect in the intake")
+        return intake(self, text)
+    monkeypatch.setattr(route._Door, "intake", failing)
+    token = "source-token"
+    settings = ServiceSettings.load(port=0, tokens={token: "source"}, hand_workers=1, hand_worker_isolate=False)
+    batches = [m for m in _glove(1.0, 4) if m["type"] == "imu_batch"][:30]
+
+    async def run(url):
+        got = []
+        async with websockets.connect(f"{url}/v1/ingest/s?token={token}") as ws:
+            await ws.send(json.dumps(HELLO))
+            got.append(json.loads(await ws.recv())["type"])
+            for k, m in enumerate(batches):
+                await ws.send(json.dumps(m, separators=(",", ":")))
+                if k % 10 == 9:
+                    await ws.send(json.dumps({"type": "sync", "id": k}))
+            while len(got) < 4:
+                got.append(json.loads(await asyncio.wait_for(ws.recv(), 60)))
+        return got
+
+    with caplog.at_level("ERROR", logger="service.api.server"):
+        with ServerThread(settings) as server:
+            got = asyncio.run(run(server.ws_url))
+    assert got == ["hello", {"type": "sync", "id": 9}, {"type": "sync", "id": 19}, {"type": "sync", "id": 29}], got
+    assert len(calls) == 3                          # no intake after it failed
+    assert sum("intake failed" in r.getMessage() for r in caplog.records) == 1

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import asyncio
 import errno
+import logging
 import socket
 import threading
 import time
@@ -15,6 +16,8 @@ from .app import create_app
 from .config import ServiceSettings
 from .outgoing import WIRE_EXTENSION
 from ..pipeline.gc_policy import serving_gc  # noqa: F401  (re-exported: the CLI and the tests take it from here)
+
+log = logging.getLogger(__name__)
 
 
 class DrainingWebSocket(WebSocketsSansIOProtocol):
@@ -51,7 +54,13 @@ class DrainingWebSocket(WebSocketsSansIOProtocol):
             except UnicodeDecodeError:
                 pass                                          # refused below, as uvicorn does (1007)
             else:
-                if intake(text):
+                try:
+                    taken = intake(text)
+                except Exception:                             # a defect: the message and the connection's
+                    log.exception("the ingest route's intake failed; this connection's messages go "   # later ones
+                                  "through the app's receive from now on")                             # are queued
+                    self.intake = taken = None
+                if taken:
                     self.frames = []
                     return
         paused, self.read_paused = self.read_paused, True     # (so that uvicorn does not pause here)
