@@ -41,6 +41,20 @@ async def _until(condition, what: str, timeout_s: float = 120.0) -> None:
         await asyncio.sleep(0.01)
 
 
+SOURCE_TOKEN = "source-token"
+
+
+def _one_worker_source_service() -> ServiceSettings:
+    """A service with one hand worker (its sessions stay on it) and a source token."""
+    return ServiceSettings.load(port=0, tokens={SOURCE_TOKEN: "source"}, hand_workers=1, hand_worker_isolate=False)
+
+
+async def _said_hello(ws) -> list:
+    """``[type of the server's reply]`` once a source connection has sent its hello."""
+    import json
+    await ws.send(json.dumps(HELLO))
+    return [json.loads(await ws.recv())["type"]]
+
 def _glove(seconds: float, seed: int) -> list[dict]:
     return [m for _, m in source_messages(SimConfig(motion="sequence", hand="right", noise="white", seed=seed,
                                                     duration_s=seconds))]
@@ -982,15 +996,12 @@ def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_r
         taken.append(took)
         return took
     monkeypatch.setattr(route._Door, "intake", counted)
-    token = "source-token"
-    settings = ServiceSettings.load(port=0, tokens={token: "source"}, hand_workers=1, hand_worker_isolate=False)
+    settings = _one_worker_source_service()
     batches = [m for m in _glove(1.0, 4) if m["type"] == "imu_batch"][:40]
 
     async def run(url):
-        got = []
-        async with websockets.connect(f"{url}/v1/ingest/s?token={token}") as ws:
-            await ws.send(json.dumps(HELLO))
-            got.append(json.loads(await ws.recv())["type"])
+        async with websockets.connect(f"{url}/v1/ingest/s?token={SOURCE_TOKEN}") as ws:
+            got = await _said_hello(ws)
             expected = []
             for k, m in enumerate(batches):
                 if k % 5 == 2:                      # its head is a data message's; its body is not valid
@@ -1036,15 +1047,12 @@ def test_an_intake_that_fails_leaves_the_connection_and_its_messages_to_the_app_
             raise RuntimeError("a defect in the intake")
         return intake(self, text)
     monkeypatch.setattr(route._Door, "intake", failing)
-    token = "source-token"
-    settings = ServiceSettings.load(port=0, tokens={token: "source"}, hand_workers=1, hand_worker_isolate=False)
+    settings = _one_worker_source_service()
     batches = [m for m in _glove(1.0, 4) if m["type"] == "imu_batch"][:30]
 
     async def run(url):
-        got = []
-        async with websockets.connect(f"{url}/v1/ingest/s?token={token}") as ws:
-            await ws.send(json.dumps(HELLO))
-            got.append(json.loads(await ws.recv())["type"])
+        async with websockets.connect(f"{url}/v1/ingest/s?token={SOURCE_TOKEN}") as ws:
+            got = await _said_hello(ws)
             for k, m in enumerate(batches):
                 await ws.send(json.dumps(m, separators=(",", ":")))
                 if k % 10 == 9:
