@@ -36,6 +36,7 @@ class TrackedHand:
     @property
     def counters(self) -> Counters:
         """The pipeline's running counts of dropped input, clock steps and reference poses."""
+        self._session.flush()
         return self._session.counters
 
     def set_estimator(self, spec: EstimatorSpec | str, params: dict | None = None) -> None:
