@@ -282,6 +282,7 @@ class HandSession:
         self.counters = Counters()
         self._pending: dict[float, dict[str, list[float]]] = {}    # t -> id -> gyr + acc (six numbers)
         self._deferred: dict[float, dict[str, list[float]]] = {}   # ready ticks held back, oldest first (``_defer``)
+        self._deferred_fits = 0             # how many of them have an optical fit known to be finite (``_pose_keeps``)
         self._samples: dict[str, tuple[float, np.ndarray, int]] = {}   # id -> t, its tick's readings (k, 2, 3), row
         self._samples_due: tuple | None = None  # the last tick's (t, ids, readings), not yet in ``_samples``
         self._processed_t: float | None = None
@@ -435,13 +436,16 @@ class HandSession:
         if isinstance(msg, IMU):
             self._add_imu((msg,))
             return
-        self.flush()                        # anything else may read or change what the held-back ticks use
         if isinstance(msg, POSE):
             if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
                 self._drop("late")
             else:
+                if self._deferred and not self._pose_keeps(msg.t):
+                    self.flush()
                 self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
-        elif isinstance(msg, Calibration):
+            return
+        self.flush()                        # anything else may read or change what the held-back ticks use
+        if isinstance(msg, Calibration):
             self.apply_calibration(msg.overrides())
             if msg.metacarpus is not None:
                 old = self._hand_imu.placement
@@ -580,13 +584,30 @@ class HandSession:
         if not deferred:
             return
         # only the held-back ticks: the pending ones after them were not ready then
-        pending, self._pending, self._deferred = self._pending, deferred, {}
+        pending, self._pending, self._deferred, self._deferred_fits = self._pending, deferred, {}, 0
         try:
             for _ in self._process_ready(defer=False):
                 raise AssertionError("a tick held back made a frame")
         finally:
             pending.update(self._pending)       # (none left: each was ready)
             self._pending = pending
+
+    def _pose_keeps(self, t_new: float) -> bool:
+        """Whether a pose at ``t_new`` may go into the optics before the ticks held back are processed: it
+        changes none of their optical fits (``OpticalTrack.add_keeps``) and none of those fits fails (which
+        would start the optics again before this pose, ``_process_tick``). Each tick's fit is checked once."""
+        deferred, optics = self._deferred, self.optics
+        if not optics.add_keeps(t_new, next(iter(deferred))):
+            return False
+        for t in list(deferred)[self._deferred_fits:]:
+            try:
+                hand, _ = optics.at(t)
+            except (ValueError, np.linalg.LinAlgError):
+                return False
+            if hand is not None and not _finite_motion(hand):
+                return False
+            self._deferred_fits += 1
+        return True
 
     def _defer(self, t: float) -> bool:
         """Hold the ready tick ``t`` back, to be advanced in one compiled call with the ticks after it
@@ -624,6 +645,7 @@ class HandSession:
                 if self._deferred:              # they go first, in one run with this tick
                     pending.update(self._deferred)
                     self._deferred.clear()
+                    self._deferred_fits = 0
                     t = min(pending)
             # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
             # under one setting (never held across a ``yield``: the caller's own setting applies there);

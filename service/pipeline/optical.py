@@ -171,6 +171,25 @@ class OpticalTrack:
                 self._held_orientation = self._orientation[self._lo].copy()
             self._lo += 1
 
+    def add_keeps(self, t_new: float, t0: float) -> bool:
+        """Whether adding a pose at ``t_new`` leaves ``at`` unchanged at every time from ``t0`` on that is
+        covered now (the new pose comes after the one covering it): every pose the add drops (``_add_array``)
+        is older than the fit window before ``t0``, and a valid pose within that window before ``t0`` stays,
+        so such a time's newest valid pose up to its covering one stays stored."""
+        start = t0 - self.window_s
+        if t_new - max(4 * self.window_s, 2 * self.timeout_s) >= start:
+            return False
+        ts, valid, lo = self._t, self._valid, self._lo
+        if self._hi - lo >= self._max_poses and ts[lo] >= start:
+            return False
+        for i in range(self._hi - 1, lo - 1, -1):
+            u = ts[i]
+            if u < start:
+                return False
+            if u < t0 and valid[i]:
+                return True
+        return False
+
     def covers(self, t: float) -> bool:
         """True when ``t`` can be evaluated now: a pose at or after ``t`` has arrived."""
         return self.latest_t is not None and self.latest_t >= t
