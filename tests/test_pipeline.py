@@ -420,3 +420,38 @@ def test_a_frames_message_from_its_one_array_of_angles_equals_the_one_from_a_dic
         assert type(f.joint_angles) is FingerAngles
         plain = replaced(f, joint_angles={n: a.copy() for n, a in f.joint_angles.items()})
         assert encode(f.to_message(session.calibration), False) == encode(plain.to_message(session.calibration), False)
+
+
+def test_ticks_held_back_for_the_next_frame_change_no_output():
+    """A ready tick that makes no frame waits to run with the next ticks (``HandSession._defer``): the frames,
+    the drops of each message and the counters are those of processing every tick as soon as it is ready,
+    with a late sample for a held-back tick dropped as late."""
+    from service.bench.cpu import recording_lines
+
+    msgs = [json.loads(line) for line in recording_lines(2.0, seed=3, batched=True)]
+    held = HandSession("right", PipelineSettings())
+    eager = HandSession("right", PipelineSettings())
+    eager._defer = lambda t: False
+    defer, deferred = held._defer, []
+
+    def counting(t):
+        ok = defer(t)
+        deferred.append(ok)
+        return ok
+
+    held._defer = counting
+    late_sent = False
+    for m in msgs:
+        outs = []
+        for session in (held, eager):
+            handled = session.handle(parse_message(m))
+            outs.append(([f.to_message(session.calibration) for f in handled.frames], handled.dropped))
+        assert outs[0] == outs[1]
+        if held._deferred and not late_sent:           # a sample for a held-back tick's time: late in both
+            t = next(iter(held._deferred))
+            sample = {"type": "imu", "t": t, "id": m["samples"][0]["id"], "gyr": [0.0, 0.0, 0.0], "acc": [0.0, 0.0, 9.81]}
+            assert held.accept(parse_message(sample)) == eager.accept(parse_message(sample)) == Dropped(late=1)
+            late_sent = True
+    assert late_sent and sum(deferred) > 100
+    assert held.counters == eager.counters
+    assert held.status() == eager.status()
