@@ -905,49 +905,54 @@ def test_a_flood_of_syncs_is_bounded_by_the_backlog_while_the_worker_or_the_sour
     assert answered == sorted(answered) and len(answered) + len(refused) == flood, (answered, len(refused))
 
 
+def _door(live, settings, metrics):
+    """The ingest route's reader and processor on a fake connection that offers each message to the route's
+    way in (``_Door.intake``) while nothing waits in its queue, as ``server.DrainingWebSocket`` does; the
+    texts taken that way are listed."""
+    import json
+
+    from service.api.backlog import IngestBacklog
+    from service.api.routes import ingest as route
+    from service.api.routes.socket import send_error
+
+    ws, _, processor, reader = _route(live, settings, metrics)     # (its reader is replaced below)
+    reader.cancel()
+    processor.cancel()
+    backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
+    processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics))
+    door = route._Door(ws, "s", live, backlog, processor, settings, metrics)
+    taken = []
+
+    def feed(message):                          # as ``server.DrainingWebSocket`` offers a message
+        text = message if isinstance(message, str) else json.dumps(message, separators=(",", ":"))
+        if ws.inbox.empty() and door.intake(text):
+            taken.append(text)
+        else:
+            ws.inbox.put_nowait({"type": "websocket.receive", "text": text})
+    ws.feed = feed
+    live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
+    return ws, backlog, processor, asyncio.create_task(door.read()), taken
+
+
 def test_the_server_s_way_in_hands_data_on_as_it_arrives_only_in_order_and_within_the_rate_limit():
     """``routes.ingest._Door.intake`` (the server offers a text message as it arrives while nothing waits in
     its queue before it): over random interleavings (data whose head is known and data only the processor
     decodes, calibrations, syncs, the worker answering at random turns) the worker gets every source message in
     the order received, and the way in did take some; past the rate limit it takes none and the reader
     refuses them (``rate_limited``) in their places, between the answers to the syncs around them."""
-    import json
     import random
-
-    from service.api.backlog import IngestBacklog
-    from service.api.routes import ingest as route
-    from service.api.routes.socket import send_error
 
     msgs = [m for m in _glove(0.3, 3) if m["type"] != "hello"]
 
-    def door_of(live, settings, metrics):
-        ws, _, processor, reader = _route(live, settings, metrics)     # (its reader is replaced below)
-        reader.cancel()
-        processor.cancel()
-        backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
-        processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics))
-        door = route._Door(ws, "s", live, backlog, processor, settings, metrics)
-        taken = []
-
-        def feed(message):                          # as ``server.DrainingWebSocket`` offers a message
-            text = message if isinstance(message, str) else json.dumps(message, separators=(",", ":"))
-            if ws.inbox.empty() and door.intake(text):
-                taken.append(text)
-            else:
-                ws.inbox.put_nowait({"type": "websocket.receive", "text": text})
-        ws.feed = feed
-        live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
-        return ws, backlog, processor, asyncio.create_task(door.read()), taken
-
     async def order(seed):
         settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
-        ws, backlog, processor, reader, taken = door_of(live, settings, metrics)
+        ws, backlog, processor, reader, taken = _door(live, settings, metrics)
         expected = await _random_stream(random.Random(seed), msgs, ws, live, sent, reader, backlog, processor)
         return _source_types(sent), expected, len(taken)
 
     async def limited():
         settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=5)
-        ws, backlog, processor, reader, taken = door_of(live, settings, metrics)
+        ws, backlog, processor, reader, taken = _door(live, settings, metrics)
         ws.feed(HELLO)
         await _answer_all(live, 10)
         data = [m for m in msgs if m["type"] == "imu_batch"][:12]
@@ -975,6 +980,53 @@ def test_the_server_s_way_in_hands_data_on_as_it_arrives_only_in_order_and_withi
     assert 3 <= passed <= 4 and 1 <= taken <= passed
     assert replies[:-1] == [("sync", 1)] + [("error", "rate_limited")] * (12 - passed)
     assert replies[-1] in (("sync", 2), ("error", "rate_limited"))
+
+
+def test_the_way_in_takes_no_more_than_the_worker_s_window_nor_a_message_over_the_size_limit():
+    """``_Door.intake`` and the reader hand a session at most ``WINDOW`` unanswered messages (``forward`` does
+    not wait: ``forwardable``'s bound is the only one): the rest wait in the backlog, in order, and go on as the
+    worker answers. A data message over ``max_message_bytes`` is not taken: the reader answers
+    ``message_too_large`` in its place and the next one goes on to the worker."""
+    import json
+
+    from service.api.hands.pool import WINDOW
+
+    batch = next(m for m in _glove(0.2, 5) if m["type"] == "imu_batch")
+
+    async def run():
+        settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
+        ws, backlog, processor, reader, taken = _door(live, settings, metrics)
+        ws.feed(HELLO)
+        await _answer_all(live, 10)
+        for _ in range(WINDOW + 40):             # the worker answers nothing meanwhile
+            ws.feed(batch)
+            await asyncio.sleep(0)
+        for _ in range(20):
+            await asyncio.sleep(0)
+        held = (len(live._pending), len(backlog), len(taken))
+        deadline = time.monotonic() + 60     # (bounds a failure only)
+        while _source_types(sent).count("imu_batch") < WINDOW + 40:
+            assert time.monotonic() < deadline
+            await _answer_all(live, 1)
+        big = {**batch, "padding": "x" * settings.max_message_bytes}
+        ws.feed(big)
+        ws.feed(batch)
+        ws.feed({"type": "sync", "id": 1})
+        while not any(s["type"] == "sync" for s in ws.sent):
+            assert time.monotonic() < deadline
+            await _answer_all(live, 1)
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await reader
+        backlog.close()
+        await processor
+        big_text = json.dumps(big, separators=(",", ":"))
+        return held, [(s["type"], s.get("code")) for s in ws.sent if s["type"] != "hello"], big_text in taken, \
+            _source_types(sent).count("imu_batch"), len(taken)
+
+    (pending, waiting, taken_then), replies, big_taken, to_worker, taken = asyncio.run(run())
+    assert pending == WINDOW and 39 <= waiting <= 40 and taken_then == WINDOW     # (one may wait in the processor)
+    assert replies == [("error", "message_too_large"), ("sync", None)] and not big_taken
+    assert to_worker == WINDOW + 41 and taken >= WINDOW
 
 
 def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_real_server(monkeypatch):

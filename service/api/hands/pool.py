@@ -828,8 +828,9 @@ class ProcessSession(LiveSession):
         return None if kind is None else Unchecked(kind, text, False)
 
     def forward(self, parsed: "Unchecked") -> None:
-        """A data message to the worker, which validates it (``ingest``, or the route's reader at once for one
-        ``forwardable`` gave: the worker has room for it then)."""
+        """A data message to the worker, which validates it (``ingest``, or the route at once for one
+        ``forwardable`` gave, and only such: its ``WINDOW`` check is the bound on what waits for the worker
+        then; ``forward`` does not wait)."""
         self._send_source(parsed.type, ["chk", parsed.data, parsed.binary], None)
         if self.recorder is not None:               # recording began since it was received: as validated
             self._record_unchecked(parsed)

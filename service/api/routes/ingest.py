@@ -121,8 +121,9 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
     processor = asyncio.create_task(_process(ws, session, live, backlog, metrics))
     door = _Door(ws, session, live, backlog, processor, settings, metrics)
-    wire = getattr(ws.state, "wire", None)
-    if wire is not None:                     # the server hands such messages over as they arrive (``_Door.intake``)
+    # the server hands such messages over as they arrive (``_Door.intake``), to a session that takes them so
+    wire = getattr(ws.state, "wire", None) if type(live).forward is not LiveSession.forward else None
+    if wire is not None:
         wire.intake = door.intake
     try:
         # in a task of its own: each wait for a message suspends and resumes its few frames, not the two dozen
@@ -158,6 +159,8 @@ class _Door:
         self.bucket = TokenBucket(settings.rate_limit_msgs_per_s)
         self.waiting = False
         """``read`` waits for the next message and everything received before was taken"""
+        self.closing: asyncio.Task | None = None
+        """the close of a connection ``intake`` found overloaded (it takes nothing more then)"""
 
     async def read(self) -> None:
         ws = self.ws
@@ -179,14 +182,14 @@ class _Door:
     def intake(self, text: str) -> bool:
         """A text message as it arrives: ``True`` if taken here (handed on at once to the session, as ``read``
         would have); ``False``: not now (it goes to ``read`` through the server's queue)."""
-        if not self.waiting or self.processor.done():
+        if not self.waiting or self.processor.done() or self.closing is not None:
             return False
         data = {"type": "websocket.receive", "text": text}
         msg = self.forwardable(data, _size(data))
         if msg is None or not self.bucket.take():
             return False                     # (a failed take uses no token: ``read`` asks again)
         if not self.forward(msg):
-            asyncio.get_running_loop().create_task(self.close_overloaded())
+            self.closing = asyncio.get_running_loop().create_task(self.close_overloaded())
         return True
 
     def forwardable(self, data: dict, size: int):
