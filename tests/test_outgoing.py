@@ -394,3 +394,29 @@ def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_
     assert written == [at_once[0][0], b"".join(f.wire(False) for f in frames[3:5])]
     assert texts == [f.text() for f in frames[5:]]
     assert 'fingertrack_messages_out_total{session="s"} 9.0' in out
+
+
+def test_a_subscriber_s_end_of_turn_writer_that_fails_is_logged_once_and_left_to_the_sender(caplog):
+    """``Subscriber._write_soon``: a writer that raises (a defect) is logged, dropped for good
+    (``writer_failed``: the sender does not set it again) and the sender woken to send what is queued."""
+    import asyncio
+
+    from service.api.outgoing import Outgoing
+    from service.api.sessions import Subscriber
+
+    async def run():
+        sub, calls = Subscriber(10, 10), []
+
+        def broken():
+            calls.append(1)
+            raise RuntimeError("a defect in the writer")
+        sub.writer = broken
+        sub.put(Outgoing({"type": "gesture", "gesture": "point", "event": "start"}), 0.0)
+        assert not sub.wake.is_set()                # the write is due at the end of the turn
+        await asyncio.sleep(0)
+        return sub, calls
+
+    with caplog.at_level("ERROR", logger="service.api.sessions"):
+        sub, calls = asyncio.run(run())
+    assert calls == [1] and sub.writer is None and sub.writer_failed and sub.wake.is_set() and len(sub.queue) == 1
+    assert sum("end of the turn failed" in r.getMessage() for r in caplog.records) == 1

@@ -455,3 +455,34 @@ def test_ticks_held_back_for_the_next_frame_change_no_output():
     assert late_sent and sum(deferred) > 100
     assert held.counters == eager.counters
     assert held.status() == eager.status()
+
+
+def test_the_fingers_stacked_together_keep_their_own_angles_when_a_finger_s_sensors_fall_silent_and_return(monkeypatch):
+    """The stacked fingers' angle slices are kept while the same fingers are stacked (``_take_together``):
+    with the thumb's sensors silent for 1.5 s (it leaves the stack, then comes back) the frames are the same
+    as with the slices made anew at every tick."""
+    import json
+
+    from service.pipeline import hand as hand_module
+    from service.pipeline.tracked import TrackedHand
+    from service.protocol import parse_message
+    from service.sim.session import SimConfig, simulate
+
+    cfg = SimConfig(motion="sequence", hand_motion="random", noise="realistic", seed=6, duration_s=4.0)
+    msgs = [m for m in simulate(cfg).messages()
+            if not (m["type"] == "imu" and m["id"].startswith("thumb.") and 1.0 < m["t"] < 2.5)]
+
+    def frames() -> str:
+        hand, out = TrackedHand(), []
+        for m in msgs:
+            out += hand.handle(parse_message(m))
+        return json.dumps(out)
+
+    kept = frames()
+    take = hand_module.HandSession._take_together
+
+    def anew(self, *args):
+        self._phi_slices = None
+        return take(self, *args)
+    monkeypatch.setattr(hand_module.HandSession, "_take_together", anew)
+    assert kept == frames()

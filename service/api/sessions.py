@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import logging
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -38,6 +39,8 @@ from ..protocol.outgoing import FrameDict, FrameStatusDict, GestureDict
 from .config import ServiceSettings
 from .metrics import Metrics
 from .outgoing import Outgoing
+
+log = logging.getLogger(__name__)
 
 SESSION_NAME_MAX = 64
 
@@ -61,6 +64,8 @@ class Subscriber:
     turn of the loop after messages were queued, to write them there and then, in place of a wake of the
     sender (its task's turn and its wait's future cost the web process more than the write of a frame)"""
     _writing_soon: bool = False
+    writer_failed: bool = False
+    """``writer`` raised once (a defect, logged): the sender no longer sets it"""
 
     def put(self, message: Outgoing, t_ingest: float) -> int:
         """Queue a message; returns how many frames were dropped to make room."""
@@ -91,7 +96,10 @@ class Subscriber:
         if self.writer is not None and self.queue:      # (else the sender woke meanwhile: it sends them)
             try:
                 self.writer()
-            except Exception:                           # a defect: the sender sends them, and meets it itself
+            except Exception:                           # a defect: logged once; from now on the sender sends
+                log.exception("writing a subscriber's queued outputs at the end of the turn failed; its sender "
+                              "sends them from now on")
+                self.writer_failed, self.writer = True, None
                 self.wake.set()
 
     def pop(self):

@@ -1033,12 +1033,12 @@ class HandSession:
             # each finger's slice of the angles, kept while the same fingers are stacked (the same list)
             kept = self._phi_slices = (phalanx_start, [slice(a, b) for a, b in zip(phalanx_start, phalanx_start[1:])])
         if finite:
-            for fs, part, name in zip(fingers, kept[1], names):
+            for fs, part, name in zip(fingers, kept[1], names, strict=True):
                 fs.phi = phi[part]
                 fs.mode = name
             self._together_phi = (phi, fingers)
             return
-        for fs, part, name in zip(fingers, kept[1], names):
+        for fs, part, name in zip(fingers, kept[1], names, strict=True):
             finger_phi = phi[part]
             if not _all_finite(finger_phi):
                 self._reset_finger(fs)

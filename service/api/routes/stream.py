@@ -58,7 +58,7 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
             if not wire.write_frames(data):
                 sub.wake.set()
                 return
-            for _ in batch:
+            for _ in batch:                         # (taken before anything else can fail: written once)
                 sub.pop()
             counted([t0 for _, _, t0 in batch])
 
@@ -66,7 +66,7 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
         await send(ws, server_hello(session, waiting=waiting))
         while not closer.done():
             if not sub.queue:
-                sub.writer = write_queued
+                sub.writer = None if sub.writer_failed else write_queued
                 try:
                     await sub.wake.wait()
                 finally:
