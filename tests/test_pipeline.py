@@ -422,13 +422,35 @@ def test_a_frames_message_from_its_one_array_of_angles_equals_the_one_from_a_dic
         assert encode(f.to_message(session.calibration), False) == encode(plain.to_message(session.calibration), False)
 
 
-def test_ticks_held_back_for_the_next_frame_change_no_output():
+def _late_poses(msgs: list[dict], start: float, end: float) -> list[dict]:
+    """``msgs`` with the poses of ``[start, end)`` (source time) arriving 0.12 s late (after the IMU of then:
+    ticks past the last pose are released by ``pose_timeout_s``)."""
+    late = [m for m in msgs if m["type"] == "pose" and start <= m["t"] < end]
+    out, pending = [], list(late)
+    for m in msgs:
+        if m in late:
+            continue
+        t = m["samples"][-1]["t"] if m["type"] == "imu_batch" else m.get("t")
+        while pending and t is not None and t >= pending[0]["t"] + 0.12:
+            out.append(pending.pop(0))
+        out.append(m)
+    return out + pending
+
+
+@pytest.mark.parametrize("poses", ["on time", "late", "a hello and a switch midway"])
+def test_ticks_held_back_for_the_next_frame_change_no_output(poses):
     """A ready tick that makes no frame waits to run with the next ticks (``HandSession._defer``): the frames,
     the drops of each message and the counters are those of processing every tick as soon as it is ready,
-    with a late sample for a held-back tick dropped as late."""
+    with a late sample for a held-back tick dropped as late; also with poses arriving after ticks past the
+    last pose were released (a pose then must not go in before them)."""
     from service.bench.cpu import recording_lines
 
     msgs = [json.loads(line) for line in recording_lines(2.0, seed=3, batched=True)]
+    if poses == "late":
+        msgs = _late_poses(msgs, 0.8, 1.2)
+    middle = len(msgs) // 2 if poses == "a hello and a switch midway" else None
+    if middle is not None:                          # held-back ticks run before either (with the old estimator)
+        msgs.insert(middle, {"type": "hello", "protocol": 1, "hand": "right", "source": "again"})
     held = HandSession("right", PipelineSettings())
     eager = HandSession("right", PipelineSettings())
     eager._defer = lambda t: False
@@ -441,7 +463,10 @@ def test_ticks_held_back_for_the_next_frame_change_no_output():
 
     held._defer = counting
     late_sent = False
-    for m in msgs:
+    for i, m in enumerate(msgs):
+        if middle is not None and i == middle + 40:
+            for session in (held, eager):
+                session.set_estimator("vector")
         outs = []
         for session in (held, eager):
             handled = session.handle(parse_message(m))

@@ -597,6 +597,9 @@ class HandSession:
         changes none of their optical fits (``OpticalTrack.add_keeps``) and none of those fits fails (which
         would start the optics again before this pose, ``_process_tick``). Each tick's fit is checked once."""
         deferred, optics = self._deferred, self.optics
+        if not optics.covers(next(reversed(deferred))):
+            return False                    # a tick past the last pose (released by pose_timeout_s): a pose
+            # now would be interpolated into it where it was extrapolated
         if not optics.add_keeps(t_new, next(iter(deferred))):
             return False
         for t in list(deferred)[self._deferred_fits:]:
