@@ -31,7 +31,7 @@ from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 from fastapi.staticfiles import StaticFiles
 
-from ..estimators.warm import preload_off_loop, warm_off_loop
+from ..estimators.warm import warm_off_loop
 from .churn import ChurnCollector, CollectAfterConnections
 from .config import ServiceSettings
 from .hands.pool import HandPool
@@ -71,14 +71,10 @@ def create_app(settings: ServiceSettings) -> FastAPI:
             await sessions.pool.wait_ready()         # each has the default estimator's kernels loaded
         else:
             await warm_off_loop(settings.estimator)  # the default estimator's kernels, before serving
-        preload = asyncio.create_task(preload_off_loop()) \
-            if settings.preload_kernels and not settings.hand_workers and settings.bus is None else None
         task = asyncio.create_task(housekeeping())
         yield
         task.cancel()
         churn.cancel()
-        if preload is not None:
-            preload.cancel()
         await sessions.drain()
         if sessions.bus is not None:
             await sessions.bus.close()

@@ -95,10 +95,10 @@ class ServiceSettings(BaseSettings):
     connection_gc_delay_s: float = Field(1.0, gt=0, le=60, description="a cycle collection (and a heap trim) this "
                                          "long after WebSocket connections ended frees their memory, s (api/churn.py)")
     preload_kernels: bool = Field(True, description="once serving, load in the background the compiled kernels of "
-                                  "every estimator found in the disk cache, where a session switched to one will run: "
-                                  "in the spare hand worker (hand_worker_spare), in the shared hand workers only with "
-                                  "hand_worker_isolate off, in the web process without hand workers, in a bus worker: "
-                                  "the switch then does not wait for them (0.36 s of CPU for inertial)")
+                                  "every estimator found in the disk cache, in the hand workers where a session switched "
+                                  "to one will run: the spare (hand_worker_spare), and the shared ones only with "
+                                  "hand_worker_isolate off; the switch then does not wait for them (0.32 s of CPU for "
+                                  "inertial). Not in the web process without hand workers, nor in a bus worker")
     hand_workers: int = Field(2, ge=0, le=64, description="worker processes that run the sessions' hands (each "
                               "session in one of them); 0: every hand on the web process's event loop")
     hand_worker_nice: int = Field(5, ge=0, le=19, description="a hand worker runs this much nicer than the web "

@@ -41,7 +41,7 @@ from ..api.metrics import Metrics
 from ..api.hands.owner import OutputSink, first_time as _first_time
 from ..api.replies import drop_replies, failure_reply
 from ..api.sessions import LiveSession
-from ..estimators.warm import is_warm, preload_off_loop, warm_off_loop
+from ..estimators.warm import is_warm, warm_off_loop
 from ..pipeline.gc_policy import serving_gc
 from ..protocol import PROTOCOL_VERSION, ProtocolError, parse_message
 
@@ -122,8 +122,6 @@ class Worker:
         await self.ctl.subscribe(worker_subject(self.id), cb=self._on_probe)
         await self.ctl.flush()
         self._tasks += [asyncio.create_task(self._renew_forever()), asyncio.create_task(self._rebuild_forever())]
-        if self.settings.preload_kernels:           # the other cached estimators' kernels, in the background
-            self._tasks.append(asyncio.create_task(preload_off_loop()))
 
     async def stop(self, release: bool = True) -> None:
         """Stop; with ``release`` the sessions' leases say 'no owner' so another worker takes them at once."""
