@@ -612,7 +612,7 @@ def test_the_link_reader_keeps_its_per_turn_bound_across_batches_and_finishes_on
 
 
 def _route(live, settings, metrics):
-    """The ingest route's reader and processor (``routes.ingest._read``/``_process``) on a fake connection."""
+    """The ingest route's reader and processor (``routes.ingest._Door.read``/``_process``) on a fake connection."""
     import json
     from types import SimpleNamespace
 
@@ -644,7 +644,7 @@ def _route(live, settings, metrics):
     live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
     processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics))
-    reader = asyncio.create_task(route._read(ws, "s", live, backlog, processor, settings, metrics))
+    reader = asyncio.create_task(route._Door(ws, "s", live, backlog, processor, settings, metrics).read())
     return ws, backlog, processor, reader
 
 

@@ -88,3 +88,8 @@ def ws_frame(payload: bytes, binary: bool) -> bytes:
     if n < 1 << 16:
         return _LENGTH_16.pack(head, 126, n) + payload
     return _LENGTH_64.pack(head, 127, n) + payload
+
+
+def joined_frames(messages, binary: bool) -> bytes:
+    """The ready-made WebSocket frames of ``messages`` (``Outgoing``), in order, as one write."""
+    return messages[0].wire(binary) if len(messages) == 1 else b"".join(m.wire(binary) for m in messages)

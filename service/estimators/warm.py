@@ -222,9 +222,8 @@ def _warm_steady_run(together, estimator, fits, rows, raw, phi, started, gather)
 def cached_not_warm() -> list[str]:
     """The estimators with kernels whose compiled code is in the on-disk cache but not yet loaded in this
     process: what a hand worker loads ahead, in the background, once it serves
-    (``ServiceSettings.preload_kernels``), so that a session switched to one later neither waits for the
-    load nor stalls the process's other sessions while it runs (loading ``inertial`` from the cache stalled
-    the other sessions of its hand worker 16 ms, the switch benchmark's one miss on an idle machine)."""
+    (``ServiceSettings.preload_kernels``), so that a session switched to one later does not wait for the
+    load (0.32 s of CPU for ``inertial``)."""
     from .registry import REGISTRY
 
     return [n for n, c in REGISTRY.items() if c.jit_kernels and n not in _WARM and _on_disk(_kernels(n))]

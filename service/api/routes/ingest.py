@@ -236,12 +236,6 @@ class _Door:
             f"overloaded: {self.backlog.max_reply_bytes} bytes of replies to refused messages wait; send less"))
 
 
-async def _read(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, processor: asyncio.Task,
-                settings: ServiceSettings, metrics: Metrics) -> None:
-    """The connection's reading side without the server's way in (``_Door.read``)."""
-    await _Door(ws, session, live, backlog, processor, settings, metrics).read()
-
-
 async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, metrics: Metrics) -> None:
     """The received messages in order: decoded, validated, answered or handed to the session. After
     the connection ended, the rest of the backlog is still handed to the session, unanswered."""

@@ -21,7 +21,7 @@ from ...protocol import MSGPACK_SUBPROTOCOL, PROTOCOL_VERSION, encode
 from ...protocol.outgoing import ErrorMessageDict, ServerHelloDict, SyncReplyDict
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER
 from ..metrics import Metrics
-from ..outgoing import WIRE_EXTENSION, Outgoing
+from ..outgoing import WIRE_EXTENSION, Outgoing, joined_frames
 from ..sessions import LiveSession, SessionFull, Sessions
 
 log = logging.getLogger("fingertrack")
@@ -103,7 +103,7 @@ async def send_outputs(ws: WebSocket, messages: list[Outgoing]) -> None:
     wire = getattr(ws.state, "wire", None)
     if wire is not None:
         binary = ws.state.binary
-        data = messages[0].wire(binary) if len(messages) == 1 else b"".join(m.wire(binary) for m in messages)
+        data = joined_frames(messages, binary)
         sending = ws.app.state.sessions.sending
         sending[ws] = time.monotonic()       # watched as any send (``drop_stuck``)
         try:

@@ -14,6 +14,7 @@ from starlette.websockets import WebSocketState
 
 from ..deps import WS_GOING_AWAY, WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
+from ..outgoing import joined_frames
 from ..sessions import Sessions, Subscriber
 from .socket import accept, close_reason, release, send, send_outputs, server_hello
 
@@ -54,7 +55,7 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
                 sub.wake.set()
                 return
             batch = list(itertools.islice(sub.queue, SEND_BATCH))
-            data = batch[0][1].wire(binary) if len(batch) == 1 else b"".join(m.wire(binary) for _, m, _ in batch)
+            data = joined_frames([m for _, m, _ in batch], binary)
             if not wire.write_frames(data):
                 sub.wake.set()
                 return
