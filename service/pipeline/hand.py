@@ -612,6 +612,19 @@ class HandSession:
             self._deferred_fits += 1
         return True
 
+    def _may_run_steady(self, t: float) -> bool:
+        """The cheap checks of a run of steady ticks from the ready tick ``t`` (``_steady_run``, ``_defer``),
+        which need no other tick: ``t`` before the next frame and any reference pose due, the optics
+        tracking, the fingers advanced together before, the flexion-axis fits compiled, no back-of-hand IMU
+        (an occlusion or a back-of-hand IMU refuses every tick)."""
+        frame_t = self._next_frame_t
+        if frame_t is None or t + 1e-9 >= frame_t or (self._references and t + 1e-9 >= self._references[0].t1):
+            return False
+        fits = self._mount_fits
+        if not (self._tracking and self._together_phi is not None and fits and fits.compiled):
+            return False
+        return not (METACARPUS_SENSOR_ID in self._pending[t] or self._hand_imu.live(t))
+
     def _defer(self, t: float) -> bool:
         """Hold the ready tick ``t`` back, to be advanced in one compiled call with the ticks after it
         (``_steady_run``), when it makes no frame and has no reference pose due, the next tick is not
@@ -619,18 +632,9 @@ class HandSession:
         state until it is processed: the next ticks are processed after it, and whatever else could read
         or change that state processes it first (``flush``). At 200 Hz IMU and 90 Hz frames a message
         releases one tick and about half make no frame: two or three ticks per compiled call, not one."""
-        frame_t = self._next_frame_t
-        if frame_t is None or t + 1e-9 >= frame_t or len(self._deferred) >= 8:
-            return False
-        if self._references and t + 1e-9 >= self._references[0].t1:
-            return False
-        fits = self._mount_fits
-        if not (self._tracking and self._together_phi is not None and fits and fits.compiled):
+        if len(self._deferred) >= 8 or not self._may_run_steady(t):
             return False
         pending = self._pending
-        tick = pending[t]
-        if METACARPUS_SENSOR_ID in tick or self._hand_imu.live(t):
-            return False
         if len(pending) > 1 and self._ready(sorted(pending)[1]):
             return False
         self._deferred[t] = pending.pop(t)
@@ -679,20 +683,11 @@ class HandSession:
         the next tick, if the kernel stopped before it, is processed tick by tick), or None when ``t``
         does not start such a run of two ticks or more (nothing done: one tick alone costs less tick by
         tick, whose steady tick is one call too)."""
-        frame_t = self._next_frame_t
-        ref_t = self._references[0].t1 if self._references else math.inf
-        if frame_t is None or t + 1e-9 >= frame_t or t + 1e-9 >= ref_t:
-            return None
         pending = self._pending
-        if len(pending) < 2:
+        if len(pending) < 2 or not self._may_run_steady(t):
             return None
-        # the cheap checks that need no other tick first (an occlusion, a back-of-hand IMU: every tick refused)
-        fits, together = self._mount_fits, self._together_phi
-        if not (self._tracking and together is not None and fits and fits.compiled):
-            return None
-        tick = pending[t]
-        if METACARPUS_SENSOR_ID in tick or self._hand_imu.live(t):
-            return None
+        fits, together, tick = self._mount_fits, self._together_phi, pending[t]
+        frame_t, ref_t = self._next_frame_t, self._references[0].t1 if self._references else math.inf
         # then a second tick ready (at 200 Hz a message releases one tick: nothing more to check)
         later = sorted(pending)[1:]
         if not self._ready(later[0]):
