@@ -5,6 +5,7 @@ import json
 from typing import Union, get_args, get_origin, get_type_hints
 
 import msgpack
+import pytest
 from typing_extensions import is_typeddict
 
 from clients.glove import source_messages
@@ -313,6 +314,15 @@ def test_ready_made_frames_wait_for_room_and_go_only_to_a_connected_socket():
     assert asyncio.run(gone()) == [] and sent == messages
 
 
+async def _turns_until(condition, what: str, turns: int = 10_000) -> None:
+    """Turns of the loop until ``condition()``; a failure after ``turns`` of them (no clock: a count)."""
+    for _ in range(turns):
+        if condition():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError(f"not after {turns} turns of the loop: {what}")
+
+
 def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_turn_else_it_wakes():
     """``routes.stream``: while a subscriber's sender waits with nothing queued, what is queued within a turn
     of the loop goes out in one write of its ready-made frames at the end of that turn, without waking the
@@ -360,8 +370,7 @@ def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_
         sessions = SimpleNamespace(closing=False)
         closer = asyncio.get_running_loop().create_future()
         sender = asyncio.create_task(stream._send_all(ws, "s", False, sub, closer, sessions, metrics))
-        while sub.writer is None:
-            await asyncio.sleep(0)
+        await _turns_until(lambda: sub.writer is not None, "the sender waiting")
         hello = ws.texts[:]
         for f in frames[:3]:                         # one turn: one write, the sender not woken
             sub.put(f, 0.0)
@@ -374,13 +383,11 @@ def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_
             await asyncio.sleep(0)
         while_full = (len(ws.state.wire.written), sub.writer is None)
         ws.state.wire.writable.set()
-        while sub.writer is None or sub.queue:
-            await asyncio.sleep(0)
+        await _turns_until(lambda: sub.writer is not None and not sub.queue, "the sender to send and wait again")
         ws.state.wire.takes = False                  # no ready-made frames: through ASGI, by the sender
         for f in frames[5:]:
             sub.put(f, 0.0)
-        while len(ws.texts) < 1 + 4:
-            await asyncio.sleep(0)
+        await _turns_until(lambda: len(ws.texts) >= 1 + 4, "the sender's ASGI sends")
         closer.set_result(None)
         sub.wake.set()
         await sender
@@ -394,6 +401,71 @@ def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_
     assert written == [at_once[0][0], b"".join(f.wire(False) for f in frames[3:5])]
     assert texts == [f.text() for f in frames[5:]]
     assert 'fingertrack_messages_out_total{session="s"} 9.0' in out
+
+
+@pytest.mark.parametrize("why", ["server closing", "subscriber closed", "peer gone", "connection disconnected"])
+def test_the_end_of_turn_writer_writes_nothing_once_the_subscriber_s_stream_is_ending_and_wakes_the_sender(why):
+    """``routes.stream``'s end-of-turn writer leaves what was queued to the sender (woken, nothing written
+    at the end of the turn) when the server is shutting down, the subscriber was closed as too slow, its
+    peer left, or its connection is no longer open: the sender then closes with the reason or ends."""
+    from types import SimpleNamespace
+
+    from starlette.websockets import WebSocketState
+
+    from service.api.metrics import Metrics
+    from service.api.routes import stream
+
+    class Wire:
+        def __init__(self):
+            self.writable, self.written = asyncio.Event(), []
+            self.writable.set()
+
+        def write_frames(self, data):
+            self.written.append(data)
+            return True
+
+    class Connection:
+        def __init__(self):
+            self.state, self.application_state = SimpleNamespace(wire=Wire(), binary=False), WebSocketState.CONNECTED
+            self.app = SimpleNamespace(state=SimpleNamespace(sessions=SimpleNamespace(sending={})))
+            self.texts, self.closed = [], None
+
+        async def send_text(self, text):
+            self.texts.append(text)
+
+        async def close(self, code, reason):
+            self.closed = code
+
+    async def run():
+        ws, sub = Connection(), Subscriber(100, 100)
+        sessions = SimpleNamespace(closing=False)
+        closer = asyncio.get_running_loop().create_future()
+        sender = asyncio.create_task(stream._send_all(ws, "s", False, sub, closer, sessions, Metrics()))
+        await _turns_until(lambda: sub.writer is not None, "the sender waiting")
+        sub.put(outgoing.Outgoing({"type": "frame", "t": 0.0, "seq": 1}), 0.0)
+        await asyncio.sleep(0)
+        before = (len(ws.state.wire.written), sub.wake.is_set())     # the writer takes it: the control
+        await _turns_until(lambda: sub.writer is not None and not sub.wake.is_set(), "the sender waiting again")
+        if why == "server closing":
+            sessions.closing = True
+        elif why == "subscriber closed":
+            sub.closed = True
+        elif why == "peer gone":
+            closer.set_result(None)
+        else:
+            ws.application_state = WebSocketState.DISCONNECTED
+        sub.put(outgoing.Outgoing({"type": "frame", "t": 0.1, "seq": 2}), 0.0)
+        await asyncio.sleep(0)                      # the end of this turn: the writer's
+        after = (len(ws.state.wire.written), sub.wake.is_set())
+        if not closer.done():
+            closer.set_result(None)
+        sub.wake.set()
+        await asyncio.wait_for(sender, 60)          # (bounds a failure)
+        return before, after
+
+    before, after = asyncio.run(run())
+    assert before == (1, False)
+    assert after == (1, True)
 
 
 def test_a_subscriber_s_end_of_turn_writer_that_fails_is_logged_once_and_left_to_the_sender(caplog):

@@ -437,6 +437,28 @@ def test_msgpack_stream_and_ingest(server):
     assert hello["type"] == "hello" and frame["type"] == "frame" and len(frame["joints"]) == 26
 
 
+async def _stream_300_and_sync(srv, session: str, token: str, seed: int) -> int:
+    """A raw source's first 300 messages of a simulated glove, then a ``sync`` answered (everything before
+    it handled); the session's frame count then."""
+    async with connect(f"{srv.ws_url}/v1/ingest/{session}?token={token}") as src:
+        for _, m in source_messages(_config(seed=seed))[:300]:
+            await src.send(json.dumps(m))
+        await src.send(json.dumps({"type": "sync", "id": 1}))
+        while json.loads(await asyncio.wait_for(src.recv(), 120)) != {"type": "sync", "id": 1}:
+            pass
+    return (await _session_summary(srv, session))["frames_out"]
+
+
+async def _frames_until(sub, last: int, decode=json.loads) -> list[dict]:
+    """A raw subscriber's frames (its other messages skipped) up to the session's frame ``last``."""
+    frames = []
+    while not frames or frames[-1]["seq"] < last:          # 120 s bounds a failure
+        m = decode(await asyncio.wait_for(sub.recv(), 120))
+        if m["type"] == "frame":
+            frames.append(m)
+    return frames
+
+
 def test_frames_are_written_as_ready_made_websocket_frames_to_json_and_msgpack_subscribers(server, monkeypatch):
     """Each output's WebSocket frame is built once per format and written to the subscribers as it is
     (``DrainingWebSocket.write_frames``, not the ASGI send per message): a JSON and a MessagePack
@@ -452,31 +474,50 @@ def test_frames_are_written_as_ready_made_websocket_frames_to_json_and_msgpack_s
         return written[-1]
     monkeypatch.setattr(DrainingWebSocket, "write_frames", counted)
 
-    async def frames_until(sub, last, decode):
-        frames = []
-        while not frames or frames[-1]["seq"] < last:          # 120 s bounds a failure
-            m = decode(await asyncio.wait_for(sub.recv(), 120))
-            if m["type"] == "frame":
-                frames.append(m)
-        return frames
-
     async def go():
         url = f"{server.ws_url}/v1/stream/wire?token={VIEWER}"
         async with connect(url) as js, connect(url + "&format=msgpack") as mp:
             await js.recv(), await mp.recv()                    # their hellos: subscribed before any data
             # (the admin token: the source token's quota of live sessions is taken by the other tests)
-            async with connect(f"{server.ws_url}/v1/ingest/wire?token={ADMIN}") as src:
-                for _, m in source_messages(_config(seed=8))[:300]:
-                    await src.send(json.dumps(m))
-                await src.send(json.dumps({"type": "sync", "id": 1}))
-                while json.loads(await asyncio.wait_for(src.recv(), 120)) != {"type": "sync", "id": 1}:
-                    pass
-            last = (await _session_summary(server, "wire"))["frames_out"]
-            return last, await frames_until(js, last, json.loads), await frames_until(mp, last, msgpack.unpackb)
+            last = await _stream_300_and_sync(server, "wire", ADMIN, seed=8)
+            return last, await _frames_until(js, last, json.loads), await _frames_until(mp, last, msgpack.unpackb)
     last, as_json, as_msgpack = asyncio.run(go())
     assert last > 10 and [f["seq"] for f in as_json] == list(range(1, last + 1))
     assert as_msgpack == as_json
     assert written.count(True) > 0                  # (False: a connection closing; the ASGI send then)
+
+
+def test_a_deflate_subscriber_gets_every_frame_through_asgi_and_no_ready_made_frames_are_built_for_it(monkeypatch):
+    """With per-message deflate negotiated the server cannot take ready-made frames: such a subscriber's
+    outputs go through the ASGI send from the start (no ready-made frames joined and then refused on every
+    turn), while a subscriber without it beside it still gets ready-made frames; both get every frame of
+    the session, the same frames, in order."""
+    from service.api.server import DrainingWebSocket
+
+    calls = []
+    real_write_frames = DrainingWebSocket.write_frames
+
+    def counted(self, data):
+        calls.append((bool(self.conn.extensions), real_write_frames(self, data)))
+        return calls[-1][1]
+    monkeypatch.setattr(DrainingWebSocket, "write_frames", counted)
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    websocket_compression=True)
+
+    async def go(srv):
+        url = f"{srv.ws_url}/v1/stream/deflate?token={VIEWER}"
+        async with connect(url, compression="deflate") as zipped, connect(url, compression=None) as plain:
+            await zipped.recv(), await plain.recv()             # their hellos: subscribed before any data
+            extensions = ([type(e).__name__ for e in zipped.protocol.extensions], plain.protocol.extensions)
+            last = await _stream_300_and_sync(srv, "deflate", SOURCE, seed=9)
+            return extensions, last, await _frames_until(zipped, last), await _frames_until(plain, last)
+
+    with ServerThread(settings) as srv:
+        extensions, last, zipped, plain = asyncio.run(go(srv))
+    assert extensions == (["PerMessageDeflate"], [])
+    assert last > 10 and [f["seq"] for f in zipped] == list(range(1, last + 1)) and plain == zipped
+    assert not any(deflated for deflated, _ in calls)           # never offered ready-made frames
+    assert (False, True) in calls                                # the plain subscriber's went so
 
 
 def test_subscription_survives_a_server_restart(tmp_path):

@@ -41,7 +41,9 @@ async def accept(ws: WebSocket) -> bool:
     offered = MSGPACK_SUBPROTOCOL in ws.scope.get("subprotocols", [])
     await ws.accept(subprotocol=MSGPACK_SUBPROTOCOL if offered else None)
     ws.state.binary = offered or ws.query_params.get("format") == "msgpack"
-    ws.state.wire = ws.scope.get("extensions", {}).get(WIRE_EXTENSION)     # (``send_outputs``)
+    wire = ws.scope.get("extensions", {}).get(WIRE_EXTENSION)              # (``send_outputs``)
+    # with an extension negotiated (per-message deflate) the server takes no ready-made frames: none built
+    ws.state.wire = None if wire is None or wire.conn.extensions else wire
     if key is not None:
         sessions.connections[key] = sessions.connections.get(key, 0) + 1
     return True
