@@ -1029,10 +1029,50 @@ def test_the_way_in_takes_no_more_than_the_worker_s_window_nor_a_message_over_th
     assert to_worker == WINDOW + 41 and taken >= WINDOW
 
 
-def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_real_server(monkeypatch):
+def test_the_way_in_takes_nothing_more_once_it_started_closing_an_overloaded_connection():
+    """A message ``_Door.intake`` took whose hand-on failed with no room left for its reply starts the
+    overload close (1013); from then on the way in takes nothing more (the next message is not handed to the
+    session from the server's callback: it goes to the reader)."""
+    seen = {}
+
+    async def run():
+        settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
+        ws, backlog, processor, reader, taken = _door(live, settings, metrics)
+        closes = []
+        ws.close = lambda code=1000, reason="": closes.append(code) or asyncio.sleep(0)
+        ws.feed(HELLO)
+        await _answer_all(live, 10)
+        forwarded = []
+
+        def broken(msg):                     # a defect in the hand-on, and no room for its reply
+            forwarded.append(msg)
+            raise RuntimeError("a defect")
+        live.forward = broken
+        backlog.put_reply = lambda reply: False
+        batch = next(m for m in _glove(0.2, 5) if m["type"] == "imu_batch")
+        ws.feed(batch)
+        ws.feed(batch)
+        for _ in range(10):
+            await asyncio.sleep(0)
+        seen["taken"], seen["forwarded"], seen["closes"] = len(taken), len(forwarded), closes[:]
+        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+        await asyncio.wait_for(reader, 60)   # (bounds a failure)
+        backlog.close()
+        await asyncio.wait_for(processor, 60)
+
+    asyncio.run(run())
+    # the second message went to the reader, which handed it on too and, finding the replies full as well,
+    # closed too (a second 1013)
+    assert seen["taken"] == 1 and seen["forwarded"] == 2 and seen["closes"][:1] == [1013]
+
+
+@pytest.mark.parametrize("workers", [1, 0])
+def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_real_server(monkeypatch, workers):
     """A real server and worker: data messages the route takes as they arrive (``_Door.intake``: some are, a
     count of the real method's takes) go to the worker in order, each invalid one answered by the worker
-    in its place, and every sync after the error replies of the messages before it."""
+    in its place, and every sync after the error replies of the messages before it. With the hands on the
+    service's own loop (``hand_workers=0``: the session validates each message itself) the way in is not
+    offered (it would size and check every message twice) and the replies are the same."""
     import json
 
     import websockets
@@ -1048,7 +1088,8 @@ def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_r
         taken.append(took)
         return took
     monkeypatch.setattr(route._Door, "intake", counted)
-    settings = _one_worker_source_service()
+    settings = ServiceSettings.load(port=0, tokens={SOURCE_TOKEN: "source"}, hand_workers=workers,
+                                    hand_worker_isolate=False)
     batches = [m for m in _glove(1.0, 4) if m["type"] == "imu_batch"][:40]
 
     async def run(url):
@@ -1075,7 +1116,7 @@ def test_data_messages_taken_as_they_arrive_keep_their_replies_in_order_with_a_r
     # each invalid message's error before the sync after it, none after; their codes the worker's
     shown = [("error", "invalid_message") if kind == "error" else (kind, k) for kind, k in expected]
     assert got[1:] == shown
-    assert any(taken)
+    assert any(taken) if workers else taken == []
 
 
 def test_an_intake_that_fails_leaves_the_connection_and_its_messages_to_the_app_s_receive(monkeypatch, caplog):
