@@ -136,6 +136,49 @@ def test_tokens_and_roles(server):
     assert asyncio.run(refused("/v1/stream/x", VIEWER)) is None
 
 
+def _raw_get(url: str, path: str, headers: dict, method: str = "GET") -> tuple:
+    """An answer as it came: status, headers in order (but the clock's ``date``), body."""
+    import http.client
+    from urllib.parse import urlsplit
+    parts = urlsplit(url)
+    conn = http.client.HTTPConnection(parts.hostname, parts.port, timeout=30)
+    try:
+        conn.request(method, path, headers=headers)
+        resp = conn.getresponse()
+        return resp.status, [(k, v) for k, v in resp.getheaders() if k.lower() != "date"], resp.read()
+    finally:
+        conn.close()
+
+
+def test_health_and_metrics_answered_as_their_routes_answer():
+    """``GET /health`` and ``GET /metrics`` are answered without the framework's layers (``app.ProbePaths``),
+    byte for byte as their routes answer them through those layers: status, headers, body, refusals."""
+    settings = ServiceSettings.load(port=0, tokens={SOURCE: "source", VIEWER: "viewer"}, admin_token=ADMIN,
+                                    hand_workers=0)
+    asks = [("/health", {}), ("/health?x=1", {"Authorization": "Bearer nonsense"}), ("/metrics", {}),
+            ("/metrics", {"Authorization": "Bearer wrong-token-9"}), ("/metrics", {"Authorization": "Basic abc"}),
+            ("/metrics", {"Authorization": f"bearer {VIEWER}"}), (f"/metrics?token={SOURCE}", {}),
+            ("/metrics", {"Authorization": f"Bearer {ADMIN}"}), (f"/metrics?token={ADMIN}", {})]
+    with ServerThread(settings) as srv:
+        probes = srv.app.middleware_stack                 # built at the server's start
+        whole_way = []
+        stack = probes.stack
+
+        async def counted(scope, receive, send):
+            whole_way.append(scope["path"])
+            await stack(scope, receive, send)
+        probes.stack = counted
+        fast = [_raw_get(srv.url, path, headers) for path, headers in asks]
+        assert whole_way == []
+        assert _raw_get(srv.url, "/health", {}, "HEAD")[0] == 405 and whole_way == ["/health"]   # (the route's)
+        probes.probes = {}                                # every request the whole way: the routes' answers
+        routed = [_raw_get(srv.url, path, headers) for path, headers in asks]
+    assert len(whole_way) == 1 + len(asks)
+    assert [a[0] for a in fast] == [200, 200, 401, 401, 401, 200, 200, 200, 200]
+    assert fast == routed
+    assert b'session="' not in fast[5][2] and b"fingertrack_sessions 0.0" in fast[7][2]
+
+
 def test_bad_messages_get_errors_while_a_good_session_keeps_going(server):
     bad_lines = [
         "{not json", '{"type":"wave"}', '{"type":"imu","t":1.0,"id":"index.1","gyr":[0,0],"acc":[0,0,9.8]}',
