@@ -15,7 +15,7 @@ from service.api.metrics import Metrics
 from service.api.routes.socket import server_hello
 from service.api.sessions import LiveSession, Subscriber
 from service.pipeline.tracked import replay
-from service.protocol import parse_message
+from service.protocol import encode, parse_message
 from service.protocol.outgoing import WIRE_SHAPES, FrameDict, GestureDict, ServerHelloDict
 from service.sim.session import SimConfig
 
@@ -371,7 +371,8 @@ def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_
         closer = asyncio.get_running_loop().create_future()
         sender = asyncio.create_task(stream._send_all(ws, "s", False, sub, closer, sessions, metrics))
         await _turns_until(lambda: sub.writer is not None, "the sender waiting")
-        hello = ws.texts[:]
+        hello = ws.state.wire.written[:]             # the server's hello: a ready-made frame too
+        ws.state.wire.written.clear()
         for f in frames[:3]:                         # one turn: one write, the sender not woken
             sub.put(f, 0.0)
         await asyncio.sleep(0)
@@ -387,15 +388,15 @@ def test_a_waiting_sender_s_queued_outputs_are_written_at_once_in_one_write_per_
         ws.state.wire.takes = False                  # no ready-made frames: through ASGI, by the sender
         for f in frames[5:]:
             sub.put(f, 0.0)
-        await _turns_until(lambda: len(ws.texts) >= 1 + 4, "the sender's ASGI sends")
+        await _turns_until(lambda: len(ws.texts) >= 4, "the sender's ASGI sends")
         closer.set_result(None)
         sub.wake.set()
         await sender
         out = metrics.render().decode()
-        return hello, at_once, while_full, ws.state.wire.written, ws.texts[1:], out
+        return hello, at_once, while_full, ws.state.wire.written, ws.texts, out
 
     hello, at_once, while_full, written, texts, out = asyncio.run(run())
-    assert len(hello) == 1
+    assert hello == [outgoing.ws_frame(encode(server_hello("s", waiting=False), False).encode(), False)]
     assert at_once == ([b"".join(f.wire(False) for f in frames[:3])], 0, True)
     assert while_full == (1, True)
     assert written == [at_once[0][0], b"".join(f.wire(False) for f in frames[3:5])]
@@ -442,6 +443,7 @@ def test_the_end_of_turn_writer_writes_nothing_once_the_subscriber_s_stream_is_e
         closer = asyncio.get_running_loop().create_future()
         sender = asyncio.create_task(stream._send_all(ws, "s", False, sub, closer, sessions, Metrics()))
         await _turns_until(lambda: sub.writer is not None, "the sender waiting")
+        ws.state.wire.written.clear()               # the server's hello (a ready-made frame)
         sub.put(outgoing.Outgoing({"type": "frame", "t": 0.0, "seq": 1}), 0.0)
         await asyncio.sleep(0)
         before = (len(ws.state.wire.written), sub.wake.is_set())     # the writer takes it: the control

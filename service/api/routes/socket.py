@@ -21,7 +21,7 @@ from ...protocol import MSGPACK_SUBPROTOCOL, PROTOCOL_VERSION, encode
 from ...protocol.outgoing import ErrorMessageDict, ServerHelloDict, SyncReplyDict
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER
 from ..metrics import Metrics
-from ..outgoing import WIRE_EXTENSION, Outgoing, joined_frames
+from ..outgoing import WIRE_EXTENSION, Outgoing, joined_frames, ws_frame
 from ..sessions import LiveSession, SessionFull, Sessions
 
 log = logging.getLogger("fingertrack")
@@ -80,12 +80,18 @@ def close_reason(text: str) -> str:
 
 
 async def send(ws: WebSocket, message: ServerHelloDict | SyncReplyDict | ErrorMessageDict | Outgoing) -> None:
-    """One message in the connection's encoding (an ``Outgoing`` one is encoded once for everyone)."""
+    """One message in the connection's encoding (an ``Outgoing`` one is encoded once for everyone): written as
+    its ready-made frame where the server takes those (``_write_frames``: a source's error and ``sync``
+    replies, the hellos), else through ASGI."""
     binary = ws.state.binary
     if isinstance(message, Outgoing):
+        if await _write_frames(ws, message.wire(binary)):
+            return
         data = message.packed() if binary else message.text()
     else:
         data = encode(message, binary)
+        if await _write_frames(ws, ws_frame(data if binary else data.encode(), binary)):
+            return
     sending = ws.app.state.sessions.sending
     sending[ws] = time.monotonic()
     try:
@@ -98,25 +104,30 @@ async def send(ws: WebSocket, message: ServerHelloDict | SyncReplyDict | ErrorMe
 
 
 async def send_outputs(ws: WebSocket, messages: list[Outgoing]) -> None:
-    """Outputs of a session (frames, gesture events) in the connection's encoding, in order. Where the server
-    takes ready-made frames (``server.DrainingWebSocket.write_frames``) they go in one write of the frames
-    each message built once for every subscriber; else (another server, per-message deflate negotiated, the
-    connection closing or closed) one by one through ASGI (``send``, which raises as it would)."""
+    """Outputs of a session (frames, gesture events) in the connection's encoding, in order: in one write of
+    the frames each message built once for every subscriber (``_write_frames``), else one by one (``send``)."""
+    if not await _write_frames(ws, joined_frames(messages, ws.state.binary)):
+        for message in messages:
+            await send(ws, message)
+
+
+async def _write_frames(ws: WebSocket, data: bytes) -> bool:
+    """``data``, whole WebSocket frames (``outgoing.ws_frame``), written as they are where the server takes
+    ready-made frames (``server.DrainingWebSocket.write_frames``), after waiting while its buffers are full as
+    the ASGI send waits, watched as any send (``drop_stuck``). ``False``, nothing written: the caller sends
+    through ASGI (another server, per-message deflate negotiated, the connection closing or closed: that
+    send raises or does what it would)."""
     wire = getattr(ws.state, "wire", None)
-    if wire is not None:
-        binary = ws.state.binary
-        data = joined_frames(messages, binary)
-        sending = ws.app.state.sessions.sending
-        sending[ws] = time.monotonic()       # watched as any send (``drop_stuck``)
-        try:
-            if not wire.writable.is_set():   # its buffers full: wait as the ASGI send does
-                await wire.writable.wait()
-            if ws.application_state is WebSocketState.CONNECTED and wire.write_frames(data):
-                return
-        finally:
-            sending.pop(ws, None)
-    for message in messages:
-        await send(ws, message)
+    if wire is None:
+        return False
+    sending = ws.app.state.sessions.sending
+    sending[ws] = time.monotonic()
+    try:
+        if not wire.writable.is_set():
+            await wire.writable.wait()
+        return ws.application_state is WebSocketState.CONNECTED and wire.write_frames(data)
+    finally:
+        sending.pop(ws, None)
 
 
 def drop_stuck(sessions: Sessions, metrics: Metrics, timeout_s: float, now: float) -> None:
