@@ -14,6 +14,7 @@ from prometheus_client import metrics as _client_metrics
 from prometheus_client.openmetrics import exposition as _om
 from prometheus_client.registry import Collector
 from prometheus_client.utils import floatToGoString
+from prometheus_client.values import MutexValue
 
 
 log = logging.getLogger(__name__)
@@ -177,16 +178,16 @@ class _Exposition:
                 if kept is None or kept[0] is not child:
                     kept = self._heads[key] = self._series(child, dict(zip(labelnames, values)))
                 _, heads, created_line = kept
-                if kind == "counter":
-                    out.append(heads[0] + floatToGoString(child._value.get()) + "\n")
-                elif kind == "gauge":
-                    out.append(heads[0] + floatToGoString(child._value.get()) + "\n")
+                if kind == "counter" or kind == "gauge":
+                    value = child._value
+                    value = value._value if type(value) is MutexValue else value.get()
+                    out.append(f"{heads[0]}{repr(value) if type(value) is float and -1e6 < value < 1e6 else floatToGoString(value)}\n")
                 elif kind == "histogram":
-                    acc, buckets = 0.0, child._buckets
-                    for i, head in enumerate(heads[:-2]):
-                        acc += buckets[i].get()
-                        out.append(head + floatToGoString(acc) + "\n")
-                    out.append(heads[-2] + floatToGoString(acc) + "\n")
+                    acc = 0.0
+                    for head, bucket in zip(heads, child._buckets):
+                        acc += bucket._value if type(bucket) is MutexValue else bucket.get()
+                        out.append(f"{head}{repr(acc) if -1e6 < acc < 1e6 else floatToGoString(acc)}\n")
+                    out.append(f"{heads[-2]}{repr(acc) if -1e6 < acc < 1e6 else floatToGoString(acc)}\n")
                     if child._upper_bounds[0] >= 0:
                         out.append(heads[-1] + floatToGoString(child._sum.get()) + "\n")
                 else:                                   # summary
