@@ -694,7 +694,7 @@ class ProcessSession(LiveSession):
         self.hello: dict | None = None
         self.calibration: dict | None = None
         self._last: tuple[int, Outgoing] | None = None         # the last frame passed on: its seq, itself
-        self._told: tuple | None = None             # (MessagePack wanted, drops) as the worker last heard
+        self._told: tuple | None = None             # (MessagePack wanted, drops, overloaded) as the worker last heard
         self.restarts = 0
         self.resent = 0
         self.moves = 0
@@ -743,13 +743,18 @@ class ProcessSession(LiveSession):
     def _tell_worker(self) -> None:
         """The worker writes MessagePack too while a subscriber reads it, and the session's drop counts
         into its frames' status: tell it when they change."""
-        told = (any(sub.binary for sub in self.subscribers), (self.dropped_frames, self.overloaded))
-        if told != self._told:
-            if self._told is None or told[0] != self._told[0]:
-                self.link.send(["fmt", self.sid, told[0]])
-            if self._told is None or told[1] != self._told[1]:
-                self.link.send(["drops", self.sid, *told[1]])
-            self._told = told
+        binary = False
+        for sub in self.subscribers:                # (asked at every source message and output: no generator)
+            if sub.binary:
+                binary = True
+                break
+        was = self._told
+        if was is None or was[0] is not binary or was[1] != self.dropped_frames or was[2] != self.overloaded:
+            if was is None or was[0] is not binary:
+                self.link.send(["fmt", self.sid, binary])
+            if was is None or was[1] != self.dropped_frames or was[2] != self.overloaded:
+                self.link.send(["drops", self.sid, self.dropped_frames, self.overloaded])
+            self._told = (binary, self.dropped_frames, self.overloaded)
 
     def _to_worker(self, message: list) -> None:
         """Send from the event loop or from a thread of the API (in order either way)."""
