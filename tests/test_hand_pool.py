@@ -934,6 +934,24 @@ def _door(live, settings, metrics):
     return ws, backlog, processor, asyncio.create_task(door.read()), taken
 
 
+async def _greeted_door(**extra):
+    """``_door`` on an offline session (``_offline_session(**extra)``) whose hello the worker has answered:
+    settings, live, the link's list, the connection, the backlog, the processor, the reader, the texts taken."""
+    settings, metrics, live, sent = _offline_session(**extra)
+    ws, backlog, processor, reader, taken = _door(live, settings, metrics)
+    ws.feed(HELLO)
+    await _answer_all(live, 10)
+    return settings, live, sent, ws, backlog, processor, reader, taken
+
+
+async def _route_ended(ws, reader, backlog, processor) -> None:
+    """The connection's end, the reader and the processor done."""
+    ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
+    await reader
+    backlog.close()
+    await processor
+
+
 def test_the_server_s_way_in_hands_data_on_as_it_arrives_only_in_order_and_within_the_rate_limit():
     """``routes.ingest._Door.intake`` (the server offers a text message as it arrives while nothing waits in
     its queue before it): over random interleavings (data whose head is known and data only the processor
@@ -977,9 +995,44 @@ def test_the_server_s_way_in_hands_data_on_as_it_arrives_only_in_order_and_withi
     # a bucket of 5: the hello and the first sync took 2; 3 data messages pass (one more if the bucket refilled
     # meanwhile), the others are refused in their places; the last sync is answered or refused
     passed = to_worker.count("imu_batch")
-    assert 3 <= passed <= 4 and 1 <= taken <= passed
+    assert 3 <= passed <= 4 and 1 <= taken <= passed + 2       # (the way in answers syncs too)
     assert replies[:-1] == [("sync", 1)] + [("error", "rate_limited")] * (12 - passed)
     assert replies[-1] in (("sync", 2), ("error", "rate_limited"))
+
+
+def test_a_sync_taken_on_the_way_in_is_answered_in_its_place_and_a_bad_one_is_left_to_the_processor():
+    """``_Door.answer_sync``: a ``sync`` offered as it arrives, with nothing queued before it, is taken there (no
+    wake of the reader and the processor) and answered only once the worker has answered every message before
+    it, after their error replies; an invalid one (no ``id``) is not taken: the processor answers it with its
+    error, in its place; the ones after go the quick way again."""
+    batch = next(m for m in _glove(0.2, 5) if m["type"] == "imu_batch")
+
+    async def run():
+        _, live, _, ws, backlog, processor, reader, taken = await _greeted_door(rate_limit_msgs_per_s=1e6)
+        ws.feed(batch)                              # the worker does not answer it for now
+        ws.feed({"type": "sync", "id": 1})
+        for _ in range(10):
+            await asyncio.sleep(0)
+        early = [s["type"] for s in ws.sent if s["type"] != "hello"]
+        n = next(iter(live._pending))
+        live.on_reply(n, [["invalid_samples", "sample 0 refused", [0]]], True)
+        ws.feed({"type": "sync"})                   # no id
+        deadline = time.monotonic() + 60            # (bounds a failure only)
+        while len(ws.sent) < 1 + 3:
+            assert time.monotonic() < deadline, ws.sent
+            await _answer_all(live, 1)
+        ws.feed({"type": "sync", "id": 2})          # nothing queued before it: the quick way again
+        while len(ws.sent) < 1 + 4:
+            assert time.monotonic() < deadline, ws.sent
+            await _answer_all(live, 1)
+        await _route_ended(ws, reader, backlog, processor)
+        return early, [(s["type"], s.get("code", s.get("id"))) for s in ws.sent if s["type"] != "hello"], taken
+
+    early, replies, taken = asyncio.run(run())
+    assert early == []
+    assert replies == [("error", "invalid_samples"), ("sync", 1), ("error", "invalid_message"), ("sync", 2)], replies
+    syncs = [t for t in taken if '"sync"' in t]
+    assert syncs == ['{"type":"sync","id":1}', '{"type":"sync","id":2}'], taken
 
 
 def test_the_way_in_takes_no_more_than_the_worker_s_window_nor_a_message_over_the_size_limit():
@@ -994,10 +1047,7 @@ def test_the_way_in_takes_no_more_than_the_worker_s_window_nor_a_message_over_th
     batch = next(m for m in _glove(0.2, 5) if m["type"] == "imu_batch")
 
     async def run():
-        settings, metrics, live, sent = _offline_session(rate_limit_msgs_per_s=1e6)
-        ws, backlog, processor, reader, taken = _door(live, settings, metrics)
-        ws.feed(HELLO)
-        await _answer_all(live, 10)
+        settings, live, sent, ws, backlog, processor, reader, taken = await _greeted_door(rate_limit_msgs_per_s=1e6)
         for _ in range(WINDOW + 40):             # the worker answers nothing meanwhile
             ws.feed(batch)
             await asyncio.sleep(0)
@@ -1015,10 +1065,7 @@ def test_the_way_in_takes_no_more_than_the_worker_s_window_nor_a_message_over_th
         while not any(s["type"] == "sync" for s in ws.sent):
             assert time.monotonic() < deadline
             await _answer_all(live, 1)
-        ws.inbox.put_nowait({"type": "websocket.disconnect", "code": 1000})
-        await reader
-        backlog.close()
-        await processor
+        await _route_ended(ws, reader, backlog, processor)
         big_text = json.dumps(big, separators=(",", ":"))
         return held, [(s["type"], s.get("code")) for s in ws.sent if s["type"] != "hello"], big_text in taken, \
             _source_types(sent).count("imu_batch"), len(taken)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import hmac
+import re
 import time
 
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
@@ -39,6 +40,10 @@ class TokenBucket:
             self.tokens -= 1.0
             return True
         return False
+
+    def give_back(self) -> None:
+        """Undo the last ``take`` (its message was not handled after all: it is asked for again)."""
+        self.tokens = min(self.capacity, self.tokens + 1.0)
 
 
 def _size(data: dict) -> int:
@@ -83,6 +88,24 @@ def _overload_reply(data: dict, backlog: IngestBacklog) -> tuple[str, str]:
                           "processed); dropped. Send less, or wait for the answer to a sync")
 
 
+class _Say:
+    """``await say(send_fn, *args, **fields)``: ``send_fn(ws, *args, **fields)`` unless the connection is gone
+    (then nothing more is sent); shared by the processor and the door (``_Door.intake``'s ``sync`` answers)."""
+
+    def __init__(self, ws: WebSocket):
+        self.ws, self.gone = ws, False
+
+    async def __call__(self, send_fn, *args, **fields) -> None:
+        if not self.gone:
+            try:
+                await send_fn(self.ws, *args, **fields)
+            except (WebSocketDisconnect, RuntimeError, OSError):
+                self.gone = True
+
+
+_SYNC_HEAD = re.compile(r'\{\s*"type"\s*:\s*"sync"\s*[,}]')
+
+
 async def _close_quietly(ws: WebSocket, code: int, reason: str) -> None:
     """Close a connection that may be gone already (its peer left): then there is nothing to close
     (the failed close used to end in a 'Task exception was never retrieved' traceback in the log)."""
@@ -119,8 +142,9 @@ async def ingest(ws: WebSocket, session: str, sessions: SessionsDep, settings: S
         return
     live.attach_source(lambda code, detail, samples=None: send_error(ws, metrics, code, detail, samples=samples))
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
-    processor = asyncio.create_task(_process(ws, session, live, backlog, metrics))
-    door = _Door(ws, session, live, backlog, processor, settings, metrics)
+    say = _Say(ws)
+    processor = asyncio.create_task(_process(ws, session, live, backlog, metrics, say))
+    door = _Door(ws, session, live, backlog, processor, settings, metrics, say)
     # the server hands such messages over as they arrive (``_Door.intake``), to a session that takes them so
     wire = getattr(ws.state, "wire", None) if type(live).forward is not LiveSession.forward else None
     if wire is not None:
@@ -150,12 +174,15 @@ class _Door:
     (``server.DrainingWebSocket``), taken only while ``read`` waits for the next message with nothing
     received before it left waiting: a message handed on at once then goes there as ``read`` would hand
     it on, without a turn of the loop, a wake of ``read`` and the ASGI layers' receive per message (a
-    quarter of the web process's time per glove message)."""
+    quarter of the web process's time per glove message). A ``sync`` is taken there too (``answer_sync``):
+    its answer put in its place among the session's replies as the processor puts it, without the reader's
+    and the processor's wakes (a glove asks one every 64 messages)."""
 
     def __init__(self, ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, processor: asyncio.Task,
-                 settings: ServiceSettings, metrics: Metrics):
+                 settings: ServiceSettings, metrics: Metrics, say: _Say | None = None):
         self.ws, self.session, self.live, self.backlog, self.processor = ws, session, live, backlog, processor
         self.settings, self.metrics = settings, metrics
+        self.say = say or _Say(ws)
         self.bucket = TokenBucket(settings.rate_limit_msgs_per_s)
         self.waiting = False
         """``read`` waits for the next message and everything received before was taken"""
@@ -185,21 +212,44 @@ class _Door:
         if not self.waiting or self.processor.done() or self.closing is not None:
             return False
         data = {"type": "websocket.receive", "text": text}
-        msg = self.forwardable(data, _size(data))
-        if msg is None or not self.bucket.take():
+        size = _size(data)
+        msg = self.forwardable(data, size)
+        if msg is None:
+            return _SYNC_HEAD.match(text) is not None and self.answer_sync(text, size)
+        if not self.bucket.take():
             return False                     # (a failed take uses no token: ``read`` asks again)
         if not self.forward(msg):
             self.closing = asyncio.get_running_loop().create_task(self.close_overloaded())
         return True
 
+    def answer_sync(self, text: str, size: int) -> bool:
+        """A valid ``sync`` as it arrives: its answer put in its place among the session's replies, as the
+        processor puts it (``LiveSession.answer_in_order``), under the same conditions as a data message
+        handed on here (``forwardable``'s, the session's source greeted), so it keeps its place in the order;
+        ``False`` (not taken, its token given back: the processor handles it) for anything else, an invalid
+        one (answered with its error there) or one whose answer cannot wait in its place."""
+        if not self._may_hand_on(size):
+            return False
+        try:
+            _, msg = self.live.parse_input(text, False)
+        except ProtocolError:
+            return False
+        if not isinstance(msg, Sync) or not self.bucket.take():
+            return False
+        if not self.live.answer_in_order(functools.partial(self.say, send, SyncReplyDict(type="sync", id=msg.id))):
+            self.bucket.give_back()
+            return False
+        return True
+
     def forwardable(self, data: dict, size: int):
         """The message, if it may go to the session at once (within the size limit, the processor waiting
         with nothing queued, the session's source this connection and greeted); else ``None``."""
+        return self.live.forwardable(data) if self._may_hand_on(size) else None
+
+    def _may_hand_on(self, size: int) -> bool:
         backlog = self.backlog
-        if size > self.settings.max_message_bytes or not backlog.greeted or not backlog.idle() \
-                or self.live.source is not self.ws:
-            return None
-        return self.live.forwardable(data)
+        return size <= self.settings.max_message_bytes and backlog.greeted and backlog.idle() \
+            and self.live.source is self.ws
 
     def take(self, data: dict) -> bool:
         """One received message: handed on, queued for the processor, or refused (the reply in its place,
@@ -236,19 +286,11 @@ class _Door:
             f"overloaded: {self.backlog.max_reply_bytes} bytes of replies to refused messages wait; send less"))
 
 
-async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, metrics: Metrics) -> None:
+async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: IngestBacklog, metrics: Metrics,
+                   say: _Say | None = None) -> None:
     """The received messages in order: decoded, validated, answered or handed to the session. After
     the connection ended, the rest of the backlog is still handed to the session, unanswered."""
-    gone = False
-
-    async def say(send_fn, *args, **fields) -> None:
-        """``send_fn(ws, *args, **fields)`` unless the connection is gone (then nothing more is sent)."""
-        nonlocal gone
-        if not gone:
-            try:
-                await send_fn(ws, *args, **fields)
-            except (WebSocketDisconnect, RuntimeError, OSError):
-                gone = True
+    say = say or _Say(ws)
 
     async def reply(code: str, detail: str, **fields) -> None:
         """An error reply about this message, after those about every earlier one (a session whose hand
@@ -276,7 +318,7 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
                 shown = str(msg.protocol) if len(str(msg.protocol)) <= 12 else str(msg.protocol)[:12] + "..."
                 await reply("unsupported_protocol",
                             f"protocol {shown} is not supported; this server speaks protocol {PROTOCOL_VERSION}")
-                if not gone:
+                if not say.gone:
                     await ws.close(code=WS_POLICY_VIOLATION, reason=close_reason(f"unsupported protocol {shown}"))
                 return
             greeted = True
