@@ -514,3 +514,76 @@ def test_a_load_subscriber_s_refused_connection_closed_late_does_not_end_the_nex
 
     seqs, reconnects, connections_seen = asyncio.run(asyncio.wait_for(main(), 60))
     assert seqs == list(range(20)) and reconnects == 1 and connections_seen == 2
+
+
+def test_a_load_subscriber_cuts_the_same_frames_from_the_bytes_however_they_are_read():
+    """A raw server answers the handshake and sends messages of each length encoding (7-bit, 16-bit,
+    64-bit), a ping, a message in two fragments, a MessagePack frame and a frame that is not JSON:
+    once in one write with the handshake's response, and once cut into pieces of 1 to 7 bytes written
+    apart. The subscriber cuts the frames itself from what it reads (the protocol gets the handshake,
+    the ping and the fragments whole): both times every frame comes out whole and in order, the ping is
+    answered with a pong carrying its payload, and the bad frame is counted."""
+    import asyncio
+    import json
+
+    import msgspec
+    from websockets.frames import Frame, Opcode
+
+    from service.bench.loadclients import LeanSubscription
+
+    def frame(seq, pad=0):
+        return {"type": "frame", "t": seq / 90, "seq": seq, "hand": "right", "joints": {"pad": "x" * pad}}
+
+    text = json.dumps(frame(5)).encode()
+    messages = [Frame(Opcode.TEXT, json.dumps({"type": "hello", "protocol": 1}).encode()),
+                Frame(Opcode.TEXT, json.dumps(frame(1)).encode()),
+                Frame(Opcode.TEXT, json.dumps(frame(2, pad=7000)).encode()),      # 16-bit length
+                Frame(Opcode.PING, b"are you there"),
+                Frame(Opcode.TEXT, json.dumps(frame(3, pad=70000)).encode()),     # 64-bit length
+                Frame(Opcode.BINARY, msgspec.msgpack.encode(frame(4))),
+                Frame(Opcode.TEXT, text[:30], fin=False), Frame(Opcode.CONT, text[30:]),
+                Frame(Opcode.TEXT, b"{not json"),
+                Frame(Opcode.TEXT, json.dumps({"type": "gesture", "t": 0.1}).encode())]
+    wire = b"".join(m.serialize(mask=False) for m in messages)
+    pongs: list = []
+
+    async def run(pieces: bool):
+        async def handle(reader, writer):
+            data = _accept((await reader.readuntil(b"\r\n\r\n")).decode()) + wire
+            if not pieces:
+                writer.write(data)
+            else:
+                i, k = 0, 0
+                while i < len(data):
+                    step = 1 + k % 7 if i < 600 or len(data) - i < 600 else 4096
+                    writer.write(data[i:i + step])
+                    await writer.drain()
+                    await asyncio.sleep(0.001 if step < 10 else 0)
+                    i, k = i + step, k + 1
+            await writer.drain()
+            got = await reader.readexactly(2 + 4 + len(b"are you there"))     # the pong, masked
+            mask = got[2:6]
+            pongs.append((got[0], bytes(b ^ mask[j % 4] for j, b in enumerate(got[6:]))))
+            await asyncio.sleep(30)
+
+        server = await _raw_server_port(handle)
+        rows: list = []
+        sub = LeanSubscription(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "a", "t",
+                               lambda m, arrival: rows.append((m.seq, m.hand, m.t)))
+        sub.start()
+        while sub.gestures < 1 and sub._task is not None and not sub._task.done():
+            await asyncio.sleep(0.01)
+        while len(pongs) < (2 if pieces else 1):
+            await asyncio.sleep(0.01)
+        malformed, others, reconnects, failure = sub.malformed_count, sub.others, sub.reconnects, sub.failure
+        sub._closing = True
+        sub.transport.abort()
+        await asyncio.gather(sub._task, return_exceptions=True)
+        server.close()
+        return rows, malformed, others, reconnects, failure
+
+    for pieces in (False, True):
+        rows, malformed, others, reconnects, failure = asyncio.run(asyncio.wait_for(run(pieces), 60))
+        assert rows == [(s, "right", s / 90) for s in (1, 2, 3, 4, 5)], pieces
+        assert (malformed, others, reconnects, failure) == (1, 0, 0, None)
+    assert pongs == [(0x8A, b"are you there")] * 2

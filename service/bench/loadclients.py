@@ -5,8 +5,10 @@ Both run websockets' sans-I/O protocol (its handshake, framing, ping/pong and cl
 the transport's own callbacks, with no task, queue or future per message:
 
 * ``LeanSubscription`` reads ``/v1/stream/<session>`` and decodes each message only for the fields
-  the load test checks (``type``, ``seq``, ``hand``, ``t``; the rest skipped unread, ``msgspec``),
-  as it arrives; a message that does not decode, or a frame without those fields, is counted
+  the load test checks (``type``, ``seq``, ``hand``, ``t``; the rest skipped but still parsed,
+  ``msgspec``), as it arrives, in place: the transport reads into the connection's own buffer
+  (``asyncio.BufferedProtocol``), where whole server messages are cut without websockets' parser
+  (every other frame, and the handshake, still go to the protocol); a message that does not decode, or a frame without those fields, is counted
   (``malformed_count``), not dropped silently. It reconnects with back-off, as
   ``clients.client.Subscription`` does, counting ``reconnects``.
 * ``LeanGlove`` streams a simulated glove's messages, each framed (masked) before the clock starts
@@ -32,7 +34,7 @@ from clients.client import FATAL_CLOSE_CODES, Backoff, Refused, _path, _shown, _
 from service.protocol import decode, encode
 
 
-class Received(msgspec.Struct):
+class Received(msgspec.Struct, gc=False):
     """The fields of a service message the load test checks; every other field is skipped unread
     (a frame's fingers and joints), and a missing one is ``None`` (a malformed frame, counted)."""
     type: str
@@ -44,13 +46,17 @@ class Received(msgspec.Struct):
 _DECODERS = {False: msgspec.json.Decoder(Received), True: msgspec.msgpack.Decoder(Received)}
 
 
-def decode_received(data: bytes | str, binary: bool) -> Received:
+def decode_received(data: bytes | memoryview | str, binary: bool) -> Received:
     """``data`` (a whole WebSocket message) read for ``Received``'s fields; raises
     ``msgspec.DecodeError`` (a ``ValueError``) for what is not such a message."""
     return _DECODERS[binary].decode(data)
 
 
-class _LeanConnection(asyncio.Protocol):
+READ_SIZE = 65536
+"""the least room a read is given in a connection's buffer"""
+
+
+class _LeanConnection(asyncio.BufferedProtocol):
     """One WebSocket client connection run in the transport's callbacks; ``_message(data, arrival)``
     gets each whole data message (``binary``: sent as a binary message, MessagePack; ``arrival``:
     ``time.perf_counter()`` when its bytes were read)."""
@@ -64,6 +70,11 @@ class _LeanConnection(asyncio.Protocol):
         self._lost: asyncio.Future | None = None
         self._parts: list[bytes] = []
         self._binary_message = False
+        self._framing = False                       # the handshake done: frames cut by ``_frames``
+        self._head: bytes | None = b""              # the handshake's response so far (None: read)
+        self._rbuf = bytearray(4 * READ_SIZE)       # read into (``get_buffer``); [_start, _end): not yet cut
+        self._view = memoryview(self._rbuf)
+        self._rstart = self._rend = 0
         self.failure: Exception | None = None
         """what refused it for good (``Refused``), or a defect on its message path"""
         self._closing = False
@@ -80,6 +91,7 @@ class _LeanConnection(asyncio.Protocol):
         self.proto = ClientProtocol(self.uri, max_size=None)
         self._opened, self._lost = loop.create_future(), loop.create_future()
         self._parts = []
+        self._framing, self._head, self._rstart, self._rend = False, b"", 0, 0
         await loop.create_connection(lambda: self, self.uri.host, self.uri.port,
                                      ssl=True if self.uri.secure else None)
         self.proto.send_request(self.proto.connect())
@@ -104,16 +116,95 @@ class _LeanConnection(asyncio.Protocol):
             elif self.transport.can_write_eof():
                 self.transport.write_eof()
 
-    def data_received(self, data: bytes) -> None:
+    def get_buffer(self, sizehint: int) -> memoryview:
+        """Where the transport reads to (``recv_into``): the free end of one buffer kept for the
+        connection, at least ``READ_SIZE`` bytes (what is not yet read of a frame moved to its start,
+        or a larger buffer). Reading into it spares a read its own ``bytes``: asyncio's ``recv`` asks
+        for 256 KiB, which the allocator maps and unmaps at each read (about 11 us a read here)."""
+        if len(self._rbuf) - self._rend < READ_SIZE:
+            keep = self._rend - self._rstart
+            if keep + READ_SIZE <= len(self._rbuf):
+                self._view[:keep] = bytes(self._view[self._rstart:self._rend])
+            else:
+                grown = bytearray(2 * (keep + READ_SIZE))
+                grown[:keep] = self._view[self._rstart:self._rend]
+                self._rbuf, self._view = grown, memoryview(grown)
+            self._rstart, self._rend = 0, keep
+        return self._view[self._rend:]
+
+    def buffer_updated(self, nbytes: int) -> None:
         try:
-            self._received(data)
+            self._received(nbytes)
         except Exception as err:                    # a defect on the message path: the run fails with it
             self.failure = err                      # (asyncio would close the connection and it reconnect)
             self._closing = True
             self.transport.abort()
 
-    def _received(self, data: bytes) -> None:
+    def _received(self, nbytes: int) -> None:
+        """The frames of an open connection are cut in the buffer (``_frames``); the handshake's
+        response goes to the protocol, exactly up to its end, so that its parser waits at a frame's
+        start."""
         arrival = time.perf_counter()
+        self._rend += nbytes
+        if self._framing:
+            self._frames(arrival)
+            return
+        data = bytes(self._view[self._rstart:self._rend])
+        self._rstart = self._rend = 0
+        if self._head is None:                      # the response is read: refused, the rest is its body
+            self._to_proto(data, arrival)
+            return
+        self._head += data
+        end = self._head.find(b"\r\n\r\n")
+        if end < 0:
+            self._to_proto(data, arrival)
+            return
+        cut = len(data) - (len(self._head) - end - 4)
+        self._head = None
+        self._to_proto(data[:cut], arrival)
+        if self.proto.state is State.OPEN:
+            self._framing = True
+            rest = data[cut:]
+            self._view[:len(rest)] = rest
+            self._rend = len(rest)
+            self._frames(arrival)
+        elif cut < len(data):
+            self._to_proto(data[cut:], arrival)
+
+    def _frames(self, arrival: float) -> None:
+        """Each whole frame in the buffer: an unfragmented text or binary message from the server (FIN
+        set, no reserved bit, unmasked) goes to ``_message`` in place (a ``memoryview``); every other
+        frame (ping, close, a fragment, anything the protocol must judge) to the protocol, whole, so
+        that its parser always starts at a frame."""
+        buf, view = self._rbuf, self._view
+        pos, n = self._rstart, self._rend
+        while n - pos >= 2:
+            b0, b1 = buf[pos], buf[pos + 1]
+            size, head = b1 & 0x7F, 2
+            if size == 126:
+                if n - pos < 4:
+                    break
+                size, head = int.from_bytes(buf[pos + 2:pos + 4], "big"), 4
+            elif size == 127:
+                if n - pos < 10:
+                    break
+                size, head = int.from_bytes(buf[pos + 2:pos + 10], "big"), 10
+            if b1 & 0x80:
+                head += 4                           # masked (a protocol error from a server: the protocol says so)
+            end = pos + head + size
+            if end > n:
+                break
+            if (b0 == 0x81 or b0 == 0x82) and b1 < 0x80 and not self._parts and self.proto.state is State.OPEN:
+                self._message(view[pos + head:end], b0 == 0x82, arrival)
+            else:
+                self._to_proto(bytes(view[pos:end]), arrival)
+            pos = end
+        if pos == n:
+            self._rstart = self._rend = 0
+        else:
+            self._rstart = pos
+
+    def _to_proto(self, data: bytes, arrival: float) -> None:
         self.proto.receive_data(data)
         for event in self.proto.events_received():
             if isinstance(event, Response):
@@ -133,6 +224,9 @@ class _LeanConnection(asyncio.Protocol):
         self._flush()
 
     def eof_received(self):
+        if self._rend > self._rstart:               # a frame cut short: the protocol sees it end
+            self.proto.receive_data(bytes(self._view[self._rstart:self._rend]))
+            self._rstart = self._rend = 0
         self.proto.receive_eof()
         self._flush()
         return None
@@ -145,7 +239,8 @@ class _LeanConnection(asyncio.Protocol):
                 else:
                     fut.set_result(None)
 
-    def _message(self, data: bytes, binary: bool, arrival: float) -> None:
+    def _message(self, data: bytes | memoryview, binary: bool, arrival: float) -> None:
+        """One whole data message: ``bytes``, or a ``memoryview`` of the buffer valid during the call."""
         raise NotImplementedError
 
     def _refusal(self, err: BaseException | None = None) -> Refused | None:
@@ -228,7 +323,7 @@ class LeanSubscription(_LeanConnection):
             self.reconnects += 1
             await asyncio.sleep(self.backoff.next())
 
-    def _message(self, data: bytes, binary: bool, arrival: float) -> None:
+    def _message(self, data: bytes | memoryview, binary: bool, arrival: float) -> None:
         try:
             msg = decode_received(data, binary)
         except (msgspec.DecodeError, UnicodeDecodeError):
@@ -330,7 +425,8 @@ class LeanGlove(_LeanConnection):
             self._waiters[self._sync_id] = waiter
         self._send(encode({"type": "sync", "id": self._sync_id}, self.binary))
 
-    def _message(self, data: bytes, binary: bool, arrival: float) -> None:
+    def _message(self, data: bytes | memoryview, binary: bool, arrival: float) -> None:
+        data = bytes(data)
         try:
             msg = decode(data if binary else data.decode(), binary=binary)
         except ValueError as err:                   # kept as an error reply
