@@ -611,6 +611,84 @@ def test_the_link_reader_keeps_its_per_turn_bound_across_batches_and_finishes_on
     assert not done_early and passed == 6 and not unread and "close" in calls
 
 
+def test_a_link_over_its_high_water_mark_holds_its_batches_and_writes_them_in_order_once_it_has_drained():
+    """``WorkerLink.writable``: while the transport's buffer is over its high-water mark (``pause_writing``) each
+    turn's batch is packed and kept, not appended to that buffer; once it has drained (``resume_writing``) they
+    go in one write, in order, and only then does a worker that owes its first answer count as silent; a stop
+    writes what is kept before the close."""
+    from types import SimpleNamespace
+
+    from service.api.hands.worker import frame
+
+    async def run():
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        link, writes = pool.links[0], []
+        link._writer = SimpleNamespace(write=writes.append, is_closing=lambda: False,
+                                       close=lambda: writes.append("close"))
+        link.send(["a", 1])
+        await asyncio.sleep(0)
+        at_once = writes[:]
+        link._reader = None
+        link.writable(False)
+        link.owe()                                  # its first answer owed from the next write on
+        heard = link.heard
+        for k in range(3):
+            link.send(["b", k])
+            await asyncio.sleep(0)
+        held = (writes[:], link._owing_from_flush, link.heard == heard)
+        link.writable(True)
+        drained = (writes[1:], link._owing_from_flush)
+        link.writable(False)
+        link.send(["c", 0])
+        await asyncio.sleep(0)
+        await link.stop()
+        return at_once, held, drained, writes[2:]
+
+    at_once, held, drained, stopped = asyncio.run(run())
+    assert at_once == [frame([["a", 1]])]
+    assert held == (at_once, True, True)
+    assert drained == ([b"".join(frame([["b", k]]) for k in range(3))], False)
+    assert stopped == [frame([["c", 0]]), "close"]
+
+
+def test_a_link_writes_what_it_held_in_bounded_writes_and_what_comes_meanwhile_after_it(monkeypatch):
+    """``WorkerLink._write_packed``: the batches kept while the transport's buffer was full go in writes of about
+    ``PACKED_WRITE_BYTES``, in order, until it is full again (the rest then waits for the next drain); a batch
+    of a later turn goes after everything kept before it, even while the buffer has room."""
+    from types import SimpleNamespace
+
+    from service.api.hands import pool as pool_module
+    from service.api.hands.worker import frame
+
+    monkeypatch.setattr(pool_module, "PACKED_WRITE_BYTES", 2 * len(frame([["b", 0]])))
+
+    async def run():
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        link, writes = pool.links[0], []
+
+        def write(data):
+            writes.append(data)
+            if len(writes) == 2:                    # the second write fills the buffer again
+                link.writable(False)
+        link._writer = SimpleNamespace(write=write, is_closing=lambda: False)
+        link.writable(False)
+        for k in range(6):
+            link.send(["b", k])
+            await asyncio.sleep(0)
+        link.writable(True)                         # two writes of two batches, then full again
+        first = writes[:]
+        link.writable(True)                         # the rest, then a later turn's batch after it
+        link.send(["c", 0])
+        await asyncio.sleep(0)
+        return first, writes[2:]
+
+    first, rest = asyncio.run(run())
+    assert first == [frame([["b", 0]]) + frame([["b", 1]]), frame([["b", 2]]) + frame([["b", 3]])]
+    assert rest == [frame([["b", 4]]) + frame([["b", 5]]), frame([["c", 0]])]
+
+
 def _route(live, settings, metrics):
     """The ingest route's reader and processor (``routes.ingest._Door.read``/``_process``) on a fake connection."""
     import json

@@ -101,6 +101,9 @@ RESTART_BACKOFF_S = 1.0
 LAG_EVIDENCE = 20
 """source messages the other workers answer while one worker owing answers is silent, before that one
 counts as stuck after ``hand_worker_lag_s`` (not ``hand_worker_stall_s``)"""
+PACKED_WRITE_BYTES = 1 << 18
+"""what is written to a worker at once of the batches packed while its transport's buffer was full
+(``WorkerLink._write_packed``): about what its socket takes at once"""
 OUTS_PER_TURN = 16
 """frames and events of a worker passed on to the subscribers' queues before the loop lets their senders
 run (a turn of the loop per frame, and a wake of every subscriber's sender per frame, cost the web process
@@ -144,6 +147,12 @@ class WorkerLink:
         self._sock: socket.socket | None = None
         self._reader: _LinkReader | None = None
         self._out: list = []
+        self._packed: collections.deque[bytes] = collections.deque()
+        """batches packed while the transport's buffer is over its high-water mark (``_full``), and those after
+        them, written in order in writes of about ``PACKED_WRITE_BYTES`` once it has drained: appending each to a
+        buffer of megabytes (a worker seconds behind) moved the whole buffer in memory time and again, a tenth of
+        this process's time at 50 hands"""
+        self._full = False
         self._held: list = []                       # while restarting: messages other than source messages
         self._restarting = False
         self._flush_scheduled = False
@@ -177,6 +186,7 @@ class WorkerLink:
                 os.setpriority(os.PRIO_PROCESS, self.pid,
                                min(19, os.getpriority(os.PRIO_PROCESS, 0) + self.pool.settings.hand_worker_isolated_nice))
         self._cpu_ns, self.worked = None, time.monotonic()
+        self._packed, self._full = collections.deque(), False
         self._writer, self._reader = await asyncio.get_running_loop().create_unix_connection(
             lambda: _LinkReader(self), sock=parent)
         self._sock = parent
@@ -199,11 +209,35 @@ class WorkerLink:
     def _flush(self) -> None:
         self._flush_scheduled = False
         if self._out and self._writer is not None and not self._writer.is_closing():
-            self._writer.write(frame(self._out))
-            self._out = []
-            if self._owing_from_flush:                # it has what it owes an answer to from now on
-                self._owing_from_flush = False
-                self._hear()
+            data, self._out = frame(self._out), []
+            if self._full or self._packed:          # after those packed before it, once the buffer has drained
+                self._packed.append(data)
+                self._write_packed()
+            else:
+                self._write(data)
+
+    def _write(self, data: bytes) -> None:
+        self._writer.write(data)
+        if self._owing_from_flush:                  # it has what it owes an answer to from now on
+            self._owing_from_flush = False
+            self._hear()
+
+    def writable(self, yes: bool) -> None:
+        """The transport's buffer went over its high-water mark (``False``) or drained below its low-water mark
+        (``True``: what was packed meanwhile written, in order)."""
+        self._full = not yes
+        self._write_packed()
+
+    def _write_packed(self) -> None:
+        """The packed batches, in order, in writes of about ``PACKED_WRITE_BYTES``, until the transport's buffer
+        is over its high-water mark again (``pause_writing`` calls ``writable`` within a write) or none is left."""
+        packed = self._packed
+        while packed and not self._full and self._writer is not None and not self._writer.is_closing():
+            chunk, size = [], 0
+            while packed and size < PACKED_WRITE_BYTES:
+                chunk.append(packed.popleft())
+                size += len(chunk[-1])
+            self._write(b"".join(chunk))
 
     def _unread(self) -> bool:
         """Bytes from the worker that this process has not read yet (in the socket or the reader's buffer)."""
@@ -266,6 +300,7 @@ class WorkerLink:
         if self._writer is not None:
             self._writer.close()
         self._writer, self._out, self._held = None, [], [m for m in self._out if m[0] == "close"]
+        self._packed.clear()                        # (as lost as what its transport still held)
         # a session of its own worker waits for its new process (the shared workers are not for it)
         others = [] if self.isolated else [x for x in self.pool.links
                                            if x is not self and x.ready.is_set() and not x._restarting]
@@ -332,6 +367,9 @@ class WorkerLink:
             if task is not asyncio.current_task():
                 task.cancel()
         if self._writer is not None:
+            if self._packed and not self._writer.is_closing():
+                self._writer.write(b"".join(self._packed))     # (a close writes what it holds first)
+                self._packed.clear()
             self._writer.close()                    # the worker ends at the end of its input
         if kill and self.proc is not None and self.proc.returncode is None:
             self.proc.kill()
@@ -370,6 +408,12 @@ class _LinkReader(asyncio.Protocol):
 
     def connection_made(self, transport) -> None:
         self._transport = transport
+
+    def pause_writing(self) -> None:
+        self.link.writable(False)
+
+    def resume_writing(self) -> None:
+        self.link.writable(True)
 
     def data_received(self, data: bytes) -> None:
         self._buf += data
