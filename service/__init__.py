@@ -49,3 +49,11 @@ if "numba" in sys.modules:          # imported before this package: it read the 
     sys.modules["numba"].core.config.reload_config()
 JIT_CACHE = _cache is not None
 """Whether numba kernels may use ``cache=True`` (a writable cache folder exists)."""
+
+KERNEL_FASTMATH = False
+"""The numba kernels' fast-math licence: none, strict IEEE arithmetic (no fused multiply-add either).
+numba links a copy of every kernel a kernel calls into the caller's code and optimises it again there;
+a process that compiled the callee runs the callee's own code, one that loaded the caller from the
+on-disk cache runs the caller's copy. With ``{"contract"}`` the two copies fused multiply-adds in
+different places, so a replay's last bits depended on whether the cache was warm. Without fast-math
+every copy computes the same IEEE results (``tests/test_determinism.py``)."""

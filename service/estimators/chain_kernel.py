@@ -14,8 +14,8 @@ finger (and every batch row) by any number of samples without a numpy call:
 * the finger's constants (``geometry_vector``) and the settings (``settings_vector``) as vectors.
 
 One flat loop over scalars, as in ``rigid/inertial_kernel.py``: no array views or array arguments to
-helpers on the per-sample path (numba reference-counts those with atomic calls). The only fast-math
-licence taken is fused multiply-add; results differ from the numpy reference by rounding only.
+helpers on the per-sample path (numba reference-counts those with atomic calls). No fast-math licence
+(``service.KERNEL_FASTMATH``); results differ from the numpy reference by rounding only.
 """
 from __future__ import annotations
 
@@ -24,10 +24,8 @@ import math
 import numpy as np
 from numba import njit
 
-from .. import JIT_CACHE
+from .. import JIT_CACHE, KERNEL_FASTMATH
 
-FMA = {"contract"}
-"""Fused multiply-add only (rounding differs by an ulp; NaN and infinity keep their meaning)."""
 
 GA_START = 5
 """Index of the accelerometer's linear-map states ``G`` (9, row-major) in the state vector."""
@@ -76,7 +74,7 @@ def geometry_vector(obs, closure, gravity_world: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts]))
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode):
     """One finger: ``_finger`` (below) as a compiled entry point (no shared hand acceleration error)."""
     ns = x.shape[1]
@@ -85,7 +83,7 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
             np.zeros((3, 3)), 0, False, _scratch(ns, out_phi.shape[2]))
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _scratch(ns, nph):
     """``_finger``'s work arrays for fingers of up to ``ns`` sensors and ``nph`` joints, allocated once per
     call and shared by the fingers of a hand (``_finger`` names their rows)."""
@@ -93,7 +91,7 @@ def _scratch(ns, nph):
             np.empty((N_STATE, N_STATE)), np.zeros((6, 3)), np.empty(N_STATE), np.empty((8, 3, 3)))
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
              out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off):
     """One tick of several fingers (a hand) in one call: finger ``f`` is ``_finger`` on its rows of the
@@ -162,7 +160,7 @@ def run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sen
     _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n)
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _keep_shared_error_finite(dl, pd, cx, floor):
     """``chain.ChainHand._keep_shared_error_finite``: a non-finite sum of ``δ`` and its covariance (a
     finger diverged into it) restarts ``δ`` from its prior ``floor² I``, its cross-covariances at 0. The
@@ -183,7 +181,7 @@ def _keep_shared_error_finite(dl, pd, cx, floor):
     cx[:, :, :] = 0.0
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ph, ga_off):
     """``chain.ChainHand._gyro_angles`` (its numpy reference): each sensor's angle as its gyro's cross axes
     tell it, while the hand turns across the hinge axis and the finger is nearly still on it, one scalar
@@ -286,7 +284,7 @@ def _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n):
         log_n[f] = n + 1
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode,
             cx, x_all, dl, pd, s_off, joint, ws):
     """Advance the state (``x``, ``p``, ``rates``, ``hand_acc``, in place) by every sample ``i`` of
@@ -640,7 +638,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
                 out_phal[i, b, j] = phal
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
                   hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt):
     """Sensor ``k``'s accelerometer update with the hand's shared acceleration error ``δ`` (world frame)
@@ -790,7 +788,7 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
         dl[c1] += kd[c1, 0] * yy[0] + kd[c1, 1] * yy[1] + kd[c1, 2] * yy[2]
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _cross_update(cx, row, gain, ph, kd, phd, sm, tl):
     """``C = P_{x δ}`` of sensor ``row`` after an update (gain ``gain`` for its state, ``kd`` for δ;
     ``ph``, ``phd`` their rows of ``P Hᵀ``; ``sm`` = S): ``C - K phdᵀ - ph K_δᵀ + K S K_δᵀ``, with ``tl``

@@ -8,12 +8,11 @@ import math
 import numpy as np
 from numba import njit
 
-from .. import JIT_CACHE
-
-FMA = {"contract"}
+from .. import JIT_CACHE, KERNEL_FASTMATH
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _store(m, hp, hx, r00, r01, r02, r10, r11, r12, r20, r21, r22, positions, quats, j):
     """Joint ``j``: position ``hp + R_M m`` and the orientation ``R_M r X`` (``X`` = finger frame to
     OpenXR, ``(x, y, z)`` -> ``(-X, -Z, -Y)``), as a ``[x, y, z, w]`` quaternion with ``w >= 0``
@@ -52,7 +51,7 @@ def _store(m, hp, hx, r00, r01, r02, r10, r11, r12, r20, r21, r22, positions, qu
     quats[j, 3] = sign * qw / norm
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def joint_poses(packed, phi, hand_rotation, hand_position, positions, quats):
     """``positions`` (26, 3) and ``quats`` (26, 4) in ``openxr.JOINT_NAMES`` order, world frame, from
     the packed calibration (6, 16), joint angles ``phi`` (5, 3) (thumb first, zero-padded), the

@@ -25,10 +25,8 @@ import math
 
 from numba import njit
 
-from .. import JIT_CACHE
+from .. import JIT_CACHE, KERNEL_FASTMATH
 
-FMA = {"contract"}
-"""Fused multiply-add only (rounding differs by an ulp; NaN and infinity keep their meaning)."""
 
 M0, B0, C0 = 0, 9, 18
 """Offsets of the mounting, the finger base and the correction (3 x 3 row-major each) in a row."""
@@ -55,7 +53,7 @@ check) and whether still samples are admitted now (1: the optics' fit window is 
 ``HandMountings.admit_still``)."""
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _reconstruct(state, j, k, g, clip_range, clip_max):
     """The raw reading ``g`` of gyro axis ``k`` of sensor row ``j``, with the angle its clipped run
     missed added at the run's end (``HingeAxisFit.reconstruct``, the same arithmetic); the axis's record
@@ -92,7 +90,7 @@ def _reconstruct(state, j, k, g, clip_range, clip_max):
     return out
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def correct(state, idx, raw, out, st):
     """``out[r] = C raw[r]`` (both vectors of sample ``r``) with the correction of its sensor; the raw
     reading itself where the sensor has no fit or its fit no sample yet (``HingeAxisFit.correct``); the
@@ -129,7 +127,7 @@ def correct(state, idx, raw, out, st):
                 out[r, 0, i] = out[r, 0, i] - state[j, M0 + i] * leak
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def cross_offsets(state, idx, out, st):
     """``out[r] = (b_y, b_z)`` of the sensor in row ``idx[r]`` (0 where -1): the tilt fit's normal equations
     solved for their constant terms, the cross axes' offsets (``HingeAxisFit.cross_offsets``); with a third
@@ -150,7 +148,7 @@ def cross_offsets(state, idx, out, st):
             out[r, 2] = st[ST_RESIDUAL_VAR] * a00 / det
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
     """A sample of a finger still on its hand into its sensor's cross-axis fit (``HingeAxisFit._add_quiet``):
     the raw gyro ``g`` turned by the current correction into the phalanx frame, ``f = M C g``, and the
@@ -189,7 +187,7 @@ def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
     state[j, QUIET_SAMPLES] += 1.0
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def fit(state, meta, idx, raw, hand, phi, started, st):
     """Every sample of a tick whose finger's estimator has started and whose gyro has no axis at full scale
     into its sensor's fit: one whose flexion rate reaches ``min_rate_rad_s`` into the tilt's and the offsets'
@@ -261,7 +259,7 @@ def fit(state, meta, idx, raw, hand, phi, started, st):
     return used
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _add_sums(state, j, first, wx, ry, rz):
     """One sample into the normal equations of the regressors ``[ω_x, 1]`` of row ``j`` whose seven sums
     ``a00, a01, a11, by0, by1, bz0, bz1`` start at column ``first`` (``A00``: the tilt's, ``O00``: the
@@ -275,7 +273,7 @@ def _add_sums(state, j, first, wx, ry, rz):
     state[j, first + 6] += rz
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _set_correction(state, j, ey, ez, angle):
     """``C = Mᵀ R M`` (``R`` itself when ``M`` is the identity) with ``R`` the rotation of the rotation
     vector ``(0, ey, ez)`` of length ``angle`` (``mounting._rotation_about_yz``)."""

@@ -16,20 +16,19 @@ import math
 import numpy as np
 from numba import njit
 
-from .. import JIT_CACHE
+from .. import JIT_CACHE, KERNEL_FASTMATH
 
-FMA = {"contract"}
 NONE, HELD, TRACKING = 0, 1, 2
 """``at`` results: no valid pose yet; the last valid pose held (optics lost); tracked."""
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _unit(x, y, z, w):
     n = math.sqrt(x * x + y * y + z * z + w * w)
     return x / n, y / n, z / n, w / n
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _matrix(x, y, z, w, out, o):
     """Rotation matrix of a unit ``[x, y, z, w]`` quaternion into ``out[o:o+9]`` (row-major)."""
     x2, y2, z2, w2 = x * x, y * y, z * z, w * w
@@ -45,7 +44,7 @@ def _matrix(x, y, z, w, out, o):
     out[o + 8] = -x2 - y2 + z2 + w2
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _exp(vx, vy, vz):
     """``Rotation.from_rotvec`` as a unit quaternion."""
     angle = math.sqrt(vx * vx + vy * vy + vz * vz)
@@ -57,7 +56,7 @@ def _exp(vx, vy, vz):
     return _unit(vx * scale, vy * scale, vz * scale, math.cos(angle / 2.0))
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _reflect(v, vv, j, mat, c):
     """Apply the Householder reflection ``I - 2 v vᵀ / vv`` (``v`` nonzero from row ``j``) to column
     ``c`` of ``mat``, in place."""
@@ -69,7 +68,7 @@ def _reflect(v, vv, j, mat, c):
         mat[i, c] -= f * v[i]
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _least_squares(a, b, k, x, v):
     """Least squares ``min |a[:, :k] x - b|`` for ``b`` (m, 3) by Householder QR (Golub and Van Loan,
     algorithm 5.3.2), into ``x[:k]``; ``a`` and ``b`` are overwritten, ``v`` (m,) is scratch. ``a``
@@ -101,7 +100,7 @@ def _least_squares(a, b, k, x, v):
             x[j, c] = r / a[j, j]
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out):
     """The metacarpus kinematics at ``t`` (``OpticalTrack.at_reference``): returns ``NONE``, ``HELD``
     or ``TRACKING`` and fills ``out`` (24: rotation row-major, position, velocity, acceleration,

@@ -6,7 +6,7 @@ sensors is a (B, STATE_SIZE) array that both implementations read and write the 
 kernel works on scalars, tuples and (row, offset) indexing: no array views and no array arguments
 to helpers on the per-sample path, because numba reference-counts those with atomic calls (that
 alone was half the cost); the Kalman update keeps the symmetric 6x6 covariance as a 21-tuple of
-scalars. Fused multiply-add is the only fast-math licence taken.
+scalars. No fast-math licence (``service.KERNEL_FASTMATH``).
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ... import JIT_CACHE
+from ... import JIT_CACHE, KERNEL_FASTMATH
 
 # --- state layout (one row per sensor) -------------------------------------------------------
 QG = 0            # gyro strapdown quaternion [w,x,y,z], sensor -> almost-inertial frame I
@@ -44,15 +44,14 @@ C_CLIP_BIAS, C_CLIP_SCALE, C_REST_MIN_T, C_REST_TH_GYR, C_REST_TH_ACC = 20, 21, 
 C_K_REF, C_REF_MIN = 25, 26
 C_SIZE = 27
 TMP_SIZE = 26
-# the only fast-math licence the kernel takes: fused multiply-add (rounding differs by an ulp; no
-# reassociation, and NaN/inf keep their meaning, which the missing-sample checks rely on)
-FMA = {"contract"}
+# strict IEEE arithmetic (``service.KERNEL_FASTMATH``): NaN/inf keep their meaning, which the missing-sample
+# checks rely on
 
 # scratch offsets: a 3-vector in and out of the low-passes' start-up phase, H (3x6), (H x̂)_xy
 T_X, T_OUT, T_H, T_HX = 0, 3, 6, 24
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _cos_sin(x):
     """``(cos x, sin x)``. Below 0.1 rad (a strapdown half-angle: 0.04 at 286 Hz and 1350 °/s) by
     their Taylor series to the x⁸ and x⁹ terms (truncation below 3e-17 relative, and no library call
@@ -64,13 +63,13 @@ def _cos_sin(x):
             x * (1.0 - x2 / 6.0 * (1.0 - x2 / 20.0 * (1.0 - x2 / 42.0 * (1.0 - x2 / 72.0)))))
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _finite3(x, y, z):
     """Each of three values finite (a sum would not do: finite values can overflow it)."""
     return math.isfinite(x) and math.isfinite(y) and math.isfinite(z)
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _lp(x, z0, z1, f):
     """One channel of the second-order low-pass in steady state (direct form II transposed), ``f`` =
     ``(b0, b1, b2, a1, a2)``: returns ``(y, z0', z1')``."""
@@ -79,7 +78,7 @@ def _lp(x, z0, z1, f):
     return y, b1 * x - a1 * y + z1, b2 * x - a2 * y
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _lowpass_start(s, off, x, xo, n, b0, b2, a2, tau, dt, out, oo):
     """Start-up phase of the low-pass at ``s[off]`` (state: sample count, NaN once running, then
     the 2n direct-form-II-transposed values): ``out[oo:oo+n]`` = running mean of ``x[xo:xo+n]``;
@@ -99,7 +98,7 @@ def _lowpass_start(s, off, x, xo, n, b0, b2, a2, tau, dt, out, oo):
         s[off] = np.nan
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _rot(q, vx, vy, vz):
     """``R(q) v`` for ``q = (w, x, y, z)``."""
     w, x, y, z = q
@@ -109,7 +108,7 @@ def _rot(q, vx, vy, vz):
     return vx + w * tx + y * tz - z * ty, vy + w * ty + z * tx - x * tz, vz + w * tz + x * ty - y * tx
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _qmul(p, q):
     """``p ⊗ q`` of (w, x, y, z) tuples."""
     pw, px, py, pz = p
@@ -118,25 +117,25 @@ def _qmul(p, q):
             pw * qy - px * qz + py * qw + pz * qx, pw * qz + px * qy - py * qx + pz * qw)
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _unit(q):
     w, x, y, z = q
     n = math.sqrt(w * w + x * x + y * y + z * z)
     return w / n, x / n, y / n, z / n
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _unit_product(p, q):
     """``p ⊗ q``, normalised."""
     return _unit(_qmul(p, q))
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _dot6(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2] + a[3] * b[3] + a[4] * b[4] + a[5] * b[5]
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _comb6(a, b, c, x, y, z):
     """``x a + y b + z c`` of three 6-tuples."""
     return (x * a[0] + y * b[0] + z * c[0], x * a[1] + y * b[1] + z * c[1], x * a[2] + y * b[2] + z * c[2],
@@ -149,7 +148,7 @@ _U = ((0, 1, 2, 3, 4, 5), (1, 6, 7, 8, 9, 10), (2, 7, 11, 12, 13, 14),
       (3, 8, 12, 15, 16, 17), (4, 9, 13, 16, 18, 19), (5, 10, 14, 17, 19, 20))
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _symv6(u, v):
     """``P v`` for the symmetric ``P`` given as its 21-tuple ``u``."""
     return (u[0] * v[0] + u[1] * v[1] + u[2] * v[2] + u[3] * v[3] + u[4] * v[4] + u[5] * v[5],
@@ -160,7 +159,7 @@ def _symv6(u, v):
             u[5] * v[0] + u[10] * v[1] + u[14] * v[2] + u[17] * v[3] + u[19] * v[4] + u[20] * v[5])
 
 
-@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _sym6_minus_outer3(u, a, b, c, d, e, f):
     """``P - (a bᵀ + c dᵀ + e fᵀ)`` as a 21-tuple (the sum is symmetric in a Kalman update, only its
     upper triangle is formed)."""
@@ -172,7 +171,7 @@ def _sym6_minus_outer3(u, a, b, c, d, e, f):
             u[15] - o(3, 3), u[16] - o(3, 4), u[17] - o(3, 5), u[18] - o(4, 4), u[19] - o(4, 5), u[20] - o(5, 5))
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _run(s, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t):
     """Every sample ``k`` of every sensor ``j`` (row ``j`` of ``s``), in place: gyro ``gyr[k, j]``
     rad/s, accelerometer ``acc[k, j]`` m/s², optional second reference ``ref_w[k, j]`` (the caller's
@@ -364,7 +363,7 @@ def _run(s, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out, t):
             out[kk, j, 0], out[kk, j, 1], out[kk, j, 2], out[kk, j, 3] = qx, qy, qz, qw
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
     """One sample of every sensor: ``state`` (B, STATE_SIZE), inputs (B, 3), ``ref_w`` in the
     caller's frame; ``out`` (B, 4) receives ``to_world ⊗ q`` as ``[x,y,z,w]`` (the public
@@ -375,7 +374,7 @@ def run_sample(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world, out):
          ref_s.reshape(1, nb, 3), use_ref, to_world, out.reshape(1, nb, 4), np.zeros(TMP_SIZE))
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=FMA)
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def run_batch(state, gyr, acc, c, ref_w, ref_s, use_ref, to_world):
     """All samples: ``state`` (B, STATE_SIZE) in place; ``gyr``/``acc``/refs (N, B, 3) (refs ignored
     unless ``use_ref``; ``ref_w`` in the caller's world frame, which ``to_world`` [w,x,y,z] maps the
