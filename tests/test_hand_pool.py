@@ -1113,6 +1113,61 @@ def test_a_sync_taken_on_the_way_in_is_answered_in_its_place_and_a_bad_one_is_le
     assert syncs == ['{"type":"sync","id":1}', '{"type":"sync","id":2}'], taken
 
 
+def test_a_sync_on_the_way_in_does_not_pass_a_message_queued_before_it():
+    """``_Door.answer_sync`` takes a sync only with nothing queued before it (``_may_hand_on``): a sync right
+    after a message the processor still holds (one only it decodes) is answered after that message's error."""
+    async def run():
+        _, live, _, ws, backlog, processor, reader, taken = await _greeted_door(rate_limit_msgs_per_s=1e6)
+        ws.feed({"type": "wave"})                   # not for the way in: queued for the processor
+        await asyncio.sleep(0)                      # the reader has put it in the backlog
+        ws.feed({"type": "sync", "id": 7})
+        deadline = time.monotonic() + 60            # (bounds a failure only)
+        while len(ws.sent) < 1 + 2:
+            assert time.monotonic() < deadline, ws.sent
+            await _answer_all(live, 1)
+        await _route_ended(ws, reader, backlog, processor)
+        return [(s["type"], s.get("code", s.get("id"))) for s in ws.sent if s["type"] != "hello"]
+
+    assert asyncio.run(run()) == [("error", "unknown_type"), ("sync", 7)]
+
+
+def test_syncs_on_the_way_in_count_against_the_rate_limit_and_one_left_to_the_processor_is_charged_once(monkeypatch):
+    """A sync answered from the way in takes a token of the rate limit (past it, syncs are refused
+    ``rate_limited`` in their places); one the way in leaves to the processor (its answer cannot wait in its
+    place) gets its token back, so the processor answers it with the bucket's last token (the clock stands
+    still: the bucket never refills)."""
+    from types import SimpleNamespace
+
+    from service.api.routes import ingest as route
+
+    monkeypatch.setattr(route, "time", SimpleNamespace(monotonic=lambda: 1000.0))     # the buckets' clock only
+
+    async def until(ws, live, n):
+        deadline = time.perf_counter() + 60         # (bounds a failure only)
+        while len(ws.sent) < n:
+            assert time.perf_counter() < deadline, ws.sent
+            await _answer_all(live, 1)
+
+    async def limited():
+        _, live, _, ws, backlog, processor, reader, taken = await _greeted_door(rate_limit_msgs_per_s=3)
+        for i in range(4):                          # the hello took one of three tokens
+            ws.feed({"type": "sync", "id": i})
+            await until(ws, live, 2 + i)
+        await _route_ended(ws, reader, backlog, processor)
+        return [(s["type"], s.get("code", s.get("id"))) for s in ws.sent if s["type"] != "hello"], len(taken)
+
+    async def given_back():
+        _, live, _, ws, backlog, processor, reader, taken = await _greeted_door(rate_limit_msgs_per_s=2)
+        live.answer_in_order = lambda answer: False     # its answer cannot wait in its place
+        ws.feed({"type": "sync", "id": 9})          # the hello took one of two tokens
+        await until(ws, live, 2)
+        await _route_ended(ws, reader, backlog, processor)
+        return [(s["type"], s.get("code", s.get("id"))) for s in ws.sent if s["type"] != "hello"], len(taken)
+
+    assert asyncio.run(limited()) == ([("sync", 0), ("sync", 1), ("error", "rate_limited"), ("error", "rate_limited")], 2)
+    assert asyncio.run(given_back()) == ([("sync", 9)], 0)
+
+
 def test_the_way_in_takes_no_more_than_the_worker_s_window_nor_a_message_over_the_size_limit():
     """``_Door.intake`` and the reader hand a session at most ``WINDOW`` unanswered messages (``forward`` does
     not wait: ``forwardable``'s bound is the only one): the rest wait in the backlog, in order, and go on as the

@@ -150,6 +150,8 @@ def test_the_metrics_text_is_the_client_library_s_byte_for_byte_as_series_come_a
             series.messages_out.inc()
         metrics.behind.labels(f"hand-{i}").set(float("nan") if i == 5 else rng.random() * 1e8)
         same()
+    metrics.of_session("hand-0").latency._buckets[0].inc(2e6)   # a count written in Go's exponent form
+    same()
     metrics.errors.labels('odd "code" \\ with\na line').inc()
     metrics.disconnects.labels("x").inc(1e300)
     metrics.connection_gc.observe(0.25)
