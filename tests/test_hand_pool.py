@@ -997,8 +997,9 @@ def _door(live, settings, metrics):
     reader.cancel()
     processor.cancel()
     backlog = IngestBacklog(settings.ingest_backlog_messages, settings.ingest_backlog_bytes)
-    processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics))
-    door = route._Door(ws, "s", live, backlog, processor, settings, metrics)
+    say = route._Say(ws)                        # one for both, as the route has it
+    processor = asyncio.create_task(route._process(ws, "s", live, backlog, metrics, say))
+    door = route._Door(ws, "s", live, backlog, processor, settings, metrics, say)
     taken = []
 
     def feed(message):                          # as ``server.DrainingWebSocket`` offers a message

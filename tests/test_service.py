@@ -171,9 +171,12 @@ def test_health_and_metrics_answered_as_their_routes_answer():
         fast = [_raw_get(srv.url, path, headers) for path, headers in asks]
         assert whole_way == []
         assert _raw_get(srv.url, "/health", {}, "HEAD")[0] == 405 and whole_way == ["/health"]   # (the route's)
+        srv.app.dependency_overrides[str] = str     # any override: the whole way
+        assert _raw_get(srv.url, "/health", {}) == fast[0] and whole_way == ["/health"] * 2
+        srv.app.dependency_overrides.clear()
         probes.probes = {}                                # every request the whole way: the routes' answers
         routed = [_raw_get(srv.url, path, headers) for path, headers in asks]
-    assert len(whole_way) == 1 + len(asks)
+    assert len(whole_way) == 2 + len(asks)
     assert [a[0] for a in fast] == [200, 200, 401, 401, 401, 200, 200, 200, 200]
     assert fast == routed
     assert b'session="' not in fast[5][2] and b"fingertrack_sessions 0.0" in fast[7][2]

@@ -23,6 +23,7 @@ Tokens with roles (``deps``): without one no session data is served and no confi
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
 from contextlib import asynccontextmanager
 from importlib.resources import files
@@ -40,6 +41,7 @@ from .routes import ingest, rest, schema, stream
 from .routes.socket import drop_stuck
 from .sessions import Sessions
 
+log = logging.getLogger(__name__)
 WEB_VIEWER = files("clients") / "web"
 """The web viewer's files (package data of ``clients``)."""
 
@@ -116,6 +118,7 @@ class ProbePaths:
             return await self.stack(scope, receive, send)
         try:
             response = await answer(self.app, scope, receive)
-        except Exception:                           # a defect: answered the whole way (500, logged)
+        except Exception:                           # a defect: logged, and answered the whole way
+            log.exception("answering %s at the app's entry failed; it is answered the whole way", scope["path"])
             return await self.stack(scope, receive, send)
         await response(scope, receive, send)
