@@ -602,3 +602,60 @@ def test_what_a_session_s_new_worker_cannot_restore_is_told_to_its_source_before
         assert heads and {h[3] for h in heads} == {"left"} and heads[0][1] > 40, heads[:3]
     finally:
         peer.close()
+
+
+def _worker_replies(read_size: int, monkeypatch, batches: list) -> tuple[list, int]:
+    """A worker reading its socket ``read_size`` bytes at a time, sent ``batches`` for one session: its
+    replies (message number, errors) and how many outputs it wrote."""
+    from service.api.hands import worker as hands_worker
+
+    monkeypatch.setattr(hands_worker, "READ_SIZE", read_size)     # (read when the worker's loop starts)
+    peer = _Peer()
+    try:
+        peer.send([["open", 1, "a", None]])
+        for batch in batches:
+            peer.send(batch)
+        total = sum(m[0] == "src" for batch in batches for m in batch)
+        peer.until(lambda: len(peer.replies(1)) == total, f"{total} replies")
+        return [(m[2], m[3]) for m in peer.replies(1)], sum(m[0] == "out" for m in peer.received)
+    finally:
+        peer.close()
+
+
+@pytest.mark.parametrize("read_size", [1, 3, 7, 4096])
+def test_a_worker_reading_a_few_bytes_at_a_time_answers_as_with_whole_batches(read_size, monkeypatch):
+    """The worker's read loop keeps a batch that arrives over several reads (reads of 1 to 4096 bytes)
+    until it is whole: the same replies, in order, and the same outputs as with reads of a whole batch."""
+    msgs = [m for _, m in _messages("right", 0.3, 5)]
+    batches = [[["src", 1, n, m]] for n, m in enumerate(msgs[:10], 1)] + \
+        [[["src", 1, n, m] for n, m in enumerate(msgs[10:], 11)]]
+    got = _worker_replies(read_size, monkeypatch, batches)
+    want = _worker_replies(1 << 20, monkeypatch, batches)
+    assert got == want and [n for n, _ in got[0]] == list(range(1, len(msgs) + 1)) and got[1] > 0
+
+
+def test_a_batch_larger_than_a_read_is_answered_whole():
+    """A batch of more than ``READ_SIZE`` bytes (the worker's buffer grows for it) is answered in full."""
+    from service.api.hands import worker as hands_worker
+
+    msgs = [m for _, m in _messages("right", 0.2, 5)]
+    big = [["fmt", 1, 0]] * 400_000 + [["src", 1, n, m] for n, m in enumerate(msgs, 1)]
+    assert len(hands_worker.frame(big)) > hands_worker.READ_SIZE
+    peer = _Peer()
+    try:
+        peer.send([["open", 1, "a", None]])
+        peer.send(big)
+        peer.until(lambda: len(peer.replies(1)) == len(msgs), "the big batch's replies")
+        assert [m[2] for m in peer.replies(1)] == list(range(1, len(msgs) + 1))
+    finally:
+        peer.close()
+
+
+def test_the_web_process_gone_in_the_middle_of_a_batch_ends_the_worker():
+    from service.api.hands import worker as hands_worker
+
+    peer = _Peer()
+    peer.ours.sendall(hands_worker.frame([["open", 1, "a", None]])[:-2])
+    peer.ours.close()
+    peer.thread.join(60.0)                          # (bounds a failure)
+    assert not peer.thread.is_alive()

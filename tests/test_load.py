@@ -587,3 +587,214 @@ def test_a_load_subscriber_cuts_the_same_frames_from_the_bytes_however_they_are_
         assert rows == [(s, "right", s / 90) for s in (1, 2, 3, 4, 5)], pieces
         assert (malformed, others, reconnects, failure) == (1, 0, 0, None)
     assert pongs == [(0x8A, b"are you there")] * 2
+
+
+class _FakeTransport:
+    """What a lean client writes (the handshake, pongs, closes), kept; aborts and EOF noted."""
+
+    def __init__(self):
+        self.out, self.aborted = bytearray(), False
+
+    def write(self, data):
+        self.out += data
+
+    def abort(self):
+        self.aborted = True
+
+    def can_write_eof(self):
+        return True
+
+    def write_eof(self):
+        self.out += b"<EOF>"
+
+    def is_closing(self):
+        return self.aborted
+
+
+def _ws_frame(b0: int, payload: bytes, mask: bool = False, length_bits: int | None = None) -> bytes:
+    """A WebSocket frame as a server would write it (``mask``: as no server may), its length in 7, 16 or
+    64 bits (the least that fits unless ``length_bits``)."""
+    n, m = len(payload), 0x80 if mask else 0
+    if length_bits == 16 or (length_bits is None and 126 <= n < 65536):
+        head = bytes([b0, 126 | m]) + n.to_bytes(2, "big")
+    elif length_bits == 64 or (length_bits is None and n >= 65536):
+        head = bytes([b0, 127 | m]) + n.to_bytes(8, "big")
+    else:
+        head = bytes([b0, n | m])
+    if not mask:
+        return head + payload
+    key = b"\x01\x02\x03\x04"
+    return head + key + bytes(c ^ key[i % 4] for i, c in enumerate(payload))
+
+
+def _frame_text(seq: int, size: int = 0) -> bytes:
+    import json
+
+    base = {"type": "frame", "t": seq / 90, "seq": seq, "hand": "right", "joints": {"pad": ""}}
+    base["joints"]["pad"] = "x" * max(0, size - len(json.dumps(base)))
+    return json.dumps(base).encode()
+
+
+def _handshake_response(request) -> bytes:
+    """A server's valid answer to a client's handshake ``request``."""
+    import base64
+    import hashlib
+
+    accept = base64.b64encode(hashlib.sha1((request.headers["Sec-WebSocket-Key"] +
+                                            "258EAFA5-E914-47DA-95CA-C5AB0DC85B11").encode()).digest()).decode()
+    return (f"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            f"Sec-WebSocket-Accept: {accept}\r\n\r\n").encode()
+
+
+def _outcome_of_library(wire: bytes, eof: bool) -> dict:
+    """What websockets' own client protocol alone makes of the server's bytes after a valid handshake
+    response: the data messages (checked as the load subscriber checks them), its state, its close code
+    and what it wrote back."""
+    import msgspec
+    from websockets.client import ClientProtocol
+    from websockets.frames import Opcode
+    from websockets.http11 import Response
+    from websockets.uri import parse_uri
+
+    from service.bench.loadclients import decode_received
+
+    proto = ClientProtocol(parse_uri("ws://127.0.0.1:9/v1/stream/a?token=t"), max_size=None)
+    request = proto.connect()
+    proto.send_request(request)
+    out = bytearray(b"".join(proto.data_to_send()))
+    head = _handshake_response(request)
+    proto.receive_data(head + wire)
+    if eof:
+        proto.receive_eof()
+    got = {"rows": [], "malformed": 0}
+    parts, binary = [], False
+    for event in proto.events_received():
+        if isinstance(event, Response) or event.opcode not in (Opcode.TEXT, Opcode.BINARY, Opcode.CONT):
+            continue
+        if event.opcode is not Opcode.CONT:
+            binary = event.opcode is Opcode.BINARY
+        parts.append(event.data)
+        if event.fin:
+            try:
+                m = decode_received(b"".join(parts), binary)
+                if m.type == "frame":
+                    got["rows"].append((m.seq, m.hand, m.t))
+            except (msgspec.DecodeError, UnicodeDecodeError):
+                got["malformed"] += 1
+            parts = []
+    for data in proto.data_to_send():
+        out += data if data else b"<EOF>"
+    got.update(state=proto.state.name, close=proto.close_sent.code if proto.close_sent else None,
+               written=_frames_written(out))
+    return got, head
+
+
+def _frames_written(out: bytearray) -> list:
+    """The (masked) frames a client wrote after its handshake request, as (opcode, payload)."""
+    from websockets.frames import Frame
+    from websockets.streams import StreamReader
+
+    out = bytes(out).replace(b"<EOF>", b"")
+    reader = StreamReader()
+    reader.feed_data(out[out.find(b"\r\n\r\n") + 4:])
+    reader.feed_eof()
+    frames = []
+    while True:
+        parser = Frame.parse(reader.read_exact, mask=True)
+        try:
+            next(parser)
+        except StopIteration as done:
+            frames.append((done.value.opcode.name, bytes(done.value.data)))
+            continue
+        except EOFError:
+            pass
+        return frames
+
+
+def _outcome_of_lean(wire: bytes, cuts, eof: bool) -> dict:
+    """What ``LeanSubscription`` makes of the same bytes read in pieces ending at ``cuts`` (through its
+    own buffer, as the transport reads into it), and whether it cut frames itself."""
+    import asyncio
+
+    from websockets.client import ClientProtocol
+
+    from service.bench.loadclients import LeanSubscription
+
+    loop = asyncio.new_event_loop()
+    try:
+        got = {"rows": [], "malformed": 0}
+        sub = LeanSubscription("http://127.0.0.1:9", "a", "t", lambda m, a: got["rows"].append((m.seq, m.hand, m.t)))
+        sub.proto = ClientProtocol(sub.uri, max_size=None)
+        sub._opened, sub._lost = loop.create_future(), loop.create_future()
+        sub.transport = _FakeTransport()
+        request = sub.proto.connect()
+        sub.proto.send_request(request)
+        sub._flush()
+        data, start = _handshake_response(request) + wire, 0     # (the same length as the library's)
+        for cut in [c for c in cuts if 0 < c < len(data)] + [len(data)]:
+            chunk, start = data[start:cut], cut
+            while chunk:
+                room = sub.get_buffer(-1)
+                k = min(len(room), len(chunk))
+                assert k, "the subscriber gave no room to read into"
+                room[:k], chunk = chunk[:k], chunk[k:]
+                sub.buffer_updated(k)
+        if eof:
+            sub.eof_received()
+        assert sub.failure is None, sub.failure
+        got["malformed"] = sub.malformed_count
+        got.update(state=sub.proto.state.name, close=sub.proto.close_sent.code if sub.proto.close_sent else None,
+                   written=_frames_written(sub.transport.out))
+        return got, sub._framing
+    finally:
+        loop.close()
+
+
+def test_a_load_subscriber_makes_of_any_bytes_what_the_websocket_library_makes_of_them():
+    """The load subscriber's own cutting of whole data frames accepts exactly what websockets' client
+    protocol accepts and leaves the rest to it: for each case (length encodings, a ping between fragments,
+    a masked frame from the server, RSV bits, an unknown opcode, a text frame inside a fragmented message,
+    data after a close, text that is not UTF-8, a frame cut short by EOF, frames larger than its buffer),
+    read whole, in seeded random pieces and (the small ones) byte by byte, the frames delivered, the
+    malformed count, the protocol's state and close code and what the client wrote back are the library's;
+    and it did cut frames itself where the connection stayed open."""
+    import random
+
+    hello = _ws_frame(0x81, b'{"type":"hello","protocol":1}')
+
+    def f(seq, size=0, **kw):
+        return _ws_frame(0x81, _frame_text(seq, size), **kw)
+
+    import msgspec
+    cases = {
+        "lengths": hello + b"".join(f(i, n) for i, n in enumerate([0, 125, 126, 127, 65535, 65536, 70000], 1))
+        + _ws_frame(0x81, _frame_text(20), length_bits=16) + _ws_frame(0x81, _frame_text(21), length_bits=64)
+        + _ws_frame(0x82, msgspec.msgpack.encode({"type": "frame", "t": 1.0, "seq": 22, "hand": "left"}))
+        + _ws_frame(0x81, b"") + _ws_frame(0x81, b'{"type":"gesture","t":0.1}'),
+        "ping and pong between fragments": hello + _ws_frame(0x01, _frame_text(1)[:20]) + _ws_frame(0x89, b"hi")
+        + _ws_frame(0x8A, b"x") + _ws_frame(0x00, _frame_text(1)[20:40]) + _ws_frame(0x80, _frame_text(1)[40:]) + f(2),
+        "masked by the server": hello + f(1) + f(2, mask=True) + f(3),
+        "masked and long": hello + f(1) + f(2, 70000, mask=True) + f(3),
+        "rsv1": hello + f(1) + _ws_frame(0xC1, _frame_text(2)) + f(3),
+        "unknown opcode": hello + f(1) + _ws_frame(0x83, _frame_text(2)) + f(3),
+        "text inside fragments": hello + _ws_frame(0x01, _frame_text(1)[:20]) + f(2) + _ws_frame(0x80, _frame_text(1)[20:]) + f(3),
+        "data after a close": hello + f(1) + _ws_frame(0x88, (1000).to_bytes(2, "big") + b"bye") + f(2),
+        "not utf-8": hello + _ws_frame(0x81, b'{"type":"fr\xffame","seq":1}') + f(2),
+        "cut short by eof": hello + f(1) + f(2)[:-3],
+        "larger than the buffer": hello + f(1) + f(2, 300_000) + f(3, 10) + f(4, 1_200_000) + _ws_frame(0x89, b"x")
+        + f(5, 200_000) + f(6),
+    }
+    rng = random.Random(5)
+    for name, wire in cases.items():
+        eof = name == "cut short by eof"
+        want, head = _outcome_of_library(wire, eof)
+        total = len(head) + len(wire)
+        chunkings = [[]] + [sorted(rng.sample(range(1, total), min(total - 1, k))) for k in (1, 1, 2, 5, 40) for _ in range(3)]
+        if total < 3000:
+            chunkings.append(range(1, total))
+        for cuts in chunkings:
+            got, cut_itself = _outcome_of_lean(wire, cuts, eof)
+            assert got == want, (name, list(cuts)[:8])
+            if want["state"] == "OPEN":
+                assert cut_itself, name
+    assert len(_outcome_of_library(cases["lengths"], False)[0]["rows"]) == 10     # (the cases mean something)
