@@ -134,6 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.hands < 1 or args.seconds <= 0:
         parser.error("--hands must be at least 1 and --seconds positive")
+    frozen_before = gc.get_freeze_count() > 0
     with tempfile.TemporaryDirectory() as tmp:
         port_file = os.path.join(tmp, "port")
         sink = subprocess.Popen([sys.executable, "-m", "service.bench.generator_alone", "--sink", port_file])
@@ -145,6 +146,8 @@ def main(argv: list[str] | None = None) -> int:
             url = f"http://127.0.0.1:{open(port_file).read()}"
             print(json.dumps(asyncio.run(_generate(url, args.hands, args.seconds, args.clients))))
         finally:
+            if not frozen_before:             # ``_generate`` froze the heap: a caller's process gets it back
+                gc.unfreeze()                 # as it was (a test calls this in its own process)
             sink.kill()
             sink.wait()
     return 0
