@@ -23,17 +23,13 @@ import json
 import operator
 import os
 import socket
-import struct
 import subprocess
 import sys
 import threading
 import time
 
-import msgpack
-
+from ..api.hands.worker import frame, whole_batches
 from .cpu import recording_lines, worker_messages
-
-HEADER = struct.Struct(">I")
 
 
 class _Feed:
@@ -57,21 +53,14 @@ class _Feed:
             if not chunk:
                 return
             buf += chunk
-            answered = 0
-            while len(buf) >= HEADER.size:
-                (size,) = HEADER.unpack_from(buf)
-                if len(buf) < HEADER.size + size:
-                    break
-                answered += sum(m[0] == "rep" for m in msgpack.unpackb(bytes(buf[HEADER.size:HEADER.size + size])))
-                del buf[:HEADER.size + size]
+            answered = sum(m[0] == "rep" for batch in whole_batches(buf) for m in batch)
             if answered:
                 with self.changed:
                     self.replies += answered
                     self.changed.notify_all()
 
     def send(self, messages: list) -> None:
-        data = msgpack.packb(messages)
-        self.sock.sendall(HEADER.pack(len(data)) + data)
+        self.sock.sendall(frame(messages))
 
     def until(self, replies: int) -> None:
         with self.changed:

@@ -75,6 +75,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 
 import msgpack
 
@@ -119,6 +120,19 @@ def _plain(value):
 def frame(messages: list) -> bytes:
     data = msgpack.packb(messages, default=_plain)
     return HEADER.pack(len(data)) + data
+
+
+def whole_batches(buf: bytearray) -> Iterator[list]:
+    """Each whole batch (``frame``'s) at the start of ``buf``, unpacked from the received bytes as they are,
+    and taken off ``buf`` before it is yielded; a partial one stays for the next read."""
+    while len(buf) >= HEADER.size:
+        end = HEADER.size + HEADER.unpack_from(buf)[0]
+        if len(buf) < end:
+            return
+        with memoryview(buf) as view, view[HEADER.size:end] as data:
+            batch = msgpack.unpackb(data)
+        del buf[:end]
+        yield batch
 
 
 class OwnedHand:
@@ -287,14 +301,7 @@ class Worker:
                 if not got:
                     return                          # the web process is gone
                 buf += chunk[:got]
-                while len(buf) >= HEADER.size:
-                    (size,) = HEADER.unpack_from(buf)
-                    end = HEADER.size + size
-                    if len(buf) < end:
-                        break
-                    with memoryview(buf) as view, view[HEADER.size:end] as data:
-                        batch = msgpack.unpackb(data)
-                    del buf[:end]
+                for batch in whole_batches(buf):
                     self.handle_batch(batch)
             self.poll_opening()
             self.poll_warming()
