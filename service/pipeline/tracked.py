@@ -15,6 +15,7 @@ from gestures.recognizer import GestureRecognizer, GestureSettings
 from ..estimators.registry import EstimatorSpec
 from ..protocol.outgoing import FrameDict, GestureDict
 
+from .frame_text import FrameOutput
 from .hand import Counters, Dropped, HandSession, PipelineSettings
 
 
@@ -66,11 +67,15 @@ class TrackedHand:
 
     def outputs(self) -> Iterator[list[FrameDict | GestureDict]]:
         """For each frame that is ready, as soon as it is: the frame message and its gesture events."""
+        for out, events in self.frame_outputs():
+            yield [out.message(), *events]
+
+    def frame_outputs(self) -> Iterator[tuple[FrameOutput, list[GestureDict]]]:
+        """``outputs`` with each frame as a ``FrameOutput`` (its message built only when asked; its JSON text
+        written from the frame's arrays)."""
         for frame in self._session.ready_frames():
             annotation, events = self.recognizer.update(frame)
-            msg = frame.to_message(self._session.calibration)
-            msg["gesture"] = annotation
-            yield [msg, *events]
+            yield FrameOutput(frame, self._session.calibration, annotation), events
 
 
 def replay(messages: Iterable, settings: PipelineSettings | None = None,

@@ -52,16 +52,24 @@ class OutputSink:
     def put(self, item: Outgoing, t_ingest: float) -> int:
         msg = item.message
         if msg["type"] == "frame":
-            if self.resume_after is not None:
-                seq0, t0 = self.resume_after
-                # the previous owner may have sent frames after its last state: every one of them lies
-                # on its frame grid before this frame's time, so this seq is above all of theirs
-                self.seq_offset = seq0 + max(1, math.ceil((msg["t"] - t0) * self.rate_hz)) + 1 - msg["seq"]
-                self.resume_after = None
-            msg["seq"] += self.seq_offset
-            self.last_seq, self.last_t, self.last_fingers = msg["seq"], msg["t"], msg["fingers"]
+            msg["seq"] = self.frame_seq(msg["seq"], msg["t"])
+            self.last_fingers = msg["fingers"]
         self.pending.append(item.packed() if self.packed else msg)
         return 0
+
+    def frame_seq(self, seq: int, t: float) -> int:
+        """The session's ``seq`` of its hand's frame ``seq`` at source time ``t`` (continued across a change
+        of owner), kept as the last frame's with ``t`` (``put`` of a frame; a hand worker's frames, whose
+        session state the web process keeps, take only this)."""
+        if self.resume_after is not None:
+            seq0, t0 = self.resume_after
+            # the previous owner may have sent frames after its last state: every one of them lies
+            # on its frame grid before this frame's time, so this seq is above all of theirs
+            self.seq_offset = seq0 + max(1, math.ceil((t - t0) * self.rate_hz)) + 1 - seq
+            self.resume_after = None
+        seq += self.seq_offset
+        self.last_seq, self.last_t = seq, t
+        return seq
 
     @property
     def last_angles(self) -> dict:

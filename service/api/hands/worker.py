@@ -82,7 +82,9 @@ import msgpack
 from ...pipeline.gc_policy import serving_gc
 from ...protocol import PROTOCOL_VERSION, ProtocolError, parse_input, parse_message
 from ...protocol.messages import SamplesRefused, dump_message
+from ...pipeline.frame_text import FrameOutput
 from ...pipeline.hand import NOTHING_DROPPED
+from ...protocol.wire import encode
 from ...estimators.warm import (cached_not_warm, compile_command, is_warm, needs_compiling, sharing_the_interpreter, warm,
                                 warm_ahead)
 from ..config import ServiceSettings
@@ -182,6 +184,11 @@ class OwnedHand:
         encoded here once: JSON text always, MessagePack too while a subscriber reads it."""
         outs = []
         for message in self.sink.pending:
+            if type(message) is FrameOutput:        # (a frame of the hand: its text written from its arrays)
+                message.set_drops(*self.drops)
+                outs.append(["out", sid, n, ["frame", message.seq, message.t, message.hand], message.text(),
+                             encode(message.message(), binary=True) if self.binary else None])
+                continue
             if message["type"] == "frame":
                 message["status"]["dropped"]["subscriber_frames"], message["status"]["dropped"]["overloaded"] = self.drops
                 head = ["frame", message["seq"], message["t"], message["hand"]]
@@ -231,9 +238,12 @@ class OwnedHand:
         hand = self.live.hand
         try:
             dropped = hand.accept(msg)
-            for group in hand.outputs():
-                for out in group:
-                    self.sink.put(Outgoing(out), 0.0)
+            sink = self.sink
+            for frame, events in hand.frame_outputs():
+                frame.seq = sink.frame_seq(frame.seq, frame.t)
+                sink.pending.append(frame)          # (its text and message made in ``encoded``)
+                for event in events:
+                    sink.put(Outgoing(event), 0.0)
                 if emit is not None and hand.tick_ready():
                     emit()
         except Exception as err:                    # bad input, or a defect (logged in one line)

@@ -1,0 +1,149 @@
+"""A frame's JSON text written from the pipeline's arrays (``FrameOutput.text``), with the message's fixed
+parts laid out once: the same text as ``protocol.wire.encode`` of the frame's message, without the message.
+
+A frame message is about 7 kB of JSON, most of it the 26 joints' poses (182 numbers) between keys, radii and
+flags that stay the same frame after frame. Built as dicts (``HandFrame.to_message``, 26 joint dicts and a
+list per number pair) and then encoded (``orjson``, then ``encode``'s scan for ``null``), it cost a hand
+worker about as much as its compiled tick. Here the numbers are written by ``orjson`` (the encoder
+``encode`` uses, each number written as it writes it anywhere: the same bytes) from one list per kind
+(the joint angles, the positions, the orientations), cut at their separators, and put between the fixed
+parts, which ``orjson`` wrote once per calibration, finger layout, modes and tracked flags (``_Layout``);
+the frame's head, status and gesture annotation are small dicts, written by ``orjson`` as they are.
+
+The text is ``encode``'s only where ``encode`` itself writes ``orjson``'s text: every part is ASCII and every
+``null`` in it is one ``encode`` knows holds no number (``_nulls_all_known``: the fixed parts have none,
+the numbers are checked finite, ``orjson`` writes a NaN or an infinity as ``null``). Anything else (a
+non-finite number, a sensor never sampled, a frame not built by the pipeline) is written from the message,
+by ``encode`` (``FrameOutput.text``'s fallback). ``tests/test_frame_text.py`` checks the two equal.
+"""
+from __future__ import annotations
+
+import orjson
+
+from ..model.openxr import JOINT_NAMES, FingerAngles, joint_radii_list
+from ..protocol.wire import _ORJSON_STRICT, _nulls_all_known, encode
+from .hand import JointPoses
+
+_HOLE = "\x01"
+"""Where a number goes in the fixed parts while they are written (a string no key or value of a frame holds)."""
+_HOLE_TEXT = orjson.dumps(_HOLE)
+_NUMPY = orjson.OPT_SERIALIZE_NUMPY
+
+
+class _Layout:
+    """The fixed parts of a frame's ``fingers`` and ``joints`` for one calibration, finger layout, modes and
+    tracked flags, with a hole for each number (``None`` in ``parts``): the joint angles, then per joint its
+    position and its orientation (each a run of numbers as ``orjson`` writes a list's items)."""
+
+    __slots__ = ("key", "parts", "n_angles")
+
+    def __init__(self, key: tuple, parts: list | None, n_angles: int):
+        self.key = key          # (the objects themselves: while kept, no other object has their ids)
+        self.parts, self.n_angles = parts, n_angles
+
+
+def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
+    """The frame's fixed parts (``_Layout``); ``parts`` is ``None`` where they cannot be laid out so (a finger
+    whose angle count differs from its joint names, a joint without a radius: ``to_message``'s message then)."""
+    key = (calib, layout, modes, tracked)
+    names_of = {f: g.joint_names for f, g in calib.fingers.items()}
+    if any(len(names_of.get(f) or calib.finger(f).joint_names) != c for f, c in zip(layout.names, layout.counts)):
+        return _Layout(key, None, 0)
+    fingers = {}
+    for f in layout.names:
+        angles = dict.fromkeys(names_of.get(f) or calib.finger(f).joint_names, _HOLE)
+        angles["mode"] = modes[f]
+        fingers[f] = angles
+    # a joint's position and orientation each one hole, for the run of its numbers
+    joints = {n: {"position": [_HOLE], "orientation": [_HOLE], "radius": r, "tracked": tracked.get(n, True)}
+              for n, r in zip(JOINT_NAMES, joint_radii_list(calib))}
+    text = orjson.dumps({"fingers": fingers, "joints": joints}, option=_ORJSON_STRICT)
+    pieces = (b"," + text[1:-1]).split(_HOLE_TEXT)
+    if not all(p.isascii() and b"null" not in p for p in pieces) or len(pieces) != layout.n + 2 * len(JOINT_NAMES) + 1:
+        return _Layout(key, None, 0)
+    parts: list = [pieces[0]]
+    for p in pieces[1:]:
+        parts += (None, p)
+    return _Layout(key, parts, layout.n)
+
+
+_layouts: dict[tuple, _Layout] = {}
+
+
+class FrameOutput:
+    """A frame and its gesture annotation as the pipeline makes them (``TrackedHand.frame_outputs``): its
+    protocol message (``message``) built when asked, its JSON text (``text``) written from its arrays."""
+
+    __slots__ = ("frame", "calibration", "annotation", "seq", "_message")
+
+    def __init__(self, frame, calibration, annotation: dict):
+        self.frame, self.calibration, self.annotation = frame, calibration, annotation
+        self.seq: int = frame.seq
+        """the frame's ``seq`` in its message (a worker continuing a session sets its own)"""
+        self._message = None
+
+    @property
+    def t(self) -> float:
+        return self.frame.t
+
+    @property
+    def hand(self) -> str:
+        return self.frame.hand
+
+    def message(self) -> dict:
+        """The ``frame`` message (``HandFrame.to_message`` with the annotation as its ``gesture``), with
+        ``seq``; built once (the same dict at every call: its status is the frame's, which ``text`` may have
+        added the session's drop counts to)."""
+        msg = self._message
+        if msg is None:
+            msg = self._message = self.frame.to_message(self.calibration)
+            msg["gesture"] = self.annotation
+        msg["seq"] = self.seq
+        return msg
+
+    def set_drops(self, subscriber_frames: int, overloaded: int) -> None:
+        """The session's counts for ``status.dropped`` (frames dropped for slow subscribers, source messages
+        refused as overload: the live service's)."""
+        dropped = self.frame.status["dropped"]
+        dropped["subscriber_frames"], dropped["overloaded"] = subscriber_frames, overloaded
+
+    def text(self) -> str:
+        """``encode(self.message(), binary=False)``, written from the frame's arrays where it can be."""
+        fast = self._text()
+        return fast if fast is not None else encode(self.message(), binary=False)
+
+    def _text(self) -> str | None:
+        frame = self.frame
+        angles, joints = frame.joint_angles, frame.joints
+        if type(angles) is not FingerAngles or type(joints) is not JointPoses:
+            return None
+        key = (self.calibration, angles.layout, frame.modes, frame.tracked)
+        ids = (id(key[0]), id(key[1]), id(key[2]), id(key[3]))
+        layout = _layouts.get(ids)
+        if layout is None:
+            if len(_layouts) > 64:          # bounded: a hand has few combinations
+                _layouts.clear()
+            layout = _layouts[ids] = _layout_of(*key)
+        if layout.parts is None:
+            return None
+        try:
+            numbers = orjson.dumps(angles.flat, option=_NUMPY)
+            positions = orjson.dumps(joints.positions, option=_NUMPY)
+            quats = orjson.dumps(joints.quats, option=_NUMPY)
+            head = orjson.dumps({"type": "frame", "t": frame.t, "seq": self.seq, "hand": frame.hand}, option=_ORJSON_STRICT)
+            status = orjson.dumps(frame.status, option=_ORJSON_STRICT)
+            gesture = orjson.dumps(self.annotation, option=_ORJSON_STRICT)
+        except (orjson.JSONEncodeError, TypeError):
+            return None
+        # ``orjson`` writes a non-finite number as ``null``: a list of numbers without an ``n`` has none
+        if b"n" in numbers or b"n" in positions or b"n" in quats:
+            return None
+        for part in (head, status, gesture):
+            if not (part.isascii() and _nulls_all_known(part)):
+                return None
+        n, parts = layout.n_angles, layout.parts.copy()
+        if n:
+            parts[1:2 * n:2] = numbers[1:-1].split(b",")
+        parts[2 * n + 1::4] = positions[2:-2].split(b"],[")
+        parts[2 * n + 3::4] = quats[2:-2].split(b"],[")
+        return b"".join((head[:-1], *parts, b',"status":', status, b',"gesture":', gesture, b"}")).decode()

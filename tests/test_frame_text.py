@@ -1,0 +1,121 @@
+"""A frame's JSON text written from the pipeline's arrays (``pipeline.frame_text``) is ``encode``'s text of its
+message, byte for byte: on simulated sessions with faults (occlusions, missing and silent sensors, a clock
+step), with the live service's seq and drop counts, and where the arrays hold what ``encode`` writes
+otherwise (a NaN, an infinity) or the fixed parts cannot be laid out."""
+import math
+
+import numpy as np
+import pytest
+
+from service.pipeline import frame_text
+from service.pipeline.frame_text import FrameOutput
+from service.model.hand import FingerGeometry
+from service.pipeline import hand as hand_module
+from service.pipeline.hand import HandFrame
+from service.pipeline.tracked import TrackedHand
+from service.protocol import parse_message
+from service.protocol.wire import encode
+from service.sim.errors import OpticalModel
+from service.sim.session import SimConfig, simulate
+
+
+def _outputs(messages, hand="right"):
+    tracked = TrackedHand(hand)
+    for m in messages:
+        tracked.accept(parse_message(m))
+        for out, events in tracked.frame_outputs():
+            yield out, events
+
+
+def _checked(outputs, seed=0):
+    """Every output's text against ``encode`` of its message (with a seq offset and drop counts as a hand
+    worker sets them); how many were written from the arrays."""
+    rng = np.random.default_rng(seed)
+    fast = 0
+    for out, _ in outputs:
+        out.seq += int(rng.integers(0, 3))
+        out.set_drops(int(rng.integers(0, 5)), int(rng.integers(0, 5)))
+        written = out._text()
+        expected = encode(out.message(), binary=False)
+        assert out.text() == expected
+        if written is not None:
+            assert written == expected
+            fast += 1
+    return fast
+
+
+@pytest.mark.parametrize("config,written", [
+    (SimConfig(motion="sequence", noise="white", seed=3), 0.8),
+    (SimConfig(motion="random", t_m_s=3.0, noise="white", hand_motion="slow-rotation", seed=2,
+               optical=OpticalModel(occlusions_s=((0.8, 1.1), (2.0, 2.4)))), 0.8),
+    # the sensors of the fingers without any are never sampled: their age is null, written from the message
+    (SimConfig(motion="pinch", noise="both", seed=4, fingers=("thumb", "index", "middle")), 0.0),
+    (SimConfig(motion="grasp", noise="white", seed=6, metacarpus_imu=True, hand_motion="slow-rotation"), 0.8),
+], ids=["sequence", "occlusions", "partial-glove", "back-of-hand-imu"])
+def test_the_text_is_encodes_text_of_the_message(config, written):
+    outputs = list(_outputs(simulate(config).messages()))
+    assert len(outputs) > 100 and _checked(outputs) >= written * len(outputs)
+
+
+def test_left_hand_and_a_clock_step_and_silent_sensor():
+    msgs = list(simulate(SimConfig(motion="point", noise="white", seed=5, t_m_s=1.0, hand="left")).messages())
+    # a sensor falls silent half way, and the clock steps forward by 10 s for the last quarter
+    half, quarter = len(msgs) // 2, 3 * len(msgs) // 4
+    edited = []
+    for i, m in enumerate(msgs):
+        if i > half and m.get("id") == "index.1":
+            continue
+        if i > quarter:
+            m = dict(m)
+            if "t" in m:
+                m["t"] += 10.0
+        edited.append(m)
+    outputs = list(_outputs(edited, hand="left"))
+    assert _checked(outputs, seed=1) > 0
+
+
+def _one_output():
+    msgs = list(simulate(SimConfig(motion="sequence", noise="white", seed=3, t_m_s=0.5)).messages())
+    return [out for out, _ in _outputs(msgs)][-1]
+
+
+@pytest.mark.parametrize("where", ["angles", "positions", "quats", "t", "status", "gesture"])
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+def test_a_non_finite_number_is_written_as_encode_writes_it(where, value):
+    out = _one_output()
+    frame = out.frame
+    if where == "angles":
+        frame.joint_angles.flat[2] = value
+    elif where == "positions":
+        frame.joints.positions[7, 1] = value
+    elif where == "quats":
+        frame.joints.quats[25, 3] = value
+    elif where == "t":
+        frame.t = value
+    elif where == "status":
+        frame.status["dropped"]["late"] = value
+    else:
+        out.annotation["grab_strength"] = value
+    assert out._text() is None
+    text = out.text()
+    assert text == encode(out.message(), binary=False) and "invalid" in text and "null" in text
+
+
+def test_a_sensor_never_sampled_and_a_frame_not_of_the_pipeline_are_written_from_the_message():
+    out = _one_output()
+    out.frame.status["sensors"] = {**out.frame.status["sensors"], "ring.2": {"age_s": None, "silent": True}}
+    assert out._text() is None and out.text() == encode(out.message(), binary=False)
+    frame = out.frame
+    plain = HandFrame(frame.t, frame.seq, frame.hand, {f: frame.joint_angles[f] for f in frame.joint_angles},
+                      frame.modes, frame.hand_rotation, frame.hand_position, dict(frame.joints), frame.status, frame.tracked)
+    other = FrameOutput(plain, out.calibration, out.annotation)
+    assert other._text() is None and other.text() == encode(other.message(), binary=False)
+
+
+def test_fingers_whose_angles_outnumber_their_joint_names_are_written_from_the_message(monkeypatch):
+    out = _one_output()
+    monkeypatch.setattr(frame_text, "_layouts", {})
+    monkeypatch.setattr(hand_module, "_kept_names", {})
+    monkeypatch.setattr(FingerGeometry, "joint_names", property(lambda self: ("mcp",)))
+    assert out._text() is None
+    assert out.text() == encode(out.message(), binary=False) and '"pip"' not in out.text()
