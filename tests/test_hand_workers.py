@@ -510,8 +510,11 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
     message alone in its batch, or in a small batch (two here): each frame goes in a write before the
     next tick is processed, in a write of its own while its message has ticks left, else (the frame of
     its message's last tick) in the write of its message's reply, before the reply (one write, not two).
-    Many messages in one batch: the earlier ones' outputs go in one write with their replies (fewer
-    writes for a busy worker), each output before its reply."""
+    A frame written while its message has ticks left is followed by a yield of the core (``hand_over``: the
+    web process, woken by the write, passes it on before those ticks), and no other write is. Many messages
+    in one batch: the earlier ones' outputs go in one write with their replies (fewer writes for a busy
+    worker), each output before its reply."""
+    from service.api.hands import worker as worker_module
     from service.pipeline.hand import HandSession
 
     events: list[str] = []                          # "tick", "frame" (a tick that made one), "send" (a write)
@@ -523,6 +526,7 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
         return frames
 
     monkeypatch.setattr(HandSession, "_emit_frames", noted)
+    monkeypatch.setattr(worker_module, "hand_over", lambda: events.append("yield"))
     peer = _Peer()
     send = peer.worker.send
 
@@ -557,18 +561,26 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
                         alone += not replied
                         with_reply += replied
             assert alone >= 5 and with_reply >= 1, (size, alone, with_reply)
-            # every frame is written before the next tick is processed
+            # every frame is written before the next tick is processed; the core is yielded after each frame
+            # written alone (its message has ticks left), and after no other write
             seen = events[first_event:]
             made = [i for i, e in enumerate(seen) if e == "frame"]
             assert len(made) >= 10
             for i in made:
                 assert seen[i + 1:i + 2] == ["send"], (size, seen[i:i + 4])
+            yields = [i for i, e in enumerate(seen) if e == "yield"]
+            assert len(yields) == alone, (size, len(yields), alone)
+            for i in yields:
+                assert seen[i - 2:i] == ["frame", "send"] and seen[i + 1:i + 2] in (["tick"], ["frame"]), \
+                    (size, seen[i - 2:i + 2])
         # the rest in one batch: outputs and replies together, each output before its reply
-        start = len(peer.writes)
+        start, yielded = len(peer.writes), events.count("yield")
         peer.send([["src", 1, n, m] for n, m in msgs[2 * third:]])
         peer.until(lambda: len(peer.replies(1)) == len(msgs) + 1, "the batch answered")
         late = [x for w in peer.writes[start:] for x in w]
         assert sum(x[0] == "out" and x[3][0] == "frame" for x in late) >= 10
+        # (only the batch's last message sends its frames at once: at most its one frame mid-message)
+        assert events.count("yield") - yielded <= 1, "a yield after a frame of a large batch's earlier message"
         assert any(x[0] == "rep" for w in peer.writes[start:] for x in w if any(y[0] == "out" for y in w))
         replied = set()
         for x in late:
