@@ -52,3 +52,36 @@ def test_compiled_optical_track_equals_the_reference():
     assert seen[0] >= 1 and seen[1] > 100 and seen[2] > 1000
     with pytest.raises(ValueError, match="reference=True"):
         OpticalTrack().at_reference(0.0)            # the pipeline's tracks keep no poses for it
+
+
+def test_usable_counts_the_times_whose_fit_is_none_or_finite_as_the_pipeline_checks_them():
+    """``optical_kernel.usable`` (the held-back ticks' fits in one call, ``HandSession._pose_keeps``) is the
+    number of leading times at which ``at`` gives no kinematics or ones ``_finite_motion`` accepts: on a
+    jittery stream, before the first pose, and where positions of 1e308 m make the fit non-finite."""
+    from service.pipeline import optical_kernel
+    from service.pipeline.hand import _finite_motion
+
+    def expected(track, times):
+        for i, t in enumerate(times):
+            hand, _ = track.at(t)
+            if hand is not None and not _finite_motion(hand):
+                return i
+        return len(times)
+
+    rng = np.random.default_rng(7)
+    track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=64)
+    times = np.array([-0.02, -0.01])
+    assert optical_kernel.usable(times, *track.kernel_args(), np.empty(24)) == 2 == expected(track, times)
+    t, rot = 0.0, Rotation.random(random_state=rng)
+    finite = infinite = 0
+    for k in range(300):
+        t += 1.0 / 90.0 + rng.uniform(-0.002, 0.002)
+        rot = Rotation.from_rotvec(rng.normal(0.0, 0.05, 3)) * rot
+        huge = k in (100, 101, 200)         # positions whose sums overflow: a non-finite fit
+        track.add(t, np.full(3, 1e308) if huge else rng.normal(0.0, 0.3, 3), rot.as_quat(), k % 41 != 7)
+        times = np.sort(rng.uniform(t - 0.05, t, 4))
+        got = optical_kernel.usable(times, *track.kernel_args(), np.empty(24))
+        assert got == expected(track, times)
+        finite += got == 4
+        infinite += got < 4
+    assert finite > 100 and infinite > 0

@@ -54,6 +54,7 @@ from ..protocol.fast import IMU, IMU_BATCH, POSE
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
 from .mounting import HandMountings
+from . import optical_kernel
 from .optical import OpticalTrack, motion_of
 from .tick_kernel import steady_run, steady_tick
 
@@ -602,14 +603,15 @@ class HandSession:
             # now would be interpolated into it where it was extrapolated
         if not optics.add_keeps(t_new, next(iter(deferred))):
             return False
-        for t in list(deferred)[self._deferred_fits:]:
+        times = list(deferred)[self._deferred_fits:]
+        if times:
+            # ``optics.at`` of each and ``_finite_motion`` of what it gives, in one compiled call
             try:
-                hand, _ = optics.at(t)
+                if optical_kernel.usable(np.array(times), *optics.kernel_args(), np.empty(24)) < len(times):
+                    return False
             except (ValueError, np.linalg.LinAlgError):
                 return False
-            if hand is not None and not _finite_motion(hand):
-                return False
-            self._deferred_fits += 1
+            self._deferred_fits += len(times)
         return True
 
     def _may_run_steady(self, t: float) -> bool:

@@ -228,3 +228,30 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
         out[18 + r] = ref[3 * r] * w0 + ref[3 * r + 1] * w1 + ref[3 * r + 2] * w2
         out[21 + r] = ref[3 * r] * a0 + ref[3 * r + 1] * a1 + ref[3 * r + 2] * a2
     return TRACKING
+
+
+@njit(cache=JIT_CACHE, inline="always", error_model="numpy", fastmath=KERNEL_FASTMATH)
+def motion_sum(out):
+    """The sum ``HandSession._finite_motion`` takes of ``at``'s output ``out``, in its order (non-finite where a
+    number of it is): ``BaseMotion.flat`` (rotation, acceleration, angular velocity and acceleration), then the
+    position, then the velocity."""
+    s_flat = 0.0
+    for k in range(9):
+        s_flat += out[k]
+    for k in range(15, 24):
+        s_flat += out[k]
+    s_pos = out[9] + out[10] + out[11]
+    s_vel = out[12] + out[13] + out[14]
+    return s_flat + s_pos + s_vel
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out):
+    """How many of ``times``, from the first on, ``at`` gives no kinematics at (``NONE``) or finite ones at
+    (``motion_sum``): the optical fits of the ticks a pipeline holds back (``HandSession._pose_keeps``), in one
+    call. ``out`` (24) is ``at``'s output, overwritten."""
+    for i in range(times.shape[0]):
+        if at(times[i], ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
+              out) != NONE and not math.isfinite(motion_sum(out)):
+            return i
+    return times.shape[0]

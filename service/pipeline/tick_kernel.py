@@ -84,15 +84,7 @@ def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo,
         if OK.at(t, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p, held_q,
                  pose_window_s, pose_timeout_s, out) != OK.TRACKING:
             return i
-        # ``_finite_motion``'s sum, in its order: BaseMotion.flat, then the position, then the velocity
-        s_flat = 0.0
-        for k in range(9):
-            s_flat += out[k]
-        for k in range(15, 24):
-            s_flat += out[k]
-        s_pos = out[9] + out[10] + out[11]
-        s_vel = out[12] + out[13] + out[14]
-        if not math.isfinite(s_flat + s_pos + s_vel):
+        if not math.isfinite(OK.motion_sum(out)):   # ``_finite_motion``'s sum, in its order
             return i
         if (t - back_t >= window_s) != known:
             return i
