@@ -33,7 +33,8 @@ _NUMPY = orjson.OPT_SERIALIZE_NUMPY
 class _Layout:
     """The fixed parts of a frame's ``fingers`` and ``joints`` for one calibration, finger layout, modes and
     tracked flags, with a hole for each number (``None`` in ``parts``): the joint angles, then per joint its
-    position and its orientation (each a run of numbers as ``orjson`` writes a list's items)."""
+    position and its orientation (each a run of numbers as ``orjson`` writes a list's items); and holes for the
+    frame's head (first), its status and its gesture annotation (the last but three and the last but one)."""
 
     __slots__ = ("key", "parts", "n_angles")
 
@@ -61,9 +62,10 @@ def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
     pieces = (b"," + text[1:-1]).split(_HOLE_TEXT)
     if not all(p.isascii() and b"null" not in p for p in pieces) or len(pieces) != layout.n + 2 * len(JOINT_NAMES) + 1:
         return _Layout(key, None, 0)
-    parts: list = [pieces[0]]
+    parts: list = [None, pieces[0]]                   # (the frame's head first; its status and gesture last)
     for p in pieces[1:]:
         parts += (None, p)
+    parts += (b',"status":', None, b',"gesture":', None, b"}")
     return _Layout(key, parts, layout.n)
 
 
@@ -142,8 +144,9 @@ class FrameOutput:
             if not (part.isascii() and _nulls_all_known(part)):
                 return None
         n, parts = layout.n_angles, layout.parts.copy()
+        parts[0], parts[-4], parts[-2] = head[:-1], status, gesture
         if n:
-            parts[1:2 * n:2] = numbers[1:-1].split(b",")
-        parts[2 * n + 1::4] = positions[2:-2].split(b"],[")
-        parts[2 * n + 3::4] = quats[2:-2].split(b"],[")
-        return b"".join((head[:-1], *parts, b',"status":', status, b',"gesture":', gesture, b"}")).decode()
+            parts[2:2 * n + 1:2] = numbers[1:-1].split(b",")
+        parts[2 * n + 2:-5:4] = positions[2:-2].split(b"],[")
+        parts[2 * n + 4:-5:4] = quats[2:-2].split(b"],[")
+        return b"".join(parts).decode()
