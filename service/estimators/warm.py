@@ -77,8 +77,8 @@ def _pipeline_kernels() -> tuple:
     from gestures import values
     from ..model import openxr_kernel
     from ..pipeline import mounting_kernel, optical_kernel
-    return (openxr_kernel.joint_poses, optical_kernel.at, values.values_kernel, mounting_kernel.correct,
-            mounting_kernel.fit)
+    return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, values.values_kernel,
+            mounting_kernel.correct, mounting_kernel.fit)
 
 
 def _kernels(name: str) -> tuple:
@@ -103,6 +103,7 @@ def _warm_pipeline() -> None:
     from ..model.hand import default_calibration
     from ..model.openxr import joint_poses_compiled
 
+    from ..pipeline import optical_kernel
     from ..pipeline.mounting import HandMountings
     from ..pipeline.optical import OpticalTrack
 
@@ -115,6 +116,7 @@ def _warm_pipeline() -> None:
     for k in range(3):
         track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)
     track.at(0.015)
+    optical_kernel.usable(np.array([0.005, 0.015]), *track.kernel_args(), np.empty(24))     # (``HandSession._pose_keeps``)
     mountings = HandMountings(calib)
     rows = mountings.rows(tuple(calib.sensor_ids))
     raw = np.zeros((len(rows), 2, 3))
