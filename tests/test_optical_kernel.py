@@ -70,8 +70,17 @@ def test_usable_counts_the_times_whose_fit_is_none_or_finite_as_the_pipeline_che
 
     rng = np.random.default_rng(7)
     track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=64)
+    def usable(times):
+        outs, statuses = np.full((len(times), 24), np.nan), np.full(len(times), -1)
+        got = optical_kernel.usable(times, *track.kernel_args(), outs, statuses)
+        for i in range(min(got + 1, len(times))):           # each time's output and result: at()'s
+            out = np.empty(24)
+            assert statuses[i] == optical_kernel.at(times[i], *track.kernel_args(), out)
+            assert statuses[i] == optical_kernel.NONE or np.array_equal(outs[i], out, equal_nan=True)
+        return got
+
     times = np.array([-0.02, -0.01])
-    assert optical_kernel.usable(times, *track.kernel_args(), np.empty(24)) == 2 == expected(track, times)
+    assert usable(times) == 2 == expected(track, times)
     t, rot = 0.0, Rotation.random(random_state=rng)
     finite = infinite = 0
     for k in range(300):
@@ -80,7 +89,7 @@ def test_usable_counts_the_times_whose_fit_is_none_or_finite_as_the_pipeline_che
         huge = k in (100, 101, 200)         # positions whose sums overflow: a non-finite fit
         track.add(t, np.full(3, 1e308) if huge else rng.normal(0.0, 0.3, 3), rot.as_quat(), k % 41 != 7)
         times = np.sort(rng.uniform(t - 0.05, t, 4))
-        got = optical_kernel.usable(times, *track.kernel_args(), np.empty(24))
+        got = usable(times)
         assert got == expected(track, times)
         finite += got == 4
         infinite += got < 4

@@ -84,7 +84,7 @@ def test_the_steady_tick_in_one_call_equals_its_calls_one_by_one(monkeypatch):
 
     monkeypatch.setattr(HandSession, "_steady_tick", fused_tick)
     # the steady ticks one by one (a run of them in one call, ``_steady_run``, is the next test's)
-    monkeypatch.setattr(HandSession, "_steady_run", lambda self, t: None)
+    monkeypatch.setattr(HandSession, "_steady_run", lambda self, t, given=None: None)
     fused = TrackedHand()
     a = [o for m in messages for o in fused.handle(m)]
     # the random stretch went through the one call, and most ticks before it
@@ -238,7 +238,7 @@ def test_a_run_ends_where_a_reference_pose_is_due_and_none_runs_while_the_back_o
     if case == "reference pose":
         assert fused._session.counters.references_applied == 1
         assert any(abs(ts[-1] - 0.429) < 1e-9 and n == len(ts) for ts, n in runs)     # a run ended at the tick it is due
-    monkeypatch.setattr(HandSession, "_steady_run", lambda self, t: None)
+    monkeypatch.setattr(HandSession, "_steady_run", lambda self, t, given=None: None)
     reference = TrackedHand()
     assert a == [encode(o, False) for m in messages for o in reference.handle(m)]
 

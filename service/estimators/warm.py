@@ -116,7 +116,8 @@ def _warm_pipeline() -> None:
     for k in range(3):
         track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)
     track.at(0.015)
-    optical_kernel.usable(np.array([0.005, 0.015]), *track.kernel_args(), np.empty(24))     # (``HandSession._pose_keeps``)
+    optical_kernel.usable(np.array([0.005, 0.015]), *track.kernel_args(), np.empty((2, 24)),
+                          np.empty(2, dtype=np.int64))      # (``HandSession._pose_keeps``)
     mountings = HandMountings(calib)
     rows = mountings.rows(tuple(calib.sensor_ids))
     raw = np.zeros((len(rows), 2, 3))
@@ -216,7 +217,8 @@ def _warm_steady_run(together, estimator, fits, rows, raw, phi, started, gather)
 
     ts = [0.025]
     together.advance_run(steady_run, (np.array(ts), *OpticalTrack().kernel_args(), -np.inf, 0.15, False,
-                                      np.empty((1, 24)), np.empty((1, 18)), np.empty(1), fits.state, fits._meta, rows,
+                                      np.empty((1, 24)), np.empty((1, 18)), np.empty(1), 0, np.zeros(0, dtype=np.int64),
+                                      fits.state, fits._meta, rows,
                                       fits._st, raw[None], np.empty_like(raw[None]), np.tile(phi, (2, 1)), started,
                                       rows, 2 * gather, 2 * gather + 1), ts, [estimator], len(rows))
 

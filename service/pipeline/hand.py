@@ -284,6 +284,8 @@ class HandSession:
         self._pending: dict[float, dict[str, list[float]]] = {}    # t -> id -> gyr + acc (six numbers)
         self._deferred: dict[float, dict[str, list[float]]] = {}   # ready ticks held back, oldest first (``_defer``)
         self._deferred_fits = 0             # how many of them have an optical fit known to be finite (``_pose_keeps``)
+        self._fit_rows = np.empty((_MAX_DEFERRED, 24))      # and those fits, ``optical_kernel.at``'s outputs,
+        self._fit_status = np.empty(_MAX_DEFERRED, dtype=np.int64)  # and results, in order (``_given_fits``)
         self._samples: dict[str, tuple[float, np.ndarray, int]] = {}   # id -> t, its tick's readings (k, 2, 3), row
         self._samples_due: tuple | None = None  # the last tick's (t, ids, readings), not yet in ``_samples``
         self._processed_t: float | None = None
@@ -605,14 +607,24 @@ class HandSession:
             return False
         times = list(deferred)[self._deferred_fits:]
         if times:
-            # ``optics.at`` of each and ``_finite_motion`` of what it gives, in one compiled call
+            # ``optics.at`` of each and ``_finite_motion`` of what it gives, in one compiled call, its outputs kept
+            # for the run that processes them (``_given_fits``: by ``add_keeps``, the same as they are then)
+            done = self._deferred_fits
             try:
-                if optical_kernel.usable(np.array(times), *optics.kernel_args(), np.empty(24)) < len(times):
+                if optical_kernel.usable(np.array(times), *optics.kernel_args(), self._fit_rows[done:],
+                                         self._fit_status[done:]) < len(times):
                     return False
             except (ValueError, np.linalg.LinAlgError):
                 return False
             self._deferred_fits += len(times)
         return True
+
+    def _given_fits(self) -> tuple | None:
+        """The held-back ticks' optical fits that ``_pose_keeps`` computed (their times, ``at``'s outputs and
+        results, the track), for the run that processes them (``_steady_run``); None if there are none."""
+        if not self._deferred_fits:
+            return None
+        return list(self._deferred)[:self._deferred_fits], self._fit_rows, self._fit_status, self.optics
 
     def _may_run_steady(self, t: float) -> bool:
         """The cheap checks of a run of steady ticks from the ready tick ``t`` (``_steady_run``, ``_defer``),
@@ -634,7 +646,7 @@ class HandSession:
         state until it is processed: the next ticks are processed after it, and whatever else could read
         or change that state processes it first (``flush``). At 200 Hz IMU and 90 Hz frames a message
         releases one tick and about half make no frame: two or three ticks per compiled call, not one."""
-        if len(self._deferred) >= 8 or not self._may_run_steady(t):
+        if len(self._deferred) >= _MAX_DEFERRED or not self._may_run_steady(t):
             return False
         pending = self._pending
         if len(pending) > 1 and self._ready(sorted(pending)[1]):
@@ -651,7 +663,9 @@ class HandSession:
             if defer:
                 if self._defer(t):
                     return
+                given = None
                 if self._deferred:              # they go first, in one run with this tick
+                    given = self._given_fits()
                     pending.update(self._deferred)
                     self._deferred.clear()
                     self._deferred_fits = 0
@@ -659,9 +673,12 @@ class HandSession:
             # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
             # under one setting (never held across a ``yield``: the caller's own setting applies there);
             # each tick's time and readiness found once
+            else:
+                given = None
             with np.errstate(all="ignore"):
                 while True:
-                    frames = self._steady_run(t)
+                    frames = self._steady_run(t, given)
+                    given = None
                     if frames is None:
                         frames = self._process_tick(t, pending.pop(t))
                     if frames or not pending:
@@ -673,7 +690,7 @@ class HandSession:
                 return
             yield from frames
 
-    def _steady_run(self, t: float) -> list[HandFrame] | None:
+    def _steady_run(self, t: float, given: tuple | None = None) -> list[HandFrame] | None:
         """The ready ticks from ``t`` on, up to the one that emits the next frame or has a reference pose
         due (included), advanced in one compiled call (``tick_kernel.steady_run``) while they are steady,
         as ``_process_tick`` makes each: every finger advanced together at the tick before, every finger
@@ -684,7 +701,8 @@ class HandSession:
         only the last one's leaves behind, is done once. Returns the frames of the last tick done (then
         the next tick, if the kernel stopped before it, is processed tick by tick), or None when ``t``
         does not start such a run of two ticks or more (nothing done: one tick alone costs less tick by
-        tick, whose steady tick is one call too)."""
+        tick, whose steady tick is one call too). ``given``: the optical fits of held-back ticks computed
+        already (``_given_fits``), for the first ticks of the run that are those."""
         pending = self._pending
         if len(pending) < 2 or not self._may_run_steady(t):
             return None
@@ -720,9 +738,17 @@ class HandSession:
         phis[0] = together[0]
         motions, hands, totals = np.empty((n, 24)), np.empty((n, 18)), np.empty(n)
         known = self._hand_known                # every tick's window full is this (the kernel checks it)
+        done, given_status = 0, _NO_STATUS
+        if given is not None and given[3] is self.optics:
+            times, rows, given_status = given[:3]
+            for u, v in zip(times, ts):
+                if u != v:
+                    break
+                done += 1
+            motions[:done] = rows[:done]
         run = self._together.advance_run(
             steady_run, (np.array(ts), *self.optics.kernel_args(), self._optics_back_t, self.settings.pose_window_s,
-                         known, motions, hands, totals, fits.state, fits._meta, fits.rows(ids), fits._st, raw,
+                         known, motions, hands, totals, done, given_status, fits.state, fits._meta, fits.rows(ids), fits._st, raw,
                          readings, phis, self._all_started(len(fingers)), off_rows, layout.rows_gyr, layout.rows_acc),
             ts, [fs.estimator for fs in fingers], len(layout.sensors))
         if run is None:
@@ -1190,6 +1216,12 @@ class _TogetherLayout:
 
 _NO_ROWS = np.zeros(0, dtype=np.int64)
 """No fit rows: ``tick_kernel.steady_tick`` writes no cross-axis offsets."""
+
+_NO_STATUS = np.zeros(0, dtype=np.int64)
+"""No optical results given: ``tick_kernel.steady_run`` fits the optics at every tick."""
+
+_MAX_DEFERRED = 8
+"""The most ticks held back (``HandSession._defer``)."""
 
 
 @lru_cache(maxsize=64)

@@ -246,12 +246,15 @@ def motion_sum(out):
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
-def usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out):
+def usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs, statuses):
     """How many of ``times``, from the first on, ``at`` gives no kinematics at (``NONE``) or finite ones at
     (``motion_sum``): the optical fits of the ticks a pipeline holds back (``HandSession._pose_keeps``), in one
-    call. ``out`` (24) is ``at``'s output, overwritten."""
+    call. Each time's ``at`` output goes to ``outs[i]`` (24) and its result to ``statuses[i]``, up to the
+    first that is not usable (included)."""
     for i in range(times.shape[0]):
-        if at(times[i], ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
-              out) != NONE and not math.isfinite(motion_sum(out)):
+        status = at(times[i], ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
+                    outs[i])
+        statuses[i] = status
+        if status != NONE and not math.isfinite(motion_sum(outs[i])):
             return i
     return times.shape[0]

@@ -61,13 +61,14 @@ def steady_tick(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=False)
 def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p, held_q,
-               pose_window_s, pose_timeout_s, back_t, window_s, known, motions, hands, totals,
+               pose_window_s, pose_timeout_s, back_t, window_s, known, motions, hands, totals, given, given_status,
                m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr, rows_acc, gap0,
                x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start, phalanx_start, geo_start,
                out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g, log_n, ga_off):
     """The steady ticks ``ts`` (n,) released together, each as ``HandSession._process_tick`` makes a steady
     one, in one call: the optics at the tick (``optical_kernel.at`` on the track's arrays, ``OpticalTrack.at``)
-    into ``motions[i]`` (24), then ``steady_tick`` with its ``BaseMotion.flat`` (``hands[i]``, 18), the tick's
+    into ``motions[i]`` (24; for the first ``given`` ticks it is there already, ``optical_kernel.usable``'s, with
+    ``at``'s result in ``given_status[i]``), then ``steady_tick`` with its ``BaseMotion.flat`` (``hands[i]``, 18), the tick's
     raw readings ``raw[i]`` (k, 2, 3) corrected into ``readings[i]``, the angles of the tick before
     ``phis[i]`` and its own written into ``phis[i + 1]``, the sum of its angles into ``totals[i]``.
 
@@ -81,8 +82,12 @@ def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo,
     for i in range(n):
         t = ts[i]
         out = motions[i]
-        if OK.at(t, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p, held_q,
-                 pose_window_s, pose_timeout_s, out) != OK.TRACKING:
+        if i < given:
+            status = given_status[i]
+        else:
+            status = OK.at(t, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p,
+                           held_q, pose_window_s, pose_timeout_s, out)
+        if status != OK.TRACKING:
             return i
         if not math.isfinite(OK.motion_sum(out)):   # ``_finite_motion``'s sum, in its order
             return i
