@@ -1046,3 +1046,64 @@ def test_an_estimator_step_that_raises_on_its_first_sample_leaves_no_half_state(
     assert not est.started and est.state == {"t_last": None, "filter": None}
     out = est.update(*smp.sample(1))                # no TypeError: it starts afresh
     assert est.started and est.last_t == out.t and np.all(np.isfinite(out.phi))
+
+
+def _raw_http(port: int, data: bytes, chunks: int = 0) -> bytes:
+    """``data`` sent on a new connection (then ``chunks`` more of 64 KiB of ``a``, as long as the server reads),
+    and everything the server answers until it closes the connection (or one reply when it keeps it)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
+        s.sendall(data)
+        try:
+            for _ in range(chunks):
+                s.sendall(b"a" * (64 << 10))
+        except OSError:                                 # refused and closed meanwhile
+            pass
+        out = b""
+        try:
+            while more := s.recv(65536):
+                out += more
+                if out.startswith(b"HTTP/1.1 200") and b"\r\n\r\n" in out:
+                    break
+        except ConnectionResetError:                    # (after its reply: the rest of what was sent came after it)
+            pass
+        return out
+
+
+def test_the_http_parser_refuses_malformed_requests_with_400_and_no_traceback(server, caplog):
+    """The C parser (httptools, a dependency; uvicorn's pure-Python one, h11, answered a malformed chunked body
+    with 400 and an 'Exception in ASGI application' traceback, took HTTP/9.9 and an HTTP/2 preface as requests
+    and let a request with both Content-Length and Transfer-Encoding through): each of these malformed requests
+    gets 400 and the connection closes, nothing is logged with a traceback, and the service answers on."""
+    from service.api.server import BoundedHttpTools
+    assert BoundedHttpTools is not None and server.server.config.http is BoundedHttpTools, "httptools is not installed"
+    port = int(server.url.rsplit(":", 1)[1])
+    malformed = [b"\x16\x03\x01\x00\xa5\x01\x00\x00\xa1\x03\x03\r\n\r\n", b"GET\r\n\r\n",
+                 b"GET /health HTTP/1.1\r\nHost 127.0.0.1\r\n\r\n", b"GET /health HTTP/1.1\r\nHo st: x\r\n\r\n",
+                 b"GET /health HTTP/9.9\r\nHost: x\r\n\r\n", b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n",
+                 b"POST /v1/sessions HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n",
+                 b"POST /health HTTP/1.1\r\nHost: x\r\nContent-Length: 3\r\nTransfer-Encoding: chunked\r\n\r\n0\r\n\r\n",
+                 b"GET /hea\x00lth HTTP/1.1\r\nHost: x\r\n\r\n"]
+    with caplog.at_level("WARNING"):
+        for request in malformed:
+            reply = _raw_http(port, request)
+            assert reply.startswith(b"HTTP/1.1 400 ") and reply.endswith(b"Invalid HTTP request received."), (request, reply)
+        assert _raw_http(port, b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n" * 3).count(b"HTTP/1.1 200 ") >= 1
+    assert sum(r.getMessage() == "Invalid HTTP request received." for r in caplog.records) == len(malformed)
+    assert not [r for r in caplog.records if r.exc_info], [r.getMessage() for r in caplog.records if r.exc_info]
+    assert rest(server.url, "GET", "/health")[0] == 200
+
+
+@pytest.mark.parametrize("part", ["header", "url"])
+def test_a_request_head_longer_than_the_limit_is_refused_while_it_arrives(server, part):
+    """uvicorn's httptools protocol has no bound on a request's head: an endless header or URL was kept (25 MB
+    sent, 25 MB more in this process, no reply ever). Now a head still incomplete past ``HEAD_LIMIT`` bytes
+    (16 KiB, h11's bound before) gets 400 and the connection closes while the client still sends (1 MiB here);
+    a head within the limit (a 10 kB cookie) is answered."""
+    from service.api.server import BoundedHttpTools
+    port = int(server.url.rsplit(":", 1)[1])
+    start = b"GET /health HTTP/1.1\r\nHost: x\r\nX: " if part == "header" else b"GET /health?"
+    reply = _raw_http(port, start, chunks=16)
+    assert reply.startswith(b"HTTP/1.1 400 ") and reply.endswith(b"Invalid HTTP request received."), reply[:200]
+    ok = _raw_http(port, b"GET /health HTTP/1.1\r\nHost: x\r\nCookie: " + b"c" * 10_000 + b"\r\n\r\n")
+    assert ok.startswith(b"HTTP/1.1 200 "), ok[:200]
+    assert BoundedHttpTools.HEAD_LIMIT == 16 * 1024
