@@ -94,3 +94,38 @@ def test_usable_counts_the_times_whose_fit_is_none_or_finite_as_the_pipeline_che
         finite += got == 4
         infinite += got < 4
     assert finite > 100 and infinite > 0
+
+
+def test_add_keeps_holds_only_where_the_added_pose_changes_no_fit_from_t0_on():
+    """``OpticalTrack.add_keeps`` (``optical_kernel.keeps``, as compiled and as Python): where it says a new pose
+    keeps the fits from ``t0`` on, ``at`` gives the same bits at times from ``t0`` to the newest pose after the
+    add as before it; on a stream with invalid poses, a track that drops poses when full and prunes old ones,
+    new poses near and far and ``t0`` inside and before the fit window (where it says so often, and often not)."""
+    import copy
+
+    from service.pipeline import optical_kernel
+
+    rng = np.random.default_rng(11)
+    answers = {True: 0, False: 0}
+    for max_poses in (8, 64):
+        track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=max_poses)
+        t = 0.0
+        for k in range(300):
+            t += 1.0 / 90.0 + rng.uniform(-0.003, 0.003)
+            track.add(t, rng.normal(0.0, 0.3, 3), Rotation.random(random_state=rng).as_quat(), k % 13 not in (3, 4))
+            for _ in range(3):
+                t0 = t - rng.uniform(-0.01, 0.3)
+                t_new = t + rng.choice([1e-3, 0.02, 0.2, 0.5])
+                keeps = track.add_keeps(t_new, t0)
+                assert keeps == optical_kernel.keeps.py_func(t_new, t0, track._t, track._valid, track._lo, track._hi,
+                                                             max_poses, 0.15, 0.1)
+                answers[keeps] += 1
+                if keeps:
+                    after = copy.deepcopy(track)
+                    after.add(t_new, rng.normal(0.0, 0.3, 3), Rotation.random(random_state=rng).as_quat(), True)
+                    for u in np.linspace(t0, t, 5) if t0 <= t else ():     # (the times covered now)
+                        a, b = track.at(u), after.at(u)
+                        assert a[1] == b[1] and (a[0] is None) == (b[0] is None)
+                        assert a[0] is None or np.array_equal(a[0].flat, b[0].flat) and \
+                            np.array_equal(a[0].position, b[0].position) and np.array_equal(a[0].velocity, b[0].velocity)
+    assert answers[True] > 100 and answers[False] > 100

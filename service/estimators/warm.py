@@ -77,8 +77,8 @@ def _pipeline_kernels() -> tuple:
     from gestures import values
     from ..model import openxr_kernel
     from ..pipeline import mounting_kernel, optical_kernel
-    return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, values.values_kernel,
-            mounting_kernel.correct, mounting_kernel.fit)
+    return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, optical_kernel.keeps,
+            values.values_kernel, mounting_kernel.correct, mounting_kernel.fit)
 
 
 def _kernels(name: str) -> tuple:
@@ -118,6 +118,7 @@ def _warm_pipeline() -> None:
     track.at(0.015)
     optical_kernel.usable(np.array([0.005, 0.015]), *track.kernel_args(), np.empty((2, 24)),
                           np.empty(2, dtype=np.int64))      # (``HandSession._pose_keeps``)
+    track.add_keeps(0.03, 0.015)
     mountings = HandMountings(calib)
     rows = mountings.rows(tuple(calib.sensor_ids))
     raw = np.zeros((len(rows), 2, 3))

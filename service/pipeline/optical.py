@@ -175,20 +175,10 @@ class OpticalTrack:
         """Whether adding a pose at ``t_new`` leaves ``at`` unchanged at every time from ``t0`` on that is
         covered now (the new pose comes after the one covering it): every pose the add drops (``_add_array``)
         is older than the fit window before ``t0``, and a valid pose within that window before ``t0`` stays,
-        so such a time's newest valid pose up to its covering one stays stored."""
-        start = t0 - self.window_s
-        if t_new - max(4 * self.window_s, 2 * self.timeout_s) >= start:
-            return False
-        ts, valid, lo = self._t, self._valid, self._lo
-        if self._hi - lo >= self._max_poses and ts[lo] >= start:
-            return False
-        for i in range(self._hi - 1, lo - 1, -1):
-            u = ts[i]
-            if u < start:
-                return False
-            if u < t0 and valid[i]:
-                return True
-        return False
+        so such a time's newest valid pose up to its covering one stays stored. One compiled call
+        (``optical_kernel.keeps``)."""
+        return optical_kernel.keeps(float(t_new), float(t0), self._t, self._valid, self._lo, self._hi, self._max_poses,
+                                    float(self.window_s), float(self.timeout_s))
 
     def covers(self, t: float) -> bool:
         """True when ``t`` can be evaluated now: a pose at or after ``t`` has arrived."""

@@ -258,3 +258,22 @@ def usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held
         if status != NONE and not math.isfinite(motion_sum(outs[i])):
             return i
     return times.shape[0]
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def keeps(t_new, t0, ts, valid, lo, hi, max_poses, window_s, timeout_s):
+    """``OpticalTrack.add_keeps`` on the track's arrays ``ts``, ``valid`` (entries ``lo..hi-1``, at most
+    ``max_poses``): whether a pose added at ``t_new`` leaves ``at`` the same at every time from ``t0`` on that a
+    pose covers now."""
+    start = t0 - window_s
+    if t_new - max(4.0 * window_s, 2.0 * timeout_s) >= start:
+        return False
+    if hi - lo >= max_poses and ts[lo] >= start:
+        return False
+    for i in range(hi - 1, lo - 1, -1):
+        u = ts[i]
+        if u < start:
+            return False
+        if u < t0 and valid[i]:
+            return True
+    return False
