@@ -31,6 +31,7 @@ from importlib.resources import files
 from fastapi import FastAPI
 from fastapi_offline import FastAPIOffline
 from fastapi.staticfiles import StaticFiles
+from starlette.applications import Starlette
 
 from ..estimators.warm import warm_off_loop
 from .churn import ChurnCollector, CollectAfterConnections
@@ -101,34 +102,43 @@ def create_app(settings: ServiceSettings) -> FastAPI:
 
 WARM_PATH = "/ready"
 """the request ``warm_request_path`` sends through the app: a plain function's route (the thread pool), no token"""
+WARM_UNROUTED = "/-warm-up"
+"""the second one: a path no route matches, so that every router is walked (404)"""
 
 
 async def warm_request_path(app: FastAPI) -> None:
-    """One ``GET /ready`` through the app's whole stack before serving (from the lifespan, where the server has
-    built it). The first request that goes past ``ProbePaths`` pays the framework's lazy set-up on the event loop:
-    the routers' route contexts built, the thread pool's backend module imported and its first thread started,
-    15 ms of the loop's CPU here against 2 ms for the next request. It fell on the first REST call made while
-    sessions stream, the first estimator switch in ``bench switch``, and every session's frames waited for it
-    (the others' largest stall at that switch, 10-20 ms). A failure here is logged; the service starts anyway."""
-    scope = {"type": "http", "asgi": {"version": "3.0", "spec_version": "2.3"}, "http_version": "1.1",
-             "method": "GET", "scheme": "http", "path": WARM_PATH, "raw_path": WARM_PATH.encode(), "root_path": "",
-             "query_string": b"", "headers": [(b"host", b"localhost")], "client": None, "server": None, "state": {}}
-    sent: list[dict] = []
+    """Two requests through the app's stack before serving (from the lifespan, where the server has built it):
+    ``GET /ready``, then a ``GET`` of a path no route matches. The first request that goes past ``ProbePaths``
+    pays the framework's lazy set-up on the event loop: the routers' route contexts built, the thread pool's
+    backend module imported and its first thread started, 15 ms of the loop's CPU here against 2 ms for the
+    next request. It fell on the first REST call made while sessions stream, the first estimator switch in
+    ``bench switch``, and every session's frames waited for it (the others' largest stall at that switch,
+    10-20 ms). ``/ready`` sets up the thread pool and the REST router; the unrouted path walks the others (the
+    sockets' routers, the viewer's mount: 1.4 ms of the loop's CPU at their first request otherwise). They are
+    sent below the framework's telemetry (``Starlette.__call__``, as FastAPI's own entry calls it when telemetry
+    is off): a configured tracer sees no request at start. A failure here is logged; the service starts anyway."""
+    for path, expected in ((WARM_PATH, 200), (WARM_UNROUTED, 404)):
+        scope = {"type": "http", "asgi": {"version": "3.0", "spec_version": "2.3"}, "http_version": "1.1",
+                 "method": "GET", "scheme": "http", "path": path, "raw_path": path.encode(), "root_path": "",
+                 "query_string": b"", "headers": [(b"host", b"localhost")], "client": None, "server": None,
+                 "state": {}}
+        sent: list[dict] = []
 
-    async def receive() -> dict:
-        return {"type": "http.request", "body": b"", "more_body": False}
+        async def receive() -> dict:
+            return {"type": "http.request", "body": b"", "more_body": False}
 
-    async def send(message: dict) -> None:
-        sent.append(message)
+        async def send(message: dict) -> None:
+            sent.append(message)
 
-    try:
-        await app(scope, receive, send)
-    except Exception as err:                        # a defect: the first request pays it instead
-        log.warning("warming the request path (GET %s) failed: %s: %s", WARM_PATH, type(err).__name__, err)
-        return
-    status = next((m.get("status") for m in sent if m["type"] == "http.response.start"), None)
-    if status != 200:
-        log.warning("warming the request path: GET %s answered %s", WARM_PATH, status)
+        try:
+            await Starlette.__call__(app, scope, receive, send)
+        except Exception as err:                    # a defect: the first request pays it instead
+            log.warning("warming the request path (GET %s) failed: %s: %s", path, type(err).__name__, err,
+                        exc_info=True)
+            return
+        status = next((m.get("status") for m in sent if m["type"] == "http.response.start"), None)
+        if status != expected:
+            log.warning("warming the request path: GET %s answered %s", path, status)
 
 
 class ProbePaths:
