@@ -1107,3 +1107,23 @@ def test_a_request_head_longer_than_the_limit_is_refused_while_it_arrives(server
     ok = _raw_http(port, b"GET /health HTTP/1.1\r\nHost: x\r\nCookie: " + b"c" * 10_000 + b"\r\n\r\n")
     assert ok.startswith(b"HTTP/1.1 200 "), ok[:200]
     assert BoundedHttpTools.HEAD_LIMIT == 16 * 1024
+
+
+def test_pipelined_requests_longer_than_the_head_limit_in_one_read_are_all_answered(server):
+    """The head limit counts a head's bytes from the read after the one in which it began: a client writing
+    1000 pipelined ``GET /health`` (36 kB) at once, the last one's head cut short and completed by a later
+    write, gets 1001 answers, not a 400 for the last one (counting that read whole refused it)."""
+    port = int(server.url.rsplit(":", 1)[1])
+    one = b"GET /health HTTP/1.1\r\nHost: x\r\n\r\n"
+    with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
+        s.sendall(one * 1000 + one[:20])
+        out = b""
+        for total in (1000, 1001):                      # answered one after the other, the last one when whole
+            while out.count(b"HTTP/1.1 ") < total:
+                more = s.recv(1 << 20)
+                assert more, out[-300:]                 # closed (after a 400)
+                out += more
+            if total == 1000:
+                assert b"HTTP/1.1 400" not in out, out[-300:]
+                s.sendall(one[20:])
+    assert out.count(b"HTTP/1.1 200 ") == 1001 and b"HTTP/1.1 400" not in out

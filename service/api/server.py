@@ -123,22 +123,27 @@ if HttpToolsProtocol is not None:
         small part of the pure-Python parser's time (which was most of a ``GET /health``'s CPU here)."""
 
         HEAD_LIMIT = 16 * 1024
-        """bytes of a request's head (request line and headers) taken while it is incomplete: h11's default
-        (``h11_max_incomplete_event_size``), the limit before this parser"""
+        """bytes of a request's head (request line and headers) taken while it is incomplete, after the read in
+        which it began: h11's default (``h11_max_incomplete_event_size``), the limit before this parser. The read
+        in which a head begins is not counted (the parser does not say where in it the head began, and a read
+        of pipelined requests may end in the next one's head): a head is refused past at most one read (256 KiB,
+        asyncio's) and this limit, never for the requests before it in the same read."""
         _in_head = True
         _head = 0
+        _began = False
 
         def on_message_begin(self) -> None:
             super().on_message_begin()
-            self._in_head, self._head = True, 0
+            self._in_head, self._head, self._began = True, 0, True
 
         def on_headers_complete(self) -> None:
             self._in_head = False
             super().on_headers_complete()
 
         def data_received(self, data: bytes) -> None:
+            self._began = False
             super().data_received(data)
-            if self._in_head and self.transport is not None and not self.transport.is_closing():
+            if self._in_head and not self._began and self.transport is not None and not self.transport.is_closing():
                 self._head += len(data)
                 if self._head > self.HEAD_LIMIT:
                     msg = "Invalid HTTP request received."
