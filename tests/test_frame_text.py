@@ -114,8 +114,61 @@ def test_a_sensor_never_sampled_and_a_frame_not_of_the_pipeline_are_written_from
 
 def test_fingers_whose_angles_outnumber_their_joint_names_are_written_from_the_message(monkeypatch):
     out = _one_output()
-    monkeypatch.setattr(frame_text, "_layouts", {})
+    monkeypatch.setattr(out, "_layouts", {})
     monkeypatch.setattr(hand_module, "_kept_names", {})
     monkeypatch.setattr(FingerGeometry, "joint_names", property(lambda self: ("mcp",)))
     assert out._text() is None
     assert out.text() == encode(out.message(), binary=False) and '"pip"' not in out.text()
+
+
+@pytest.mark.parametrize("where", ["mode", "estimator", "hand"])
+def test_text_beyond_ascii_is_written_as_encode_writes_it(where):
+    """``encode`` writes a message with text beyond ASCII by the standard library (escaped): so does ``text``
+    (a mode in the fixed parts, an estimator in the status, a hand in the head)."""
+    out = _one_output()
+    frame = out.frame
+    if where == "mode":
+        frame.modes = {**frame.modes, "index": "f\u00fcsed"}
+    elif where == "estimator":
+        frame.status["estimator"] = "ch\u00e4in"
+    else:
+        frame.hand = "r\u00efght"
+    assert out._text() is None
+    text = out.text()
+    assert text == encode(out.message(), binary=False) and text.isascii() and "\\u00" in text
+
+
+def test_a_layout_keeps_its_key_objects_so_a_new_dict_with_an_old_id_is_laid_out_again():
+    """The fixed parts are kept under the ids of their calibration, modes and tracked flags: a modes dict
+    made after an old one was dropped may get its id, and must not be written with the old one's modes."""
+    import dataclasses
+
+    out = _one_output()
+    frame, layouts = out.frame, {}
+    other = {f: ("slow" if m != "slow" else "fast") for f, m in frame.modes.items()}
+    for _ in range(50):                     # (a dict freed is most often the next one's memory)
+        modes = dict(frame.modes)
+        FrameOutput(dataclasses.replace(frame, modes=modes), out.calibration, out.annotation, layouts).text()
+        old = id(modes)
+        del modes
+        new = dict(other)
+        o = FrameOutput(dataclasses.replace(frame, modes=new), out.calibration, out.annotation, layouts)
+        assert o.text() == encode(o.message(), binary=False)
+        if id(new) == old:
+            break
+
+
+def test_each_hand_keeps_its_own_layouts():
+    """A hand's frames keep their fixed parts in the hand's own dict (``TrackedHand``), not in one shared
+    by every hand of a worker (which, cleared when full, laid them out again and again at 25 hands)."""
+    msgs = list(simulate(SimConfig(motion="sequence", noise="white", seed=3, t_m_s=0.5)).messages())
+    hands = [TrackedHand("right") for _ in range(3)]
+    before = dict(frame_text._layouts)
+    for m in msgs:
+        for tracked in hands:
+            tracked.accept(parse_message(m))
+            for out, _ in tracked.frame_outputs():
+                assert out.text() == encode(out.message(), binary=False)
+    assert frame_text._layouts == before
+    assert all(tracked._layouts for tracked in hands)
+    assert not set(hands[0]._layouts) & set(hands[1]._layouts)

@@ -129,3 +129,59 @@ def test_add_keeps_holds_only_where_the_added_pose_changes_no_fit_from_t0_on():
                         assert a[0] is None or np.array_equal(a[0].flat, b[0].flat) and \
                             np.array_equal(a[0].position, b[0].position) and np.array_equal(a[0].velocity, b[0].velocity)
     assert answers[True] > 100 and answers[False] > 100
+
+
+def test_motion_sum_is_the_sum_finite_motion_takes_and_sees_every_number():
+    """``optical_kernel.motion_sum`` (``steady_run``'s and ``usable``'s check) is the very sum
+    ``HandSession._finite_motion`` takes of a ``BaseMotion`` made of ``at``'s output, bit for bit, and is not
+    finite where any one of the 24 numbers is not (the rotation, position, velocity, acceleration, angular
+    velocity or angular acceleration)."""
+    from service.pipeline import optical_kernel
+    from service.pipeline.hand import _finite_motion
+    from service.pipeline.optical import _FLAT, motion_of
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        out = rng.normal(0.0, 10.0 ** rng.integers(-3, 300), 24)
+        hand = motion_of(out, out[_FLAT])
+        want = sum(hand.flat.tolist()) + sum(hand.position.tolist()) + sum(hand.velocity.tolist())
+        assert optical_kernel.motion_sum(out) == want or (np.isnan(want) and np.isnan(optical_kernel.motion_sum(out)))
+        assert np.isfinite(optical_kernel.motion_sum(out)) == _finite_motion(hand)
+    for k in range(24):
+        for bad in (np.nan, np.inf, -np.inf):
+            out = np.ones(24)
+            out[k] = bad
+            assert not np.isfinite(optical_kernel.motion_sum(out))
+
+
+def test_usable_equals_the_per_tick_check_on_tracks_with_gaps_and_huge_positions():
+    """``usable`` against ``at`` + ``_finite_motion`` per time on random tracks: invalid poses, gaps past the
+    timeout (the last valid pose held), times before the first pose and past the last, positions up to 1e308
+    (sums that overflow in the position, the velocity or the acceleration); failing fits at tracked and at
+    held times among them."""
+    from service.pipeline import optical_kernel
+    from service.pipeline.hand import _finite_motion
+
+    rng = np.random.default_rng(11)
+    kinds = {True: 0, False: 0}
+    for trial in range(120):
+        track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=64)
+        t = rng.uniform(-5.0, 5.0)
+        rot = Rotation.random(random_state=rng)
+        scale = 10.0 ** rng.choice([0, 200, 306, 307, 308])
+        for k in range(40):
+            t += rng.choice([1 / 90, 1 / 90, 0.3]) + rng.uniform(-0.002, 0.002)
+            rot = Rotation.from_rotvec(rng.normal(0.0, 0.05, 3)) * rot
+            p = np.clip(rng.normal(0.0, 1.0, 3) * (scale if rng.random() < 0.3 else 1.0), -1.7e308, 1.7e308)
+            track.add(t, p, rot.as_quat(), bool(rng.random() > 0.1))
+            times = np.sort(rng.uniform(t - 0.4, t + 0.4, int(rng.integers(1, 6))))
+            want = len(times)
+            for i, u in enumerate(times):
+                hand, tracking = track.at(u)
+                if hand is not None and not _finite_motion(hand):
+                    want = i
+                    kinds[tracking] += 1
+                    break
+            outs, statuses = np.empty((len(times), 24)), np.empty(len(times), dtype=np.int64)
+            assert optical_kernel.usable(times, *track.kernel_args(), outs, statuses) == want
+    assert kinds[True] > 10 and kinds[False] > 10

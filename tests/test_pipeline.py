@@ -511,3 +511,39 @@ def test_the_fingers_stacked_together_keep_their_own_angles_when_a_finger_s_sens
         return take(self, *args)
     monkeypatch.setattr(hand_module.HandSession, "_take_together", anew)
     assert kept == frames()
+
+
+def test_a_pose_goes_in_before_the_held_back_ticks_only_if_every_unchecked_fit_of_them_is_usable(monkeypatch):
+    """``HandSession._pose_keeps`` asks ``optical_kernel.usable`` about every held-back tick not checked yet
+    (each once) and follows its answer: one failing fit, the last tick's included, and the pose waits for the
+    held-back ticks (they are processed first)."""
+    from service.pipeline import hand as hand_module
+
+    from service.bench.cpu import recording_lines
+
+    msgs = [parse_message(json.loads(line)) for line in recording_lines(2.0, seed=3, batched=True)]
+    real = hand_module.optical_kernel.usable
+    asked, refuse_last = [], [False]
+
+    def spy(times, *args):
+        asked.append(list(times))
+        done = real(times, *args)
+        return min(done, len(times) - 1) if refuse_last[0] else done
+
+    monkeypatch.setattr(hand_module.optical_kernel, "usable", spy)
+    for refuse in (False, True):
+        refuse_last[0] = refuse
+        session, checked, flushed = HandSession(), 0, 0
+        for m in msgs:
+            if m.type == "pose" and session._deferred:
+                unchecked = list(session._deferred)[session._deferred_fits:]
+                asked.clear()
+                keeps = session._pose_keeps(m.t)
+                if asked:
+                    assert asked == [unchecked]                 # each unchecked tick, once, in order
+                    checked += 1
+                    assert keeps is not refuse
+                flushed += not keeps
+            session.accept(m)
+            list(session.ready_frames())
+        assert checked > 20 and (flushed >= checked if refuse else flushed < checked)

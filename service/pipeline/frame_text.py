@@ -58,7 +58,10 @@ def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
     # a joint's position and orientation each one hole, for the run of its numbers
     joints = {n: {"position": [_HOLE], "orientation": [_HOLE], "radius": r, "tracked": tracked.get(n, True)}
               for n, r in zip(JOINT_NAMES, joint_radii_list(calib))}
-    text = orjson.dumps({"fingers": fingers, "joints": joints}, option=_ORJSON_STRICT)
+    try:
+        text = orjson.dumps({"fingers": fingers, "joints": joints}, option=_ORJSON_STRICT)
+    except (orjson.JSONEncodeError, TypeError):      # (e.g. a mode or radius that is no plain str or float)
+        return _Layout(key, None, 0)
     pieces = (b"," + text[1:-1]).split(_HOLE_TEXT)
     if not all(p.isascii() and b"null" not in p for p in pieces) or len(pieces) != layout.n + 2 * len(JOINT_NAMES) + 1:
         return _Layout(key, None, 0)
@@ -70,16 +73,21 @@ def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
 
 
 _layouts: dict[tuple, _Layout] = {}
+"""The layouts of frames made without a hand's own (``FrameOutput``'s ``layouts``)."""
 
 
 class FrameOutput:
     """A frame and its gesture annotation as the pipeline makes them (``TrackedHand.frame_outputs``): its
     protocol message (``message``) built when asked, its JSON text (``text``) written from its arrays."""
 
-    __slots__ = ("frame", "calibration", "annotation", "seq", "_message")
+    __slots__ = ("frame", "calibration", "annotation", "seq", "_message", "_layouts")
 
-    def __init__(self, frame, calibration, annotation: dict):
+    def __init__(self, frame, calibration, annotation: dict, layouts: dict | None = None):
+        """``layouts``: where the fixed parts of the hand's frames are kept (a dict per hand, ``TrackedHand``'s:
+        its keys are the hand's own calibration, modes and tracked flags, 10-30 of them in a session; one dict
+        for many hands, cleared when full, would lay them out again and again)."""
         self.frame, self.calibration, self.annotation = frame, calibration, annotation
+        self._layouts = _layouts if layouts is None else layouts
         self.seq: int = frame.seq
         """the frame's ``seq`` in its message (a worker continuing a session sets its own)"""
         self._message = None
@@ -121,32 +129,35 @@ class FrameOutput:
             return None
         key = (self.calibration, angles.layout, frame.modes, frame.tracked)
         ids = (id(key[0]), id(key[1]), id(key[2]), id(key[3]))
-        layout = _layouts.get(ids)
+        layouts = self._layouts
+        layout = layouts.get(ids)
         if layout is None:
-            if len(_layouts) > 64:          # bounded: a hand has few combinations
-                _layouts.clear()
-            layout = _layouts[ids] = _layout_of(*key)
+            if len(layouts) > 64:           # bounded: a hand has few combinations
+                layouts.clear()
+            layout = layouts[ids] = _layout_of(*key)
         if layout.parts is None:
             return None
         try:
-            numbers = orjson.dumps(angles.flat, option=_NUMPY)
-            positions = orjson.dumps(joints.positions, option=_NUMPY)
-            quats = orjson.dumps(joints.quats, option=_NUMPY)
+            # the small parts first: one that ``encode`` would write otherwise (e.g. a sensor's age ``null``)
+            # sends the frame to ``encode`` before the arrays are written
             head = orjson.dumps({"type": "frame", "t": frame.t, "seq": self.seq, "hand": frame.hand}, option=_ORJSON_STRICT)
             status = orjson.dumps(frame.status, option=_ORJSON_STRICT)
             gesture = orjson.dumps(self.annotation, option=_ORJSON_STRICT)
-        except (orjson.JSONEncodeError, TypeError):
-            return None
-        # ``orjson`` writes a non-finite number as ``null``: a list of numbers without an ``n`` has none
-        if b"n" in numbers or b"n" in positions or b"n" in quats:
-            return None
-        for part in (head, status, gesture):
-            if not (part.isascii() and _nulls_all_known(part)):
+            for part in (head, status, gesture):
+                if not (part.isascii() and _nulls_all_known(part)):
+                    return None
+            numbers = orjson.dumps(angles.flat, option=_NUMPY)
+            positions = orjson.dumps(joints.positions, option=_NUMPY)
+            quats = orjson.dumps(joints.quats, option=_NUMPY)
+            # ``orjson`` writes a non-finite number as ``null``: a list of numbers without an ``n`` has none
+            if b"n" in numbers or b"n" in positions or b"n" in quats:
                 return None
-        n, parts = layout.n_angles, layout.parts.copy()
-        parts[0], parts[-4], parts[-2] = head[:-1], status, gesture
-        if n:
-            parts[2:2 * n + 1:2] = numbers[1:-1].split(b",")
-        parts[2 * n + 2:-5:4] = positions[2:-2].split(b"],[")
-        parts[2 * n + 4:-5:4] = quats[2:-2].split(b"],[")
+            n, parts = layout.n_angles, layout.parts.copy()
+            parts[0], parts[-4], parts[-2] = head[:-1], status, gesture
+            if n:
+                parts[2:2 * n + 1:2] = numbers[1:-1].split(b",")
+            parts[2 * n + 2:-5:4] = positions[2:-2].split(b"],[")
+            parts[2 * n + 4:-5:4] = quats[2:-2].split(b"],[")
+        except (orjson.JSONEncodeError, TypeError, ValueError):    # (ValueError: arrays not of the layout's sizes)
+            return None
         return b"".join(parts).decode()

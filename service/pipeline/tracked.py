@@ -24,6 +24,7 @@ class TrackedHand:
                  gesture_settings: GestureSettings | None = None):
         self._session = HandSession(hand, settings)
         self.recognizer = GestureRecognizer(gesture_settings or GestureSettings())
+        self._layouts: dict = {}            # the fixed parts of this hand's frames' text (``FrameOutput``)
 
     @property
     def hand(self) -> str:
@@ -75,7 +76,7 @@ class TrackedHand:
         written from the frame's arrays)."""
         for frame in self._session.ready_frames():
             annotation, events = self.recognizer.update(frame)
-            yield FrameOutput(frame, self._session.calibration, annotation), events
+            yield FrameOutput(frame, self._session.calibration, annotation, self._layouts), events
 
 
 def replay(messages: Iterable, settings: PipelineSettings | None = None,
