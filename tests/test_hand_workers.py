@@ -511,11 +511,14 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
     next tick is processed, in a write of its own while its message has ticks left, else (the frame of
     its message's last tick) in the write of its message's reply, before the reply (one write, not two).
     A frame written while its message has ticks left is followed by a yield of the core (``hand_over``: the
-    web process, woken by the write, passes it on before those ticks), and no other write is. Many messages
+    web process, woken by the write, passes it on before those ticks) unless the next frame's tick waits only
+    for the reorder window (``next_frame_covered``: then the next frame waits for those ticks alone), and no
+    other write is. Many messages
     in one batch: the earlier ones' outputs go in one write with their replies (fewer writes for a busy
     worker), each output before its reply."""
     from service.api.hands import worker as worker_module
     from service.pipeline.hand import HandSession
+    from service.pipeline.tracked import TrackedHand
 
     events: list[str] = []                          # "tick", "frame" (a tick that made one), "send" (a write)
     emit_frames = HandSession._emit_frames
@@ -527,6 +530,14 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
 
     monkeypatch.setattr(HandSession, "_emit_frames", noted)
     monkeypatch.setattr(worker_module, "hand_over", lambda: events.append("yield"))
+    covered = TrackedHand.next_frame_covered
+
+    def noted_covered(self):
+        answer = covered(self)
+        events.append("covered" if answer else "open")
+        return answer
+
+    monkeypatch.setattr(TrackedHand, "next_frame_covered", noted_covered)
     peer = _Peer()
     send = peer.worker.send
 
@@ -562,17 +573,19 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
                         with_reply += replied
             assert alone >= 5 and with_reply >= 1, (size, alone, with_reply)
             # every frame is written before the next tick is processed; the core is yielded after each frame
-            # written alone (its message has ticks left), and after no other write
+            # written alone (its message has ticks left) whose next frame is not covered yet, after no other write
             seen = events[first_event:]
             made = [i for i, e in enumerate(seen) if e == "frame"]
             assert len(made) >= 10
             for i in made:
                 assert seen[i + 1:i + 2] == ["send"], (size, seen[i:i + 4])
-            yields = [i for i, e in enumerate(seen) if e == "yield"]
-            assert len(yields) == alone, (size, len(yields), alone)
-            for i in yields:
-                assert seen[i - 2:i] == ["frame", "send"] and seen[i + 1:i + 2] in (["tick"], ["frame"]), \
-                    (size, seen[i - 2:i + 2])
+            asked = [i for i, e in enumerate(seen) if e in ("covered", "open")]
+            assert len(asked) == alone, (size, len(asked), alone)
+            assert 0 < sum(seen[i] == "covered" for i in asked) < len(asked), (size, [seen[i] for i in asked])
+            for i in asked:
+                assert seen[i - 2:i] == ["frame", "send"], (size, seen[i - 2:i + 2])
+                assert (seen[i + 1:i + 2] == ["yield"]) == (seen[i] == "open"), (size, seen[i - 2:i + 3])
+            assert seen.count("yield") == sum(seen[i] == "open" for i in asked), size
         # the rest in one batch: outputs and replies together, each output before its reply
         start, yielded = len(peer.writes), events.count("yield")
         peer.send([["src", 1, n, m] for n, m in msgs[2 * third:]])

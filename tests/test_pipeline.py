@@ -547,3 +547,26 @@ def test_a_pose_goes_in_before_the_held_back_ticks_only_if_every_unchecked_fit_o
             session.accept(m)
             list(session.ready_frames())
         assert checked > 20 and (flushed >= checked if refuse else flushed < checked)
+
+
+def test_next_frame_covered_says_whether_the_next_frame_waits_for_a_pose():
+    """After a frame made while its message has ticks left (a pose at 1 kHz), ``next_frame_covered`` says whether
+    the next frame's tick is received and covered by a pose already (it then waits only for the reorder window's
+    IMU samples: the hand worker does not yield its core then, ``hands.worker.hand_over``). Where it says no,
+    the next frame is always made by a pose; where it says yes, by an IMU message in most cases (26 of 29 here)."""
+    from clients.glove import source_messages
+
+    config = SimConfig(motion="random", t_m_s=3, noise="both", hand_motion="slow-rotation", seed=0, rate_hz=1000.0)
+    hand = TrackedHand("right")
+    asked, seen = None, {True: [], False: []}
+    for _, raw in source_messages(config):
+        msg = parse_message(raw)
+        hand.accept(msg)
+        for _ in hand.outputs():
+            if asked is not None:
+                seen[asked].append(msg.type)
+                asked = None
+            if hand.tick_ready():
+                asked = hand.next_frame_covered()
+    assert len(seen[False]) >= 100 and set(seen[False]) == {"pose"}, seen[False][:10]
+    assert len(seen[True]) >= 20 and seen[True].count("imu_batch") >= 0.8 * len(seen[True]), seen[True]

@@ -421,6 +421,16 @@ class HandSession:
         message that completes several ticks need not hold the first frame back until the last)."""
         yield from self._process_ready()
 
+    def next_frame_covered(self) -> bool:
+        """Whether the tick that makes the next frame is received and a pose at or after it has arrived: it then
+        waits only for the IMU samples of the reorder window (at 1 kHz, where the frame's time falls on the tick
+        grid, the very next message), not for another pose."""
+        frame_t = self._next_frame_t
+        if frame_t is None:
+            return False
+        tick = min((t for t in self._pending if t + 1e-9 >= frame_t), default=None)
+        return tick is not None and self.optics.covers(tick)
+
     def tick_ready(self) -> bool:
         """Whether a pending tick is ready to be processed (``ready_frames`` would process one more)."""
         pending = self._pending

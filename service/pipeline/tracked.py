@@ -66,6 +66,10 @@ class TrackedHand:
         behind them)."""
         return self._session.tick_ready()
 
+    def next_frame_covered(self) -> bool:
+        """Whether the next frame's tick waits only for the reorder window (``HandSession.next_frame_covered``)."""
+        return self._session.next_frame_covered()
+
     def outputs(self) -> Iterator[list[FrameDict | GestureDict]]:
         """For each frame that is ready, as soon as it is: the frame message and its gesture events."""
         for out, events in self.frame_outputs():
