@@ -1109,6 +1109,22 @@ def test_a_request_head_longer_than_the_limit_is_refused_while_it_arrives(server
     assert BoundedHttpTools.HEAD_LIMIT == 16 * 1024
 
 
+@pytest.mark.parametrize("method", ["POST /v1/sessions", "GET /health"])
+def test_an_endless_trailer_after_a_chunked_body_is_refused_while_it_arrives(server, method):
+    """The trailer section after a chunked body's last chunk is parsed like a head (a line kept until it ends):
+    an endless trailer was kept (64 MB sent, 56 MB more in this process, no 400 ever; the pure-Python parser
+    refused it). Now it counts against ``HEAD_LIMIT`` as a head does: the connection gets 400 and closes while
+    the client still sends (1 MiB here), whether or not the route answered before reading the body; a short
+    trailer is answered."""
+    port = int(server.url.rsplit(":", 1)[1])
+    start = method.encode() + b" HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n1\r\nz\r\n0\r\nT: "
+    reply = _raw_http(port, start, chunks=16)           # returns once the server closed the connection
+    assert b"HTTP/1.1 400 " in reply and reply.endswith(b"Invalid HTTP request received."), reply[-300:]
+    ok = _raw_http(port, b"GET /health HTTP/1.1\r\nHost: x\r\nTransfer-Encoding: chunked\r\n\r\n1\r\nz\r\n0\r\n"
+                         b"T: " + b"t" * 2048 + b"\r\n\r\n")
+    assert ok.startswith(b"HTTP/1.1 200 "), ok[:200]
+
+
 def test_pipelined_requests_longer_than_the_head_limit_in_one_read_are_all_answered(server):
     """The head limit counts a head's bytes from the read after the one in which it began: a client writing
     1000 pipelined ``GET /health`` (36 kB) at once, the last one's head cut short and completed by a later

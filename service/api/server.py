@@ -119,8 +119,10 @@ if HttpToolsProtocol is not None:
         """uvicorn's HTTP protocol on the C parser (httptools), with the request head bounded as the pure-Python
         parser bounds it: a request line and headers still incomplete after ``HEAD_LIMIT`` bytes get the same
         400 reply and the connection closes (uvicorn's httptools protocol keeps taking them: a client sending an
-        endless header or URL grew this process by what it sent, 25 MB for 25 MB). Parsing a request costs a
-        small part of the pure-Python parser's time (which was most of a ``GET /health``'s CPU here)."""
+        endless header or URL grew this process by what it sent, 25 MB for 25 MB). A chunked body's trailers (the
+        lines after its last chunk, kept like a head's) are counted the same way, from the last chunk's header on.
+        Parsing a request costs a small part of the pure-Python parser's time (which was most of a ``GET /health``'s
+        CPU here)."""
 
         HEAD_LIMIT = 16 * 1024
         """bytes of a request's head (request line and headers) taken while it is incomplete, after the read in
@@ -139,6 +141,17 @@ if HttpToolsProtocol is not None:
         def on_headers_complete(self) -> None:
             self._in_head = False
             super().on_headers_complete()
+
+        def on_chunk_header(self) -> None:       # a chunk's data or, after the last chunk, the trailers
+            self._in_head, self._head, self._began = True, 0, True
+
+        def on_body(self, body: bytes) -> None:
+            self._in_head = False
+            super().on_body(body)
+
+        def on_message_complete(self) -> None:
+            self._in_head = False
+            super().on_message_complete()
 
         def data_received(self, data: bytes) -> None:
             self._began = False
