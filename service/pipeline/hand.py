@@ -670,10 +670,10 @@ class HandSession:
             t = min(pending)
             if not self._ready(t):
                 return                          # (most messages: no tick ready, no floating-point setting needed)
+            given = None                        # (the held-back ticks' optical fits, when they go first)
             if defer:
                 if self._defer(t):
                     return
-                given = None
                 if self._deferred:              # they go first, in one run with this tick
                     given = self._given_fits()
                     pending.update(self._deferred)
@@ -683,8 +683,6 @@ class HandSession:
             # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
             # under one setting (never held across a ``yield``: the caller's own setting applies there);
             # each tick's time and readiness found once
-            else:
-                given = None
             with np.errstate(all="ignore"):
                 while True:
                     frames = self._steady_run(t, given)
