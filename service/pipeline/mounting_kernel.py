@@ -90,7 +90,7 @@ def _reconstruct(state, j, k, g, clip_range, clip_max):
     return out
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def correct(state, idx, raw, out, st):
     """``out[r] = C raw[r]`` (both vectors of sample ``r``) with the correction of its sensor; the raw
     reading itself where the sensor has no fit or its fit no sample yet (``HingeAxisFit.correct``); the
@@ -127,7 +127,7 @@ def correct(state, idx, raw, out, st):
                 out[r, 0, i] = out[r, 0, i] - state[j, M0 + i] * leak
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def cross_offsets(state, idx, out, st):
     """``out[r] = (b_y, b_z)`` of the sensor in row ``idx[r]`` (0 where -1): the tilt fit's normal equations
     solved for their constant terms, the cross axes' offsets (``HingeAxisFit.cross_offsets``); with a third
@@ -148,7 +148,7 @@ def cross_offsets(state, idx, out, st):
             out[r, 2] = st[ST_RESIDUAL_VAR] * a00 / det
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
     """A sample of a finger still on its hand into its sensor's cross-axis fit (``HingeAxisFit._add_quiet``):
     the raw gyro ``g`` turned by the current correction into the phalanx frame, ``f = M C g``, and the
@@ -187,7 +187,7 @@ def _add_quiet(state, j, gx, gy, gz, w0, quiet_rate):
     state[j, QUIET_SAMPLES] += 1.0
 
 
-@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def fit(state, meta, idx, raw, hand, phi, started, st):
     """Every sample of a tick whose finger's estimator has started and whose gyro has no axis at full scale
     into its sensor's fit: one whose flexion rate reaches ``min_rate_rad_s`` into the tilt's and the offsets'

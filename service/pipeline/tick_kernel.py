@@ -42,6 +42,18 @@ def steady_tick(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, 
     seen as (2k, 3) (``rows_gyr``, ``rows_acc``) into ``gyr`` and ``acc``, then ``run_hand`` with
     them (its arguments from ``x`` on, ``ChainHand.advance_in``). Returns the sum of the joint angles
     ``out_phi`` in order (non-finite where one is)."""
+    return steady_tick_in(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, off_idx, rows_gyr, rows_acc,
+                          x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start,
+                          geo_start, out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n,
+                          ga_off, CK.hand_scratch(sensor_start, phalanx_start))
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=False)
+def steady_tick_in(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, off_idx, rows_gyr, rows_acc,
+                   x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
+                   out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off, ws):
+    """``steady_tick`` with ``run_hand``'s work arrays ``ws`` given (``chain_kernel.hand_scratch``), compiled
+    without reference counts as ``chain_kernel.run_hand_in`` is."""
     MK.correct(m_state, m_idx, raw, readings, m_st)
     MK.fit(m_state, m_meta, m_idx, raw, hand, phi_prev, started, m_st)
     if off_idx.shape[0] > 0:
@@ -51,8 +63,9 @@ def steady_tick(m_state, m_meta, m_idx, m_st, raw, readings, phi_prev, started, 
         for c in range(3):
             gyr[r, c] = flat[rows_gyr[r], c]
             acc[r, c] = flat[rows_acc[r], c]
-    CK.run_hand(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start, geo_start,
-                out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off)
+    CK.run_hand_in(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start, phalanx_start,
+                   geo_start, out_theta, out_phi, out_phal, out_mode, cx, dl, pd, jp, t, log_t, log_r, log_g, log_n, ga_off,
+                   ws)
     total = 0.0
     for i in range(out_phi.shape[0]):
         total += out_phi[i]
@@ -78,6 +91,22 @@ def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo,
     with no state moved, for the tick by tick path. ``dts`` holds the fingers' steps to the first tick and
     ``gap0`` δ's (``ChainHand._begin``); after it every finger and δ step from the tick before. A tick whose
     angles are not finite is the last one done (its fingers are reset then). Returns the number of ticks done."""
+    return steady_run_in(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p,
+                         held_q, pose_window_s, pose_timeout_s, back_t, window_s, known, motions, hands, totals, given,
+                         given_status, m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr,
+                         rows_acc, gap0, x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start,
+                         phalanx_start, geo_start, out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g,
+                         log_n, ga_off, CK.hand_scratch(sensor_start, phalanx_start))
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=False)
+def steady_run_in(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p, held_q,
+                  pose_window_s, pose_timeout_s, back_t, window_s, known, motions, hands, totals, given, given_status,
+                  m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr, rows_acc, gap0,
+                  x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start, phalanx_start, geo_start,
+                  out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g, log_n, ga_off, ws):
+    """``steady_run`` with ``run_hand``'s work arrays ``ws`` given, allocated once for the run's ticks, compiled
+    without reference counts (``chain_kernel.run_hand_in``)."""
     n = ts.shape[0]
     for i in range(n):
         t = ts[i]
@@ -106,10 +135,10 @@ def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo,
             for f in range(dts.shape[0]):
                 dts[f] = step
             jp[3] = step
-        total = steady_tick(m_state, m_meta, m_idx, m_st, raw[i], readings[i], phis[i], started, off_idx, rows_gyr,
-                            rows_acc, x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start,
-                            phalanx_start, geo_start, out_theta, phis[i + 1], out_phal, out_mode, cx, dl, pd, jp, t,
-                            log_t, log_r, log_g, log_n, ga_off)
+        total = steady_tick_in(m_state, m_meta, m_idx, m_st, raw[i], readings[i], phis[i], started, off_idx, rows_gyr,
+                               rows_acc, x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, sensor_start,
+                               phalanx_start, geo_start, out_theta, phis[i + 1], out_phal, out_mode, cx, dl, pd, jp, t,
+                               log_t, log_r, log_g, log_n, ga_off, ws)
         totals[i] = total
         if not math.isfinite(total):
             return i + 1
@@ -132,5 +161,7 @@ def _cached_with_callees(kernel, *callees) -> None:
         cache_file._source_stamp = _sources_stamp(*callees)
 
 
-_cached_with_callees(steady_tick, sys.modules[__name__], CK, MK)
-_cached_with_callees(steady_run, sys.modules[__name__], CK, MK, OK)
+for _kernel in (steady_tick, steady_tick_in):
+    _cached_with_callees(_kernel, sys.modules[__name__], CK, MK)
+for _kernel in (steady_run, steady_run_in):
+    _cached_with_callees(_kernel, sys.modules[__name__], CK, MK, OK)
