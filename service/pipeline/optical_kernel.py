@@ -105,6 +105,24 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
     """The metacarpus kinematics at ``t`` (``OpticalTrack.at_reference``): returns ``NONE``, ``HELD``
     or ``TRACKING`` and fills ``out`` (24: rotation row-major, position, velocity, acceleration,
     angular velocity, angular acceleration; world frame) for the last two."""
+    return at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out,
+                 at_scratch(ts.shape[0]))
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def at_scratch(cap):
+    """``at_in``'s work arrays for a track of ``cap`` poses (its fit window holds at most those, or the held
+    pose alone), to be used by one call after another: the window's pose indices, its times (relative and
+    absolute) and the QR's reflection, its positions, rotation vectors, design and their copies (m, 3), the
+    fits' coefficients (3, 3) and two rotation matrices (9)."""
+    m = cap + 1
+    return np.empty(m, np.int64), np.empty((3, m)), np.empty((5, m, 3)), np.empty((2, 3, 3)), np.empty((2, 9))
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out, ws):
+    """``at`` with its work arrays ``ws`` (``at_scratch``) given, compiled without reference counts (it
+    allocates nothing; the numbers are ``at``'s, which allocated them at every call)."""
     # the poses up to the first at or after t
     end = hi
     for i in range(lo, hi):
@@ -140,21 +158,22 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
         for i in range(lo, end):
             if valid[i] and ts[i] >= t - window_s:
                 m += 1
+    w_idx, w_t, w_m3, w_coef, w_rot = ws
     if m == 0:
         m = 1
-        idx = np.empty(1, np.int64)
+        idx = w_idx[:1]
         idx[0] = last
     else:
-        idx = np.empty(m, np.int64)
+        idx = w_idx[:m]
         j = 0
         for i in range(lo, end):
             if valid[i] and ts[i] >= t - window_s:
                 idx[j] = i
                 j += 1
-    tau = np.empty(m)
-    tabs = np.empty(m)
-    pos = np.empty((m, 3))
-    rv = np.empty((m, 3))
+    tau = w_t[0, :m]
+    tabs = w_t[1, :m]
+    pos = w_m3[0, :m]
+    rv = w_m3[1, :m]
     # rotation vectors relative to the newest: log(R_ref⁻¹ R_i), scipy's as_rotvec
     for j in range(m):
         i = idx[j]
@@ -185,22 +204,31 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
             scale = angle / math.sin(angle / 2.0)
         rv[j, 0], rv[j, 1], rv[j, 2] = scale * cx, scale * cy, scale * cz
 
-    coef_p = np.zeros((3, 3))
-    coef_r = np.zeros((3, 3))
+    coef_p = w_coef[0]
+    coef_r = w_coef[1]
+    for r in range(3):
+        for c in range(3):
+            coef_p[r, c] = 0.0
+            coef_r[r, c] = 0.0
     if m >= 3:      # MIN_POSES_QUADRATIC (8) and more: position, rate and acceleration; 3 to 7: rates only
         k = 3 if m >= 8 else 2
-        design = np.empty((m, 3))
-        scratch = np.empty(m)
+        design = w_m3[2, :m]
+        design_copy = w_m3[3, :m]
+        rv_copy = w_m3[4, :m]
+        scratch = w_t[2, :m]
         for j in range(m):
             design[j, 0], design[j, 1], design[j, 2] = 1.0, tau[j], 0.5 * tau[j] ** 2
-        _least_squares(design.copy(), pos, k, coef_p, scratch)
-        _least_squares(design, rv.copy(), k, coef_r, scratch)       # rv is read again below
+            for c in range(3):
+                design_copy[j, c] = design[j, c]
+                rv_copy[j, c] = rv[j, c]
+        _least_squares(design_copy, pos, k, coef_p, scratch)
+        _least_squares(design, rv_copy, k, coef_r, scratch)         # rv is read again below
     else:
         for k in range(3):
             coef_p[0, k] = pos[m - 1, k]
             coef_r[0, k] = rv[m - 1, k]
 
-    ref = np.empty(9)
+    ref = w_rot[0]
     _matrix(qx, qy, qz, qw, ref, 0)
     t_last = tabs[m - 1]
     t_prev = tabs[m - 2] if m >= 2 else 0.0
@@ -212,7 +240,7 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
     else:
         d = t - t_last
         ex, ey, ez, ew = _exp(coef_r[1, 0] * d, coef_r[1, 1] * d, coef_r[1, 2] * d)
-    rel = np.empty(9)
+    rel = w_rot[1]
     _matrix(ex, ey, ez, ew, rel, 0)
     for r in range(3):
         for c in range(3):
@@ -251,9 +279,10 @@ def usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held
     (``motion_sum``): the optical fits of the ticks a pipeline holds back (``HandSession._pose_keeps``), in one
     call. Each time's ``at`` output goes to ``outs[i]`` (24) and its result to ``statuses[i]``, up to the
     first that is not usable (included)."""
+    ws = at_scratch(ts.shape[0])
     for i in range(times.shape[0]):
-        status = at(times[i], ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
-                    outs[i])
+        status = at_in(times[i], ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
+                       outs[i], ws)
         statuses[i] = status
         if status != NONE and not math.isfinite(motion_sum(outs[i])):
             return i

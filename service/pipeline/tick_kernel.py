@@ -96,7 +96,7 @@ def steady_run(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_lo,
                          given_status, m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr,
                          rows_acc, gap0, x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start,
                          phalanx_start, geo_start, out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g,
-                         log_n, ga_off, CK.hand_scratch(sensor_start, phalanx_start))
+                         log_n, ga_off, CK.hand_scratch(sensor_start, phalanx_start), OK.at_scratch(pose_t.shape[0]))
 
 
 @njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=False)
@@ -104,9 +104,10 @@ def steady_run_in(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_
                   pose_window_s, pose_timeout_s, back_t, window_s, known, motions, hands, totals, given, given_status,
                   m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr, rows_acc, gap0,
                   x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start, phalanx_start, geo_start,
-                  out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g, log_n, ga_off, ws):
-    """``steady_run`` with ``run_hand``'s work arrays ``ws`` given, allocated once for the run's ticks, compiled
-    without reference counts (``chain_kernel.run_hand_in``)."""
+                  out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g, log_n, ga_off, ws, at_ws):
+    """``steady_run`` with ``run_hand``'s work arrays ``ws`` and the optics' ``at_ws`` given
+    (``optical_kernel.at_scratch``), allocated once for the run's ticks, compiled without reference counts
+    (``chain_kernel.run_hand_in``)."""
     n = ts.shape[0]
     for i in range(n):
         t = ts[i]
@@ -114,8 +115,8 @@ def steady_run_in(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_
         if i < given:
             status = given_status[i]
         else:
-            status = OK.at(t, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p,
-                           held_q, pose_window_s, pose_timeout_s, out)
+            status = OK.at_in(t, pose_t, pose_valid, pose_position, pose_orientation, pose_lo, pose_hi, held_t, held_p,
+                              held_q, pose_window_s, pose_timeout_s, out, at_ws)
         if status != OK.TRACKING:
             return i
         if not math.isfinite(OK.motion_sum(out)):   # ``_finite_motion``'s sum, in its order
