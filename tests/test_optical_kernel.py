@@ -186,3 +186,37 @@ def test_usable_equals_the_per_tick_check_on_tracks_with_gaps_and_huge_positions
             outs, statuses = np.empty((len(times), 24)), np.empty(len(times), dtype=np.int64)
             assert optical_kernel.usable(times, *track.kernel_args(), outs, statuses) == want
     assert kinds[True] > 10 and kinds[False] > 10
+
+
+def test_at_with_work_arrays_kept_from_call_to_call_gives_the_bits_of_a_fresh_call():
+    """``optical_kernel.at_in`` with one set of work arrays (``at_scratch``) for many times on a track, as
+    ``tick_kernel.steady_run`` and ``usable`` call it, keeps the fit window's rotation vectors from the call
+    before when the window is the same: each answer is ``at``'s (fresh arrays) to the bit, on a jittery
+    stream with occlusions, for times in 1 ms steps across several poses (windows that grow, shrink and
+    slide by one pose at the same size), and the kept window is used (some calls find it)."""
+    from service.pipeline import optical_kernel as OK
+
+    rng = np.random.default_rng(11)
+    track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=64)
+    t, rot, pos = 0.0, Rotation.random(random_state=rng), rng.normal(0.0, 0.3, 3)
+    omega = rng.normal(0.0, 2.0, 3)
+    kept = slid = 0
+    for k in range(160):
+        t += 1.0 / 90.0 + rng.uniform(-0.002, 0.002)
+        omega += rng.normal(0.0, 0.5, 3)
+        rot = Rotation.from_rotvec(omega / 90.0) * rot
+        lost = 60 <= k < 64 or k % 29 == 3
+        track.add(t, pos + rng.normal(0.0, 5e-4, 3), rot.as_quat(), not lost)
+        args = track.kernel_args()
+        ws = OK.at_scratch(args[0].shape[0])
+        windows = []
+        for query in np.arange(t - 0.05, t + 0.01, 0.001):
+            want, got = np.zeros(24), np.zeros(24)
+            assert OK.at_in(query, *args, got, ws) == OK.at(query, *args, want)
+            assert np.array_equal(got, want), (k, query)
+            m = int(ws[5][0])
+            window = tuple(ws[5][2:2 + m])
+            kept += bool(windows) and window == windows[-1]
+            slid += bool(windows) and len(window) == len(windows[-1]) and window != windows[-1]
+            windows.append(window)
+    assert kept > 1000 and slid > 10

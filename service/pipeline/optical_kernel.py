@@ -112,17 +112,26 @@ def at(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, wind
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def at_scratch(cap):
     """``at_in``'s work arrays for a track of ``cap`` poses (its fit window holds at most those, or the held
-    pose alone), to be used by one call after another: the window's pose indices, its times (relative and
-    absolute) and the QR's reflection, its positions, rotation vectors, design and their copies (m, 3), the
-    fits' coefficients (3, 3) and two rotation matrices (9)."""
+    pose alone), to be used by one call after another on the same track: the window's pose indices, its
+    times (relative and absolute) and the QR's reflection, its positions, rotation vectors, design and their
+    copies (m, 3), the fits' coefficients (3, 3), two rotation matrices (9) and the window whose absolute
+    times, positions and rotation vectors are there from the call before (its size, newest valid pose and
+    indices; none yet)."""
     m = cap + 1
-    return np.empty(m, np.int64), np.empty((3, m)), np.empty((5, m, 3)), np.empty((2, 3, 3)), np.empty((2, 9))
+    key = np.empty(m + 2, np.int64)
+    key[0] = -1
+    return (np.empty(m, np.int64), np.empty((3, m)), np.empty((6, m, 3)), np.empty((2, 3, 3)), np.empty((2, 9)),
+            key)
 
 
 @njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, out, ws):
     """``at`` with its work arrays ``ws`` (``at_scratch``) given, compiled without reference counts (it
-    allocates nothing; the numbers are ``at``'s, which allocated them at every call)."""
+    allocates nothing; the numbers are ``at``'s, which allocated them at every call). The fit window's poses
+    turned into times, positions and rotation vectors relative to its newest (an ``atan2`` and a ``sin``
+    each) are kept in ``ws`` for the next call: the ticks between two poses at 1 kHz have the same window,
+    whose numbers are then taken as they are (the same poses give the same numbers; ``ws`` serves one track
+    as it is: ``steady_run`` and ``usable`` allocate theirs per call)."""
     # the poses up to the first at or after t
     end = hi
     for i in range(lo, hi):
@@ -158,7 +167,7 @@ def at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, w
         for i in range(lo, end):
             if valid[i] and ts[i] >= t - window_s:
                 m += 1
-    w_idx, w_t, w_m3, w_coef, w_rot = ws
+    w_idx, w_t, w_m3, w_coef, w_rot, w_key = ws
     if m == 0:
         m = 1
         idx = w_idx[:1]
@@ -174,8 +183,16 @@ def at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, w
     tabs = w_t[1, :m]
     pos = w_m3[0, :m]
     rv = w_m3[1, :m]
-    # rotation vectors relative to the newest: log(R_ref⁻¹ R_i), scipy's as_rotvec
-    for j in range(m):
+    kept = w_m3[5, :m]
+    same = w_key[0] == m and w_key[1] == last
+    if same:
+        for j in range(m):
+            if w_key[2 + j] != idx[j]:
+                same = False
+                break
+    # rotation vectors relative to the newest: log(R_ref⁻¹ R_i), scipy's as_rotvec (the call before's when its
+    # window was this one)
+    for j in range(0 if same else m):
         i = idx[j]
         if i >= 0:
             tj = ts[i]
@@ -186,8 +203,7 @@ def at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, w
             px, py, pz = held_p[0], held_p[1], held_p[2]
             ix, iy, iz, iw = _unit(held_q[0], held_q[1], held_q[2], held_q[3])
         tabs[j] = tj
-        tau[j] = tj - t
-        pos[j, 0], pos[j, 1], pos[j, 2] = px, py, pz
+        kept[j, 0], kept[j, 1], kept[j, 2] = px, py, pz
         # conj(q_ref) ⊗ q_i
         ax, ay, az, aw = -qx, -qy, -qz, qw
         cx = aw * ix + ax * iw + ay * iz - az * iy
@@ -203,6 +219,13 @@ def at_in(t, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, w
         else:
             scale = angle / math.sin(angle / 2.0)
         rv[j, 0], rv[j, 1], rv[j, 2] = scale * cx, scale * cy, scale * cz
+    if not same:
+        w_key[0], w_key[1] = m, last
+        for j in range(m):
+            w_key[2 + j] = idx[j]
+    for j in range(m):
+        tau[j] = tabs[j] - t
+        pos[j, 0], pos[j, 1], pos[j, 2] = kept[j, 0], kept[j, 1], kept[j, 2]     # (the fit overwrites pos)
 
     coef_p = w_coef[0]
     coef_r = w_coef[1]
