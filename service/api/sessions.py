@@ -49,6 +49,28 @@ class SubscriberTooSlow(Exception):
     pass
 
 
+_due: dict[asyncio.AbstractEventLoop, list] = {}
+"""per event loop: the subscribers whose ``writer`` runs at the end of the current turn (``_write_at_turns_end``)"""
+
+
+def _write_at_turns_end(sub: "Subscriber") -> None:
+    """``sub._write_soon()`` at the end of this turn of the loop, in one callback for every subscriber queued to
+    in the turn (a callback each, with the running loop looked up each time, cost more than a frame's write)."""
+    loop = sub._loop
+    if loop is None:
+        loop = sub._loop = asyncio.get_running_loop()
+    due = _due.get(loop)
+    if due is None:
+        due = _due[loop] = []
+        loop.call_soon(_write_due, loop)
+    due.append(sub)
+
+
+def _write_due(loop: asyncio.AbstractEventLoop) -> None:
+    for sub in _due.pop(loop, ()):
+        sub._write_soon()
+
+
 @dataclass(eq=False)
 class Subscriber:
     frames_max: int
@@ -64,6 +86,7 @@ class Subscriber:
     turn of the loop after messages were queued, to write them there and then, in place of a wake of the
     sender (its task's turn and its wait's future cost the web process more than the write of a frame)"""
     _writing_soon: bool = False
+    _loop: asyncio.AbstractEventLoop | None = None
     writer_failed: bool = False
     """``writer`` raised once (a defect, logged): the sender no longer sets it"""
 
@@ -88,7 +111,7 @@ class Subscriber:
             self.wake.set()
         elif not self._writing_soon:
             self._writing_soon = True
-            asyncio.get_running_loop().call_soon(self._write_soon)
+            _write_at_turns_end(self)
         return dropped
 
     def _write_soon(self) -> None:

@@ -89,6 +89,7 @@ from gestures.recognizer import GestureSettings
 
 from ...protocol import ProtocolError, parse_input
 from ...protocol.wire import fast_fields_only
+from ..buffers import read_buffer
 from ..outgoing import Outgoing
 from ..sessions import LiveSession, SessionConfig, SessionConfigChange
 from .worker import HEADER, frame
@@ -204,7 +205,7 @@ class WorkerLink:
         self._out.append(message)
         if not self._flush_scheduled:
             self._flush_scheduled = True
-            asyncio.get_running_loop().call_soon(self._flush)
+            (self.pool.loop or asyncio.get_running_loop()).call_soon(self._flush)
 
     def _flush(self) -> None:
         self._flush_scheduled = False
@@ -381,14 +382,15 @@ class WorkerLink:
                 await self.proc.wait()
 
 
-class _LinkReader(asyncio.Protocol):
+class _LinkReader(asyncio.BufferedProtocol):
     """The web process's end of a worker's socket: the worker's batches (``hands.worker``) dispatched as
     their bytes arrive, in the callback that received them (no reading task and no turn of the loop per
     batch). Every arrival counts as a sign of life; after every ``outs_per_turn`` frames and events the
     rest waits for the next turn of the loop, so that the subscribers' senders go out before more frames
     come (their queues are bounded). What arrives meanwhile waits here; reading pauses only once
     ``READ_AHEAD`` bytes wait (pausing and resuming the socket at every batch with a frame cost this
-    process two system calls and a selector change each time)."""
+    process two system calls and a selector change each time). Its reads go into the thread's ``read_buffer``
+    (a ``BufferedProtocol``), not a new bytes object of 256 KiB each."""
 
     READ_AHEAD = 1 << 20
     """bytes from the worker received and not yet passed on beyond which reading its socket pauses (the
@@ -400,10 +402,12 @@ class _LinkReader(asyncio.Protocol):
         self._batch: list = []                      # the messages of the batch being dispatched
         self._next = 0                              # the next of them to dispatch
         self._transport: asyncio.Transport | None = None
+        self._read_into: memoryview | None = None
         self._continuing = False
         self._paused = False
         self._lost = False
-        self.finished = asyncio.get_running_loop().create_future()
+        self._loop = asyncio.get_running_loop()
+        self.finished = self._loop.create_future()
         """done once the connection has ended and everything the worker sent before was dispatched"""
 
     def connection_made(self, transport) -> None:
@@ -415,7 +419,14 @@ class _LinkReader(asyncio.Protocol):
     def resume_writing(self) -> None:
         self.link.writable(True)
 
-    def data_received(self, data: bytes) -> None:
+    def get_buffer(self, sizehint: int) -> memoryview:
+        self._read_into = view = read_buffer()
+        return view
+
+    def buffer_updated(self, nbytes: int) -> None:
+        self.data_received(self._read_into[:nbytes])
+
+    def data_received(self, data: bytes | memoryview) -> None:
         self._buf += data
         self.link._hear()                           # a worker whose bytes still arrive is not silent
         if not self._continuing:
@@ -455,7 +466,7 @@ class _LinkReader(asyncio.Protocol):
 
     def _pause(self) -> None:
         self._continuing = True
-        asyncio.get_running_loop().call_soon(self._continue)
+        self._loop.call_soon(self._continue)
 
     def _continue(self) -> None:
         self._continuing = False
