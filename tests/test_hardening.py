@@ -1051,8 +1051,9 @@ def test_an_estimator_step_that_raises_on_its_first_sample_leaves_no_half_state(
 def _raw_http(port: int, data: bytes, chunks: int = 0, until_closed: bool = False) -> bytes:
     """``data`` sent on a new connection (then ``chunks`` more of 64 KiB of ``a``, as long as the server reads),
     and everything the server answers until it closes the connection (or one reply when it keeps it, unless
-    ``until_closed``: a reply before the server closes, e.g. a route answering before the body has come)."""
-    with socket.create_connection(("127.0.0.1", port), timeout=60) as s:
+    ``until_closed``: a reply before the server closes, e.g. a route answering before the body has come). A
+    server that never answers fails the test after 10 s (``socket.timeout``), not after minutes."""
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
         s.sendall(data)
         try:
             for _ in range(chunks):
@@ -1092,6 +1093,64 @@ def test_the_http_parser_refuses_malformed_requests_with_400_and_no_traceback(se
     assert sum(r.getMessage() == "Invalid HTTP request received." for r in caplog.records) == len(malformed)
     assert not [r for r in caplog.records if r.exc_info], [r.getMessage() for r in caplog.records if r.exc_info]
     assert rest(server.url, "GET", "/health")[0] == 200
+
+
+def test_the_head_bound_rests_on_uvicorn_methods_that_exist_and_refuses_an_endless_head_within_seconds():
+    """``BoundedHttpTools`` overrides and calls uvicorn internals (``HTTPTOOLS_HOOKS``; the same in uvicorn
+    0.53-0.55, which pyproject does not cap): each must exist on uvicorn's httptools protocol, which must take its
+    reads through ``data_received``, and the bound must work on a real socket. A uvicorn that renamed one would
+    leave heads unbounded without an error; the server test below would fail only on its socket timeout. Here
+    a protocol served on an event loop of its own answers an endless header with 400 within 5 s (a hook
+    renamed, or ``data_received`` bypassed: a timeout here, in seconds)."""
+    import contextlib
+
+    import uvicorn
+    from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
+    from uvicorn.server import ServerState
+
+    from service.api.server import HTTPTOOLS_HOOKS, BoundedHttpTools
+    assert BoundedHttpTools is not None, "httptools is not installed, or uvicorn's protocol lacks a hook (logged)"
+    missing = [name for name in HTTPTOOLS_HOOKS if not callable(getattr(HttpToolsProtocol, name, None))]
+    assert not missing and not issubclass(HttpToolsProtocol, asyncio.BufferedProtocol), missing
+
+    async def app(scope, receive, send):
+        await send({"type": "http.response.start", "status": 200, "headers": [(b"content-length", b"2")]})
+        await send({"type": "http.response.body", "body": b"ok"})
+
+    async def run():
+        config = uvicorn.Config(app, http=BoundedHttpTools, lifespan="off", log_level="critical")
+        config.load()
+        state, loop = ServerState(), asyncio.get_running_loop()
+        listener = await loop.create_server(lambda: BoundedHttpTools(config=config, server_state=state, app_state={}),
+                                            "127.0.0.1", 0)
+        port = listener.sockets[0].getsockname()[1]
+        try:
+            reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            writer.write(b"GET / HTTP/1.1\r\nHost: x\r\n\r\n")          # a request within the bound: answered
+            ok = await asyncio.wait_for(reader.readuntil(b"ok"), 5)
+            writer.write(b"GET / HTTP/1.1\r\nHost: x\r\nX: ")
+
+            async def endless():
+                with contextlib.suppress(OSError):
+                    for _ in range(256):                # 1 MiB at most
+                        writer.write(b"a" * 4096)
+                        await writer.drain()
+            async def answer():
+                out = b""
+                with contextlib.suppress(ConnectionResetError):     # (a reset after the reply: more was sent)
+                    while more := await reader.read(65536):
+                        out += more
+                return out
+            feeding = asyncio.create_task(endless())
+            reply = await asyncio.wait_for(answer(), 5)
+            feeding.cancel()
+            writer.close()
+            return ok, reply
+        finally:
+            listener.close()
+    ok, reply = asyncio.run(run())
+    assert ok.startswith(b"HTTP/1.1 200 "), ok
+    assert reply.startswith(b"HTTP/1.1 400 ") and reply.endswith(b"Invalid HTTP request received."), reply[:200]
 
 
 @pytest.mark.parametrize("part", ["header", "url"])

@@ -206,6 +206,18 @@ try:
 except ImportError:                                 # httptools not installed: uvicorn's pure-Python parser (h11)
     HttpToolsProtocol = None
 
+HTTPTOOLS_HOOKS = ("on_message_begin", "on_headers_complete", "on_body", "on_message_complete",
+                   "data_received", "send_400_response")
+"""uvicorn's httptools protocol's methods ``BoundedHttpTools`` overrides or calls (uvicorn internals, the same in
+0.53-0.55); a uvicorn without one of them, or whose protocol takes its reads otherwise than through
+``data_received`` (a ``BufferedProtocol``), would leave the head unbounded: then h11 serves HTTP, which bounds it
+(logged once)."""
+if HttpToolsProtocol is not None and (issubclass(HttpToolsProtocol, asyncio.BufferedProtocol) or not all(
+        callable(getattr(HttpToolsProtocol, name, None)) for name in HTTPTOOLS_HOOKS)):
+    log.warning("uvicorn's httptools protocol lacks a method the service's head bound needs (one of %s); HTTP is "
+                "served with h11", ", ".join(HTTPTOOLS_HOOKS))
+    HttpToolsProtocol = None
+
 
 if HttpToolsProtocol is not None:
     class BoundedHttpTools(HttpToolsProtocol):
