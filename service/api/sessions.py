@@ -290,6 +290,10 @@ class LiveSession:
         waited for before it goes on: ``None`` here (a session whose hand runs here does the work then)."""
         return None
 
+    def forwardable_text(self, text: str):
+        """``forwardable`` of a received text message."""
+        return self.forwardable({"type": "websocket.receive", "text": text})
+
     def forward(self, msg) -> None:
         """Hand on a message ``forwardable`` gave, at once (never called here: it gives none)."""
         raise NotImplementedError

@@ -882,7 +882,11 @@ class ProcessSession(LiveSession):
         session does not record and its worker has room (``WINDOW``: ``ingest`` does not wait then); the
         route's reader then hands it to ``ingest`` itself and wakes no processor for it."""
         text = data.get("text")
-        if text is None or self.recorder is not None or not self._greeted or len(self._pending) >= WINDOW:
+        return None if text is None else self.forwardable_text(text)
+
+    def forwardable_text(self, text: str) -> "Unchecked | None":
+        """``forwardable`` of a received text message."""
+        if self.recorder is not None or not self._greeted or len(self._pending) >= WINDOW:
             return None
         kind = data_type(text)
         return None if kind is None else Unchecked(kind, text, False)

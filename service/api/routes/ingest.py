@@ -211,9 +211,8 @@ class _Door:
         would have); ``False``: not now (it goes to ``read`` through the server's queue)."""
         if not self.waiting or self.processor.done() or self.closing is not None:
             return False
-        data = {"type": "websocket.receive", "text": text}
-        size = _size(data)
-        msg = self.forwardable(data, size)
+        size = len(text) if text.isascii() else len(text.encode("utf-8", "surrogatepass"))     # (``_size``'s)
+        msg = self.live.forwardable_text(text) if self._may_hand_on(size) else None
         if msg is None:
             return _SYNC_HEAD.match(text) is not None and self.answer_sync(text, size)
         if not self.bucket.take():

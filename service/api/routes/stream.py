@@ -44,18 +44,20 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
         for t0 in since:
             series.latency.observe(now - t0)
 
+    wire, binary = getattr(ws.state, "wire", None), ws.state.binary     # (set once accepted: ``socket.accept``)
+
     def write_queued() -> None:
         """While the sender waits with nothing queued: what was queued since, written at once as the sender
         would write it (``send_outputs``' ready-made frames) while the connection takes them so; else the
         sender is woken and sends them (it waits while the buffers are full, or sends through ASGI)."""
-        wire, binary = getattr(ws.state, "wire", None), ws.state.binary
-        while sub.queue:
+        queue = sub.queue
+        while queue:
             if wire is None or closer.done() or sessions.closing or sub.closed or not wire.writable.is_set() \
                     or ws.application_state is not WebSocketState.CONNECTED:
                 sub.wake.set()
                 return
-            batch = list(itertools.islice(sub.queue, SEND_BATCH))
-            data = joined_frames([m for _, m, _ in batch], binary)
+            batch = [queue[0]] if len(queue) == 1 else list(itertools.islice(queue, SEND_BATCH))
+            data = batch[0][1].wire(binary) if len(batch) == 1 else joined_frames([m for _, m, _ in batch], binary)
             if not wire.write_frames(data):
                 sub.wake.set()
                 return
