@@ -605,6 +605,49 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
         peer.close()
 
 
+def test_a_worker_holds_replies_alone_for_its_next_write_and_sends_them_when_nothing_else_comes(monkeypatch):
+    """The replies of reads that made no frame wait for the worker's next write (``Worker.holds``): held
+    without end (``HOLD_S`` of a minute), no write carries replies alone, every reply comes, in order, and
+    each before any later message's output; a configuration's answer is not held. With the default hold,
+    a reply with nothing after it comes without more input, also after a batch with no output at all."""
+    from service.api.hands import worker as hands_worker
+
+    idle = hands_worker.Worker(None, _settings(1))
+    assert not idle.holds() and idle.held_since is None     # nothing to hold: no hold begins (none would end)
+    idle.out.append(["rep", 1, 1, []])
+    assert idle.holds() and idle.held_since is not None
+    msgs = [m for _, m in _messages("right", 0.4, 3)]
+    monkeypatch.setattr(hands_worker, "HOLD_S", 60.0)
+    peer = _Peer()
+    try:
+        peer.send([["open", 1, "a", None]])
+        for n, m in enumerate(msgs, 1):             # one batch each: most make no frame
+            peer.send([["src", 1, n, m]])
+        peer.send([["cfg", 1, len(msgs) + 1, {}]])  # answered at once, with the replies held before it
+        peer.until(lambda: any(m[0] == "cfgrep" for m in peer.received), "the configuration's answer")
+        assert [m[2] for m in peer.replies(1)] == list(range(1, len(msgs) + 1))
+        assert all(any(m[0] != "rep" for m in w) for w in peer.writes), [[m[0] for m in w] for w in peer.writes]
+        assert sum(m[0] == "out" for m in peer.received) >= 5 and len(peer.writes) >= 5
+        replied = set()
+        for m in peer.received:                     # a reply before the outputs of later messages
+            if m[0] == "rep":
+                replied.add(m[2])
+            elif m[0] == "out":
+                assert set(range(1, m[2])) <= replied, m[2]
+    finally:
+        peer.close()
+    monkeypatch.setattr(hands_worker, "HOLD_S", hands_worker.FLUSH_S)
+    monkeypatch.setattr(hands_worker, "FLUSH_S", 0.0)  # (a batch's flush check after each message, also one with no output)
+    peer = _Peer()
+    try:
+        peer.send([["open", 1, "a", None]])
+        peer.send([["src", 1, 1, msgs[0]]])
+        peer.until(lambda: len(peer.replies(1)) == 1, "the reply of a message with nothing after it")
+        assert [[m[0] for m in w] for w in peer.writes] == [["rep"]]
+    finally:
+        peer.close()
+
+
 def test_what_a_session_s_new_worker_cannot_restore_is_told_to_its_source_before_any_reply():
     """A session opened from a state whose stored hello and calibration (each with a field of the wrong
     type, as a state of another version could be) the worker refuses: one ``lost`` message names both, before the replies to the session's messages;

@@ -101,6 +101,8 @@ READ_SIZE = 1 << 20
 """the most one read of the web process's socket takes, bytes"""
 FLUSH_S = 0.002
 """outputs go back at least this often while a batch is being handled, s"""
+HOLD_S = FLUSH_S
+"""the longest the replies of reads that made no other output wait for the next write (``Worker.holds``), s"""
 AT_ONCE_BATCH = 4
 """in a batch of at most this many messages every frame goes back as soon as it is made (``handle_batch``):
 one hand at 1 kHz sends a worker 1-3 at a time, a pose first in 2 of 3 of them when the machine is busy"""
@@ -278,8 +280,11 @@ class Worker:
         """sid -> the thread building its hand, the hand once built (or the error), the session's messages
         that came meanwhile (in order)"""
         self.send_lock = threading.Lock()
+        self.held_since: float | None = None
+        """when the replies in ``out`` began to wait for the next write (``holds``); ``None`` while nothing waits"""
 
     def send(self) -> None:
+        self.held_since = None
         if self.out:
             data, self.out = frame(self.out), []
             with self.send_lock:
@@ -306,7 +311,8 @@ class Worker:
             thread.join()
 
     def run(self) -> None:
-        """Read, handle and answer batches until the web process closes its end. Each read goes into one
+        """Read, handle and answer batches until the web process closes its end (replies alone held a little
+        for the next write, ``holds``). Each read goes into one
         buffer kept for the worker's life (``READ_SIZE``), and each batch is unpacked from the received bytes
         in place (no copy of it): a ``recv`` of that size allocates a new object of it at every read, which
         the C library maps afresh from the system (``mmap``, ``munmap``, a page fault per page received) while
@@ -314,11 +320,18 @@ class Worker:
         machine (not seen in the workers of ``bench load``, whose threshold had risen)."""
         buf = bytearray()
         chunk = memoryview(bytearray(READ_SIZE))
+        sock = self.sock
         while True:
             timeout = OPEN_POLL_S if self.opening else WARM_POLL_S if self.warming else None
-            readable, _, _ = select.select([self.sock], [], [], timeout)
+            if self.held_since is not None:
+                left = self.held_since + HOLD_S - time.perf_counter()
+                timeout = left if timeout is None else min(timeout, left)
+            if timeout is None:                     # (a blocking read: no select before it)
+                readable = True
+            else:
+                readable = timeout > 0 and bool(select.select([sock], [], [], timeout)[0])
             if readable:
-                got = self.sock.recv_into(chunk)
+                got = sock.recv_into(chunk)
                 if not got:
                     return                          # the web process is gone
                 buf += chunk[:got]
@@ -326,7 +339,23 @@ class Worker:
                     self.handle_batch(batch)
             self.poll_opening()
             self.poll_warming()
-            self.send()
+            if self.out and not self.holds():
+                self.send()
+
+    def holds(self) -> bool:
+        """Whether the outputs not sent yet are only replies (of reads that made no frame or event) and have
+        waited less than ``HOLD_S``: they then go with the next write, a frame's (at 25 hands one comes about
+        every millisecond), or when that time is up, instead of in a write of their own. Each write wakes the
+        web process, which then often takes this worker's core (and the worker's caches) from it: at 25 hands
+        the writes of replies alone were more than half of a worker's writes. Anything else (a frame, an event,
+        a configuration's answer) goes at once, with the replies before it."""
+        out = self.out
+        if not out or any(message[0] != "rep" for message in out):
+            return False                            # (nothing held: ``send`` ends a hold)
+        now = time.perf_counter()
+        if self.held_since is None:
+            self.held_since = now
+        return now - self.held_since < HOLD_S
 
     def handle_batch(self, batch: list) -> None:
         """The messages of a batch in order. In a batch of at most ``AT_ONCE_BATCH`` messages, and for
@@ -339,7 +368,7 @@ class Worker:
         small = len(batch) <= AT_ONCE_BATCH
         for i, message in enumerate(batch):
             self.dispatch(message, at_once=small or i == last)
-            if time.perf_counter() - flushed > FLUSH_S:
+            if time.perf_counter() - flushed > FLUSH_S and not self.holds():
                 self.send()
                 flushed = time.perf_counter()
 
