@@ -73,7 +73,10 @@ class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
         return view
 
     def buffer_updated(self, nbytes: int) -> None:
-        self.data_received(bytes(self._read_into[:nbytes]))
+        if self._framing and not self._draining:    # cut from the buffer itself (``_frames_in`` copies what it keeps)
+            self._frames_in(self._read_into[:nbytes])
+        else:
+            self.data_received(bytes(self._read_into[:nbytes]))
 
     def send_receive_event_to_app(self) -> None:
         intake = self.intake
@@ -144,8 +147,9 @@ class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
             # first byte, unless frames came with the request
             self._framing = not self.close_sent and self.conn.parser_exc is None and not self.conn.reader.buffer
 
-    def _frames_in(self, data: bytes) -> None:
-        """The received bytes, cut into whole frames (class docstring)."""
+    def _frames_in(self, data: bytes | memoryview) -> None:
+        """The received bytes, cut into whole frames (class docstring); ``data`` may be a view of the read buffer,
+        which the next read overwrites: what is kept, or handed to the library, is copied."""
         partial = self._partial
         if partial:
             partial += data

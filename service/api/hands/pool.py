@@ -992,7 +992,8 @@ class ProcessSession(LiveSession):
         if errors and self._source_error is not None:
             self._errors.extend(errors)
             self._send_errors_soon()
-        self._release_answers()
+        if self._answers:
+            self._release_answers()
         self._replied.set()
 
     def answer_in_order(self, answer) -> bool:
