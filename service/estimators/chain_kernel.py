@@ -82,22 +82,26 @@ def run(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_thet
     ns = x.shape[1]
     _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_theta, out_phi, out_phal, out_mode,
             np.zeros((ns, N_STATE, 3)), x.reshape(-1, N_STATE), np.zeros(3),
-            np.zeros((3, 3)), 0, False, _scratch(ns, out_phi.shape[2]))
+            np.zeros((3, 3)), 0, False, _scratch(ns, out_phi.shape[2], ns))
 
 
 @njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
-def _scratch(ns, nph):
+def _scratch(ns, nph, n_all):
     """``_finger``'s work arrays for fingers of up to ``ns`` sensors and ``nph`` joints, allocated once per
-    call and shared by the fingers of a hand (``_finger`` names their rows)."""
+    call and shared by the fingers of a hand (``_finger`` names their rows), and the cross-covariance products
+    held back for the hand's ``n_all`` sensors (``_settle``)."""
     return (np.empty((6, ns)), np.empty((5, nph)), np.zeros((2, 3, N_STATE)), np.empty((4, N_STATE, 3)),
-            np.empty((N_STATE, N_STATE)), np.zeros((6, 3)), np.empty(N_STATE), np.empty((8, 3, 3)))
+            np.empty((N_STATE, N_STATE)), np.zeros((6, 3)), np.empty(N_STATE), np.empty((8, 3, 3)),
+            (np.empty((n_all, 3, 3)), np.empty((n_all, 3)), np.zeros(n_all, np.int64)))
 
 
 @njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _clear_scratch(ws):
     """The work arrays ``_scratch`` makes with zeros zeroed again, for another call: each call starts from
     what a fresh allocation held."""
-    m3n, v3 = ws[2], ws[5]
+    m3n, v3, held = ws[2], ws[5], ws[8][2]
+    for a in range(held.shape[0]):
+        held[a] = 0
     for a in range(m3n.shape[0]):
         for b in range(m3n.shape[1]):
             for c in range(m3n.shape[2]):
@@ -138,7 +142,7 @@ def hand_scratch(sensor_start, phalanx_start):
     for f in range(sensor_start.shape[0] - 1):
         ns_max = max(ns_max, sensor_start[f + 1] - sensor_start[f])
         nph_max = max(nph_max, phalanx_start[f + 1] - phalanx_start[f])
-    return _scratch(ns_max, nph_max)
+    return _scratch(ns_max, nph_max, sensor_start[sensor_start.shape[0] - 1])
 
 
 @njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
@@ -182,15 +186,18 @@ def run_hand_in(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, 
                 for ii in range(N_STATE):
                     for c in range(3):
                         cx[l, ii, c] *= fdec
+    pend = ws[8]
     for f in range(dts.shape[0]):
         s0, s1 = sensor_start[f], sensor_start[f + 1]
         q0, q1 = phalanx_start[f], phalanx_start[f + 1]
         ns, nph = s1 - s0, q1 - q0
+        _settle(cx, x, pend, s0, s1)        # the earlier fingers' updates of its sensors, before its turn
         _finger(x[s0:s1].reshape(1, ns, N_STATE), p[s0:s1].reshape(1, ns, N_STATE, N_STATE), rates[s0:s1].reshape(1, ns),
                 hand_acc[f:f + 1], dts[f:f + 1], gyr[s0:s1].reshape(1, 1, ns, 3), acc[s0:s1].reshape(1, 1, ns, 3), hand1,
                 st[f], geo[geo_start[f]:geo_start[f + 1]], untracked[f], out_theta[s0:s1].reshape(1, 1, ns),
                 out_phi[q0:q1].reshape(1, 1, nph), out_phal[q0:q1].reshape(1, 1, nph), out_mode[s0:s1].reshape(1, 1, ns),
                 cx, x, dl, pd, s0, joint and not untracked[f], ws)
+    _settle(cx, x, pend, 0, cx.shape[0])   # the later fingers' updates
     _keep_shared_error_finite(dl, pd, cx, joint_floor)
     _gyro_angles(hand, gyr, dts, untracked, sensor_start, geo, geo_start, st, x, p, cx, ws[6], ga_off)
     _log_holds(t, dts, rates, gyr, sensor_start, log_t, log_r, log_g, log_n)
@@ -358,7 +365,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
     fit_lag = st[ST_FIT_LAG]
     two_pi = 2.0 * math.pi
 
-    sv, pv, m3n, mn3, a, v3, ke, m33 = ws
+    sv, pv, m3n, mn3, a, v3, ke, m33, pend = ws
     th, rate, prev, rc, meas, gxs = sv[0], sv[1], sv[2], sv[3], sv[4], sv[5]
     # predicted per-sensor angle, bias-corrected relative rate, previous relative rate (corrected with the
     # same bias), rate change, measured relative rate (the next sample's previous), raw hinge-axis reading
@@ -562,7 +569,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
                 if joint:
                     _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                                  hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt)
+                                  hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt, pend)
                 else:
                     # update (kalman.update): PHᵀ, S = H P Hᵀ + R, K = PHᵀ S⁻¹, Joseph form; H's row rr has
                     # entries at 0, 2 + rr and G's row (g..g + 2) only: the products sum those, in the
@@ -676,7 +683,7 @@ def _finger(x, p, rates, hand_acc, dts, gyr, acc, hand, st, geo, untracked, out_
 
 @njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
 def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s, mb, md,
-                  hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt):
+                  hm, pht, phd, kg, kd, sm, si, am, wv, tl, td, gs_learn, dl0, dt, pend):
     """Sensor ``k``'s accelerometer update with the hand's shared acceleration error ``δ`` (world frame)
     as three more states: the measurement ``f = h(x_k) + M δ``, ``M = (I + G) R_x(θ)ᵀ R_Bᵀ R_Mᵀ``; the
     augmented covariance keeps ``P_k``, ``C_l = P_{x_l δ}`` of every sensor ``l`` of the hand and ``P_δ``
@@ -693,7 +700,11 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
     arithmetic (``K_l S K_δᵀ = C_l Mᵀ K_δᵀ`` on the other rows; on the held row the first and last terms
     are 0 and ``Mᵀ K_δᵀ = Mᵀ S⁻¹ (P_δ·Hᵀ)ᵀ``, ``S`` being symmetric), and ``dx_l = C_l Mᵀ S⁻¹ y`` but on the
     held row (0): a 3 x 3 matrix and a vector shared by every other sensor, where ``K_l``, ``K_l S`` and
-    the update of ``C_l`` took six products of 15 x 3 each."""
+    the update of ``C_l`` took six products of 15 x 3 each. For a sensor of another finger, nothing reads
+    ``C_l`` or ``x_l`` before that finger's turn, so the products are held back there (``pend``: their
+    3 x 3 matrices multiplied together, ``A_l ← A_l am``, and the vectors ``v_l ← v_l + A_l wv``; one
+    product of 15 x 3 when ``_settle`` applies them, where each sensor took one per update: the same
+    numbers in exact arithmetic, another order of the sums)."""
     gk = s_off + k
     ee[0] = ee[1] = ee[2] = 0.0         # the lag error is δ's now, not a widening
     for cc in range(3):
@@ -781,10 +792,28 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
             q2 = si[2, 0] * phd[c1, 0] + si[2, 1] * phd[c1, 1] + si[2, 2] * phd[c1, 2]
             eye = 1.0 if cc == c1 else 0.0
             am[cc, c1] = eye - (md[0, cc] * q0 + md[1, cc] * q1 + md[2, cc] * q2)
+    pa, pv, held = pend
     for l in range(cx.shape[0]):
         if l == gk:
             continue
-        same = s_off <= l < s_off + ns and l - s_off > k
+        if not s_off <= l < s_off + ns:
+            # another finger's sensor: held back (the first product as it is, later ones composed)
+            if held[l]:
+                a = pa[l]
+                for r1 in range(3):
+                    pv[l, r1] += a[r1, 0] * wv[0] + a[r1, 1] * wv[1] + a[r1, 2] * wv[2]
+                for r1 in range(3):
+                    b0, b1, b2 = a[r1, 0], a[r1, 1], a[r1, 2]
+                    for c1 in range(3):
+                        a[r1, c1] = b0 * am[0, c1] + b1 * am[1, c1] + b2 * am[2, c1]
+            else:
+                held[l] = 1
+                for r1 in range(3):
+                    pv[l, r1] = wv[r1]
+                    for c1 in range(3):
+                        pa[l, r1, c1] = am[r1, c1]
+            continue
+        same = l - s_off > k
         for ii in range(N_STATE):
             e0, e1, e2 = cx[l, ii, 0], cx[l, ii, 1], cx[l, ii, 2]
             cx[l, ii, 0] = e0 * am[0, 0] + e1 * am[1, 0] + e2 * am[2, 0]
@@ -822,6 +851,24 @@ def _joint_update(k, b, s_off, ns, x, p, x_all, cx, dl, pd, th, yy, ee, r, c, s,
         x[b, k, ii] += kg[ii, 0] * yy[0] + kg[ii, 1] * yy[1] + kg[ii, 2] * yy[2]
     for c1 in range(3):
         dl[c1] += kd[c1, 0] * yy[0] + kd[c1, 1] * yy[1] + kd[c1, 2] * yy[2]
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def _settle(cx, x_all, pend, s0, s1):
+    """The cross-covariance products held back for sensors ``s0:s1`` (``_joint_update``'s ``pend``) applied:
+    ``dx = C_l v_l`` into the states (but the scale state's: ``K_l`` holds it), then ``C_l ← C_l A_l``."""
+    pa, pv, held = pend
+    for l in range(s0, s1):
+        if not held[l]:
+            continue
+        held[l] = 0
+        for ii in range(N_STATE):
+            e0, e1, e2 = cx[l, ii, 0], cx[l, ii, 1], cx[l, ii, 2]
+            cx[l, ii, 0] = e0 * pa[l, 0, 0] + e1 * pa[l, 1, 0] + e2 * pa[l, 2, 0]
+            cx[l, ii, 1] = e0 * pa[l, 0, 1] + e1 * pa[l, 1, 1] + e2 * pa[l, 2, 1]
+            cx[l, ii, 2] = e0 * pa[l, 0, 2] + e1 * pa[l, 1, 2] + e2 * pa[l, 2, 2]
+            if ii != GS:
+                x_all[l, ii] += e0 * pv[l, 0] + e1 * pv[l, 1] + e2 * pv[l, 2]
 
 
 @njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
