@@ -504,6 +504,19 @@ def test_a_worker_serves_its_other_sessions_while_a_thread_builds_a_moved_in_ses
         peer.close()
 
 
+def _note_answers(monkeypatch, events: list, name: str, yes: str, no: str) -> None:
+    """``TrackedHand``'s method ``name`` noted in ``events`` at each call: ``yes`` or ``no`` by its answer."""
+    from service.pipeline.tracked import TrackedHand
+
+    method = getattr(TrackedHand, name)
+
+    def noted(self, *args):
+        answer = method(self, *args)
+        events.append(yes if answer else no)
+        return answer
+    monkeypatch.setattr(TrackedHand, name, noted)
+
+
 def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_its_message(monkeypatch):
     """At 1 kHz a pose completes about eleven ticks, the first of which makes the frame: the worker
     sends that frame before it processes the others (their time was in every frame's latency). A
@@ -511,14 +524,14 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
     next tick is processed, in a write of its own while its message has ticks left, else (the frame of
     its message's last tick) in the write of its message's reply, before the reply (one write, not two).
     A frame written while its message has ticks left is followed by a yield of the core (``hand_over``: the
-    web process, woken by the write, passes it on before those ticks) unless the next frame's tick waits only
-    for the reorder window (``next_frame_covered``: then the next frame waits for those ticks alone), and no
-    other write is. Many messages
+    web process, woken by the write, passes it on before those ticks) when at least ``YIELD_TICKS`` of them are
+    ready (``ticks_ready``; with fewer the web process's wait is short) and the next frame's tick does not wait
+    only for the reorder window (``next_frame_covered``: then the next frame waits for those ticks alone), and
+    no other write is. Many messages
     in one batch: the earlier ones' outputs go in one write with their replies (fewer writes for a busy
     worker), each output before its reply."""
     from service.api.hands import worker as worker_module
     from service.pipeline.hand import HandSession
-    from service.pipeline.tracked import TrackedHand
 
     events: list[str] = []                          # "tick", "frame" (a tick that made one), "send" (a write)
     emit_frames = HandSession._emit_frames
@@ -530,14 +543,8 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
 
     monkeypatch.setattr(HandSession, "_emit_frames", noted)
     monkeypatch.setattr(worker_module, "hand_over", lambda: events.append("yield"))
-    covered = TrackedHand.next_frame_covered
-
-    def noted_covered(self):
-        answer = covered(self)
-        events.append("covered" if answer else "open")
-        return answer
-
-    monkeypatch.setattr(TrackedHand, "next_frame_covered", noted_covered)
+    _note_answers(monkeypatch, events, "next_frame_covered", "covered", "open")
+    _note_answers(monkeypatch, events, "ticks_ready", "many", "few")
     peer = _Peer()
     send = peer.worker.send
 
@@ -579,12 +586,17 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
             assert len(made) >= 10
             for i in made:
                 assert seen[i + 1:i + 2] == ["send"], (size, seen[i:i + 4])
+            # (asked first whether YIELD_TICKS ticks are ready behind the frame: with fewer there is no yield)
+            counted = [i for i, e in enumerate(seen) if e in ("many", "few")]
+            assert len(counted) == alone, (size, len(counted), alone)
+            for i in counted:                       # (at 1 kHz a pose's frame has about ten ticks behind it)
+                assert seen[i - 2:i + 1] == ["frame", "send", "many"], (size, seen[i - 2:i + 2])
             asked = [i for i, e in enumerate(seen) if e in ("covered", "open")]
-            assert len(asked) == alone, (size, len(asked), alone)
+            assert len(asked) == sum(seen[i] == "many" for i in counted), size
             assert 0 < sum(seen[i] == "covered" for i in asked) < len(asked), (size, [seen[i] for i in asked])
             for i in asked:
-                assert seen[i - 2:i] == ["frame", "send"], (size, seen[i - 2:i + 2])
-                assert (seen[i + 1:i + 2] == ["yield"]) == (seen[i] == "open"), (size, seen[i - 2:i + 3])
+                assert seen[i - 1] == "many", (size, seen[i - 3:i + 2])
+                assert (seen[i + 1:i + 2] == ["yield"]) == (seen[i] == "open"), (size, seen[i - 3:i + 3])
             assert seen.count("yield") == sum(seen[i] == "open" for i in asked), size
         # the rest in one batch: outputs and replies together, each output before its reply
         start, yielded = len(peer.writes), events.count("yield")
@@ -601,6 +613,33 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
                 replied.add(x[2])
             elif x[0] == "out":
                 assert x[2] not in replied, "an output came after its message's reply"
+    finally:
+        peer.close()
+
+
+def test_a_worker_does_not_yield_after_a_frame_with_few_ticks_behind_it(monkeypatch):
+    """At 200 Hz (the load bench's gloves, ``bench cpu``'s recording) a pose releases two or three ticks: a frame written while its
+    message has ticks left has fewer than ``YIELD_TICKS`` ready behind it, and no yield follows it (nor is
+    ``next_frame_covered`` asked); the frames still go at once, one per write."""
+    from service.api.hands import worker as worker_module
+
+    events: list[str] = []
+    monkeypatch.setattr(worker_module, "hand_over", lambda: events.append("yield"))
+    _note_answers(monkeypatch, events, "ticks_ready", "many", "few")
+    _note_answers(monkeypatch, events, "next_frame_covered", "asked", "asked")
+    from service.bench.cpu import recording_lines, worker_messages
+
+    peer = _Peer()
+    try:
+        msgs = worker_messages(recording_lines(2.0, seed=3, batched=True))     # (as the web process sends them)
+        peer.send([["open", 1, "a", None], msgs[0]])
+        peer.until(lambda: len(peer.replies(1)) == 1, "the first reply")   # (the hand built: not all in one batch)
+        for k, m in enumerate(msgs[1:], 2):         # one message a batch, as a hand alone in its worker
+            peer.send([m])
+            peer.until(lambda: len(peer.replies(1)) == k, f"reply {k}")
+        assert events.count("few") >= 10 and "many" not in events, events[:10]
+        assert "yield" not in events and "asked" not in events
+        assert all(sum(x[0] == "out" and x[3][0] == "frame" for x in w) <= 1 for w in peer.writes)
     finally:
         peer.close()
 

@@ -28,6 +28,7 @@ messages give the same frames, which is what ``fingertrack replay`` relies on.
 """
 from __future__ import annotations
 
+import heapq
 import math
 from itertools import chain as chained, repeat
 from dataclasses import dataclass, field, replace
@@ -435,6 +436,15 @@ class HandSession:
         """Whether a pending tick is ready to be processed (``ready_frames`` would process one more)."""
         pending = self._pending
         return bool(pending) and self._ready(min(pending))
+
+    def ticks_ready(self, count: int) -> bool:
+        """Whether the ``count`` oldest pending ticks are all ready to be processed (``ready_frames`` would process
+        at least that many more)."""
+        pending = self._pending
+        if len(pending) < count:
+            return False
+        ready = self._ready
+        return all(ready(t) for t in heapq.nsmallest(count, pending))
 
     def _drop(self, reason: str, count: int = 1) -> None:
         setattr(self.counters, reason, getattr(self.counters, reason) + count)

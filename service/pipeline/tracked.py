@@ -66,6 +66,10 @@ class TrackedHand:
         behind them)."""
         return self._session.tick_ready()
 
+    def ticks_ready(self, count: int) -> bool:
+        """Whether ``outputs`` would process at least ``count`` more ticks now (``HandSession.ticks_ready``)."""
+        return self._session.ticks_ready(count)
+
     def next_frame_covered(self) -> bool:
         """Whether the next frame's tick waits only for the reorder window (``HandSession.next_frame_covered``)."""
         return self._session.next_frame_covered()

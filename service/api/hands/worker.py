@@ -125,6 +125,14 @@ waits for this message's ticks, and a yield put the web process's and the subscr
 (0.2-0.8 ms)."""
 
 
+YIELD_TICKS = 4
+"""``hand_over`` only while at least this many ticks are ready behind the frame just written: their time is what the
+web process would wait for on this core (at 1 kHz a pose releases about eleven, the first making the frame). With
+fewer (at 200 Hz a pose releases two or three, and no frame has four behind it) that wait is shorter than the
+switches a yield costs the worker (its caches among them): at 25 hands, where the last message of each batch sends
+its frame at once, a worker had about 850 involuntary context switches a second with the yields and 700 without."""
+
+
 def _plain(value):
     """A numpy scalar or array as the Python number or list MessagePack can carry."""
     if hasattr(value, "tolist"):
@@ -435,7 +443,8 @@ class Worker:
             self.out.extend(owned.encoded(sid, n))
             with contextlib.suppress(OSError):      # the web process is gone: the reply's send finds it out,
                 self.send()                         # outside the hand (not as a failure of this message)
-            if not owned.live.hand.next_frame_covered():
+            hand = owned.live.hand
+            if hand.ticks_ready(YIELD_TICKS) and not hand.next_frame_covered():
                 hand_over()                         # (else the next frame waits for this message's ticks alone)
         return emit
 
