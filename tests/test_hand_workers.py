@@ -618,9 +618,11 @@ def test_a_worker_sends_each_frame_as_soon_as_it_is_made_not_with_the_rest_of_it
 
 
 def test_a_worker_does_not_yield_after_a_frame_with_few_ticks_behind_it(monkeypatch):
-    """At 200 Hz (the load bench's gloves, ``bench cpu``'s recording) a pose releases two or three ticks: a frame written while its
-    message has ticks left has fewer than ``YIELD_TICKS`` ready behind it, and no yield follows it (nor is
-    ``next_frame_covered`` asked); the frames still go at once, one per write."""
+    """At 200 Hz (the load bench's gloves, ``bench cpu``'s recording) a pose releases two or three ticks, and the
+    tick after its frame's is held back for the next frame's run (``HandSession._defer``): nothing is left to
+    process behind the frame (``tick_ready``), so it goes in the write of its message's reply, one write (it went
+    alone before, the reply in another write, in about half of the frames), and no yield follows it (nor is
+    ``ticks_ready`` or ``next_frame_covered`` asked)."""
     from service.api.hands import worker as worker_module
 
     events: list[str] = []
@@ -637,9 +639,15 @@ def test_a_worker_does_not_yield_after_a_frame_with_few_ticks_behind_it(monkeypa
         for k, m in enumerate(msgs[1:], 2):         # one message a batch, as a hand alone in its worker
             peer.send([m])
             peer.until(lambda: len(peer.replies(1)) == k, f"reply {k}")
-        assert events.count("few") >= 10 and "many" not in events, events[:10]
-        assert "yield" not in events and "asked" not in events
-        assert all(sum(x[0] == "out" and x[3][0] == "frame" for x in w) <= 1 for w in peer.writes)
+        assert not events, events[:10]
+        frames = 0
+        for w in peer.writes:                       # each frame with its message's reply, after the frame
+            assert sum(x[0] == "out" and x[3][0] == "frame" for x in w) <= 1, w
+            for i, x in enumerate(w):
+                if x[0] == "out" and x[3][0] == "frame":
+                    frames += 1
+                    assert any(y[0] == "rep" and y[2] == x[2] for y in w[i + 1:]), w
+        assert frames >= 100
     finally:
         peer.close()
 

@@ -549,6 +549,34 @@ def test_a_pose_goes_in_before_the_held_back_ticks_only_if_every_unchecked_fit_o
         assert checked > 20 and (flushed >= checked if refuse else flushed < checked)
 
 
+@pytest.mark.parametrize("rate_hz", [200.0, 1000.0])
+def test_tick_ready_says_whether_the_frames_message_has_a_tick_to_process_now(rate_hz):
+    """After each frame, ``tick_ready`` says whether ``ready_frames``, resumed, processes another tick before it ends
+    (a hand worker sends the frame at once then, not with the message's reply): a ready tick it only holds back for
+    the next frame's run (``_defer``) is not one. At 200 Hz IMU (90 Hz frames) a pose releases two or three ticks and
+    the one after its frame's is held back, most often; at 1 kHz the ten or so after the frame are processed."""
+    from clients.glove import source_messages
+
+    config = SimConfig(motion="random", t_m_s=2, noise="both", hand_motion="slow-rotation", seed=0, rate_hz=rate_hz)
+    session = HandSession("right")
+    answers = {True: 0, False: 0}
+    for _, raw in source_messages(config):
+        session.accept(parse_message(raw))
+        asked = None
+        for _ in session.ready_frames():
+            if asked is not None:                   # a frame made since: its ticks were processed
+                assert asked[1], "a frame after a frame that had nothing to process behind it"
+            asked = (session._processed_t, session.tick_ready())
+            answers[asked[1]] += 1
+        if asked is not None:                       # the generator's end: a tick processed since the last frame?
+            assert (session._processed_t != asked[0]) == asked[1], (rate_hz, asked)
+    assert answers[False] >= 10, answers
+    if rate_hz == 1000.0:
+        assert answers[True] >= 3 * answers[False], answers
+    else:
+        assert answers[False] >= 3 * answers[True], answers
+
+
 def test_next_frame_covered_says_whether_the_next_frame_waits_for_a_pose():
     """After a frame made while its message has ticks left (a pose at 1 kHz), ``next_frame_covered`` says whether
     the next frame's tick is received and covered by a pose already (it then waits only for the reorder window's

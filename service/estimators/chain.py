@@ -1067,7 +1067,11 @@ class ChainHand:
         gap = float(dts.max()) if self._t_dl is None else t - self._t_dl     # ``_delta_step``
         if gap < 0.0:
             return None
-        untracked = np.array([e._hand_untracked for e in estimators])
+        flags = [e._hand_untracked for e in estimators]
+        kept = self._untracked
+        if kept is None or kept[0] != flags:    # (the kernels only read it: one array while the flags stay, ``_begin``)
+            kept = self._untracked = (flags, np.array(flags))
+        untracked = kept[1]
         done = kernel(*head, gap, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st,
                       self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start, self._theta,
                       self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, self._log_t, self._log_r,

@@ -72,7 +72,18 @@ def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
     return _Layout(key, parts, layout.n)
 
 
-_layouts: dict[tuple, _Layout] = {}
+class Layouts(dict):
+    """Frame layouts (``_Layout``) by the ids of what they depend on, and the last one used with those objects
+    (``last``: most frames have the same as the frame before, found then by four identity checks)."""
+
+    __slots__ = ("last",)
+
+    def __init__(self):
+        super().__init__()
+        self.last: tuple | None = None
+
+
+_layouts = Layouts()
 """The layouts of frames made without a hand's own (``FrameOutput``'s ``layouts``)."""
 
 
@@ -127,14 +138,22 @@ class FrameOutput:
         angles, joints = frame.joint_angles, frame.joints
         if type(angles) is not FingerAngles or type(joints) is not JointPoses:
             return None
-        key = (self.calibration, angles.layout, frame.modes, frame.tracked)
-        ids = (id(key[0]), id(key[1]), id(key[2]), id(key[3]))
+        calibration, modes, tracked = self.calibration, frame.modes, frame.tracked
         layouts = self._layouts
-        layout = layouts.get(ids)
-        if layout is None:
-            if len(layouts) > 64:           # bounded: a hand has few combinations
-                layouts.clear()
-            layout = layouts[ids] = _layout_of(*key)
+        last = getattr(layouts, "last", None)    # (the frame before's, ``Layouts``; a plain dict has none)
+        if last is not None and last[0] is calibration and last[1] is angles.layout and last[2] is modes \
+                and last[3] is tracked:
+            layout = last[4]
+        else:
+            key = (calibration, angles.layout, modes, tracked)
+            ids = (id(key[0]), id(key[1]), id(key[2]), id(key[3]))
+            layout = layouts.get(ids)
+            if layout is None:
+                if len(layouts) > 64:           # bounded: a hand has few combinations
+                    layouts.clear()
+                layout = layouts[ids] = _layout_of(*key)
+            if type(layouts) is Layouts:
+                layouts.last = (*key, layout)   # (its objects held there: no other object takes their ids meanwhile)
         if layout.parts is None:
             return None
         try:

@@ -51,7 +51,7 @@ from ..model.kinematics import BaseMotion
 from ..model.openxr import JOINT_NAMES, FingerAngles, angles_layout, joint_pose_arrays, joint_radii, joint_radii_list, \
     joint_tracked_list
 from ..protocol import Calibration, Hello, ReferencePose, Truth
-from ..protocol.fast import IMU, IMU_BATCH, POSE
+from ..protocol.fast import IMU, IMU_BATCH, POSE, FastImuBatch, FastPose
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
 from .hand_imu import HandImu
 from .mounting import HandMountings
@@ -299,6 +299,7 @@ class HandSession:
         self._fingers: dict[str, FingerState] = {}
         self._together = ChainHand()        # the fingers advanced in one kernel call per tick
         self._layouts: dict[tuple, _TogetherLayout] = {}
+        self._steady_kept: tuple | None = None  # the last steady tick's layout, for the next (``_steady_layout``)
         self._together_phi: tuple[np.ndarray, list[FingerState]] | None = None   # their last angles, all in one array
         self._phi_slices: tuple[list, list[slice]] | None = None   # (phalanx_start, each finger's slice of the angles)
         self._tick_ids: tuple[str, ...] | None = None          # the sensor ids of the tick being processed
@@ -420,7 +421,7 @@ class HandSession:
     def ready_frames(self) -> Iterator[HandFrame]:
         """The frames of every tick that is ready, each yielded as soon as its tick is processed (a
         message that completes several ticks need not hold the first frame back until the last)."""
-        yield from self._process_ready()
+        return self._process_ready()            # (its generator itself: no generator of this call around it)
 
     def next_frame_covered(self) -> bool:
         """Whether the tick that makes the next frame is received and a pose at or after it has arrived: it then
@@ -433,9 +434,14 @@ class HandSession:
         return tick is not None and self.optics.covers(tick)
 
     def tick_ready(self) -> bool:
-        """Whether a pending tick is ready to be processed (``ready_frames`` would process one more)."""
+        """Whether a pending tick is ready to be processed now (``ready_frames`` would process one more): ready,
+        and not one that ``ready_frames`` would only hold back (``_defer``: it is then processed with the next
+        frame's ticks, and nothing is left to do now; at 200 Hz IMU the tick after a pose's frame, most often)."""
         pending = self._pending
-        return bool(pending) and self._ready(min(pending))
+        if not pending:
+            return False
+        t = min(pending)
+        return self._ready(t) and not self._holds_back(t)
 
     def ticks_ready(self, count: int) -> bool:
         """Whether the ``count`` oldest pending ticks are all ready to be processed (``ready_frames`` would process
@@ -453,6 +459,13 @@ class HandSession:
         self._dropped[reason] += count
 
     def _accept(self, msg) -> None:
+        kind = type(msg)                    # (the compiled parser's types first: no check of an ABC's registry)
+        if kind is FastImuBatch:
+            self._add_imu(msg.samples)
+            return
+        if kind is FastPose:
+            self._add_pose(msg)
+            return
         if isinstance(msg, IMU_BATCH):
             self._add_imu(msg.samples)
             return
@@ -460,12 +473,7 @@ class HandSession:
             self._add_imu((msg,))
             return
         if isinstance(msg, POSE):
-            if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
-                self._drop("late")
-            else:
-                if self._deferred and not self._pose_keeps(msg.t):
-                    self.flush()
-                self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
+            self._add_pose(msg)
             return
         self.flush()                        # anything else may read or change what the held-back ticks use
         if isinstance(msg, Calibration):
@@ -484,6 +492,14 @@ class HandSession:
             self._add_reference(msg)
         elif isinstance(msg, Truth):
             return
+
+    def _add_pose(self, msg) -> None:
+        if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
+            self._drop("late")
+        else:
+            if self._deferred and not self._pose_keeps(msg.t):
+                self.flush()
+            self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
 
     def _add_reference(self, msg: ReferencePose) -> None:
         """Keep a ``reference_pose`` until the tick at or after its ``t1`` is processed (it may arrive
@@ -524,7 +540,7 @@ class HandSession:
         """Samples (each with ``t``, ``id``, ``gyr``, ``acc``) into the table of pending ticks, each as one
         list of six numbers, gyro then accelerometer (a tick's readings become one array in one step:
         numpy reads flat lists several times faster than pairs of lists)."""
-        known = self._known_sensor_ids()
+        known = self._sensor_ids if self._sensor_ids_of is self.calibration else self._known_sensor_ids()
         clock_step_s, max_pending = self.settings.clock_step_s, self.settings.max_pending_ticks
         pending, newest = self._pending, self._newest_imu_t
         # the ticks held back count as processed (``_defer``): a sample at or before them is late
@@ -666,13 +682,17 @@ class HandSession:
         state until it is processed: the next ticks are processed after it, and whatever else could read
         or change that state processes it first (``flush``). At 200 Hz IMU and 90 Hz frames a message
         releases one tick and about half make no frame: two or three ticks per compiled call, not one."""
+        if not self._holds_back(t):
+            return False
+        self._deferred[t] = self._pending.pop(t)
+        return True
+
+    def _holds_back(self, t: float) -> bool:
+        """Whether ``_defer`` holds the ready tick ``t`` back (it changes nothing: ``tick_ready`` asks it too)."""
         if len(self._deferred) >= _MAX_DEFERRED or not self._may_run_steady(t):
             return False
         pending = self._pending
-        if len(pending) > 1 and self._ready(sorted(pending)[1]):
-            return False
-        self._deferred[t] = pending.pop(t)
-        return True
+        return not (len(pending) > 1 and self._ready(sorted(pending)[1]))
 
     def _process_ready(self, defer: bool = True) -> Iterator[HandFrame]:
         pending = self._pending
@@ -1054,12 +1074,20 @@ class HandSession:
         """The layout of a steady tick's fingers (``_together_layout``) and their sensors' rows in the fits
         whose cross-axis offsets the kernel writes, into the array set as ``ChainHand.cross_offsets`` here
         (no rows, and none set, unless the estimators take them off)."""
-        layout = self._together_layout(fingers)
         chain = fingers[0].estimator.settings
+        kept = self._steady_kept
+        if kept is not None and kept[0] is fits and kept[1] is fingers and kept[2] is chain and kept[3] == self._tick_ids \
+                and (kept[6] is None or (kept[4]._fits is fits and kept[4]._offsets is kept[6])):
+            # the same fits, fingers (each with every sensor live: the callers check it), settings and tick order
+            # as the last steady tick: the same layout, rows and offsets array (``offsets_of`` keeps them per fits)
+            self._together.cross_offsets = kept[6]
+            return kept[4], kept[5]
+        layout = self._together_layout(fingers)
         if chain.gyro_angle_cross_offsets:
             off_rows, self._together.cross_offsets = layout.offsets_of(fits, chain.gyro_angle_offset_error)
         else:
             off_rows, self._together.cross_offsets = _NO_ROWS, None
+        self._steady_kept = (fits, fingers, chain, self._tick_ids, layout, off_rows, self._together.cross_offsets)
         return layout, off_rows
 
     def _take_together(self, fingers: list[FingerState], layout: "_TogetherLayout", phi: np.ndarray, modes: list,
@@ -1167,12 +1195,17 @@ class HandSession:
         # what depends only on the fingers' modes, live sensors and angle counts and on the optics: one of each
         # per combination (a hand has few), shared by the frames that have it (never modified)
         key = (self._tracking, modes, live, tuple(map(len, phis)))
-        constants = kept.get(key)
-        if constants is None:
-            if len(kept) > 64:
-                kept.clear()
-            constants = kept[key] = (angles_layout(names, key[3]), dict(zip(names, modes)),
-                                     _tracked_dict(self._tracking, tuple(zip(names, map(bool, live)))))
+        last = kept.get(None)               # (the frame before's: compared item by item, no hash of the key)
+        if last is not None and last[0] == key:
+            constants = last[1]
+        else:
+            constants = kept.get(key)
+            if constants is None:
+                if len(kept) > 64:
+                    kept.clear()
+                constants = kept[key] = (angles_layout(names, key[3]), dict(zip(names, modes)),
+                                         _tracked_dict(self._tracking, tuple(zip(names, map(bool, live)))))
+            kept[None] = (key, constants)
         layout, modes_of, tracked = constants
         angles = FingerAngles(flat, layout)
         positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position)

@@ -15,7 +15,7 @@ from gestures.recognizer import GestureRecognizer, GestureSettings
 from ..estimators.registry import EstimatorSpec
 from ..protocol.outgoing import FrameDict, GestureDict
 
-from .frame_text import FrameOutput
+from .frame_text import FrameOutput, Layouts
 from .hand import Counters, Dropped, HandSession, PipelineSettings
 
 
@@ -24,7 +24,7 @@ class TrackedHand:
                  gesture_settings: GestureSettings | None = None):
         self._session = HandSession(hand, settings)
         self.recognizer = GestureRecognizer(gesture_settings or GestureSettings())
-        self._layouts: dict = {}            # the fixed parts of this hand's frames' text (``FrameOutput``)
+        self._layouts = Layouts()           # the fixed parts of this hand's frames' text (``FrameOutput``)
 
     @property
     def hand(self) -> str:

@@ -81,6 +81,7 @@ import msgpack
 
 from ...pipeline.gc_policy import serving_gc
 from ...protocol import PROTOCOL_VERSION, ProtocolError, parse_input, parse_message
+from ...protocol.fast import read as read_fast
 from ...protocol.messages import SamplesRefused, dump_message
 from ...pipeline.frame_text import FrameOutput
 from ...pipeline.hand import NOTHING_DROPPED
@@ -203,6 +204,8 @@ class OwnedHand:
     def encoded(self, sid: int, n: int) -> list[list]:
         """The outputs in ``sink.pending`` (then emptied) as ``out`` messages for the web process, each
         encoded here once: JSON text always, MessagePack too while a subscriber reads it."""
+        if not self.sink.pending:                   # (most source messages: no output)
+            return []
         outs = []
         for message in self.sink.pending:
             if type(message) is FrameOutput:        # (a frame of the hand: its text written from its arrays)
@@ -226,6 +229,8 @@ class OwnedHand:
         its error replies (``[code, detail]``, or ``[code, detail, samples]`` for an ``imu_batch``'s
         refused samples, whose valid samples go on) and whether it was accepted (not refused whole).
         ``emit``: as in ``handle_valid``."""
+        if not binary and self.resume_angles is None and (msg := read_fast(data)) is not None:
+            return self.handle_valid(None, msg, emit), True     # (``parse_input``'s first step, without its call)
         try:                                        # the decoded value only for a session taken over (``handle_valid``)
             raw, msg = parse_input(data, binary, value=self.resume_angles is not None)
         except SamplesRefused as err:
