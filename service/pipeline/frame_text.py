@@ -162,9 +162,10 @@ class FrameOutput:
             head = orjson.dumps({"type": "frame", "t": frame.t, "seq": self.seq, "hand": frame.hand}, option=_ORJSON_STRICT)
             status = orjson.dumps(frame.status, option=_ORJSON_STRICT)
             gesture = orjson.dumps(self.annotation, option=_ORJSON_STRICT)
-            for part in (head, status, gesture):
-                if not (part.isascii() and _nulls_all_known(part)):
-                    return None
+            # (asked of the three at once: no ``null`` can span two of them, each a whole object)
+            small = head + status + gesture
+            if not (small.isascii() and _nulls_all_known(small)):
+                return None
             numbers = orjson.dumps(angles.flat, option=_NUMPY)
             positions = orjson.dumps(joints.positions, option=_NUMPY)
             quats = orjson.dumps(joints.quats, option=_NUMPY)

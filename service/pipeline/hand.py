@@ -710,20 +710,21 @@ class HandSession:
                     self._deferred.clear()
                     self._deferred_fits = 0
                     t = min(pending)
-            # a diverging filter is detected and reset, not warned about; the ticks up to the next frame
-            # under one setting (never held across a ``yield``: the caller's own setting applies there);
-            # each tick's time and readiness found once
-            with np.errstate(all="ignore"):
-                while True:
-                    frames = self._steady_run(t, given)
-                    given = None
-                    if frames is None:
-                        frames = self._process_tick(t, pending.pop(t))
-                    if frames or not pending:
-                        break
-                    t = min(pending)
-                    if not self._ready(t):
-                        break
+            # a diverging filter is detected and reset, not warned about: numpy's floating-point warnings are
+            # off while a tick is processed tick by tick (``_tick``; never held across a ``yield``, the caller's
+            # own setting applies there); a steady run's numbers are the compiled kernels', which give none, and
+            # the numpy around them only copies, so it runs without that setting's cost (``_steady_run``); each
+            # tick's time and readiness found once
+            while True:
+                frames = self._steady_run(t, given)
+                given = None
+                if frames is None:
+                    frames = self._tick(t, pending.pop(t))
+                if frames or not pending:
+                    break
+                t = min(pending)
+                if not self._ready(t):
+                    break
             if not frames:
                 return
             yield from frames
@@ -793,7 +794,7 @@ class HandSession:
             return None
         done, modes, phalanx_start, sensor_start = run
         if not done:
-            return self._process_tick(t, pending.pop(t))
+            return self._tick(t, pending.pop(t))
         for u in ts[:done]:
             del pending[u]
         last = ts[done - 1]
@@ -802,12 +803,19 @@ class HandSession:
         finite = math.isfinite(totals[done - 1])
         self._take_together(fingers, layout, phis[done].copy(), modes, phalanx_start, sensor_start, finite)
         self._take_samples(last, ids, readings[done - 1])
-        self._apply_references(last)
+        if self._references:
+            with np.errstate(all="ignore"):     # (a reference pose's numbers: numpy's, as tick by tick)
+                self._apply_references(last)
         frames = self._emit_frames(last)
         if done < n and finite:
             # the kernel stopped before this tick: it is not steady
-            return frames + self._process_tick(ts[done], pending.pop(ts[done]))
+            return frames + self._tick(ts[done], pending.pop(ts[done]))
         return frames
+
+    def _tick(self, t: float, tick: dict) -> list[HandFrame]:
+        """``_process_tick`` with numpy's floating-point warnings off (``_process_ready``)."""
+        with np.errstate(all="ignore"):
+            return self._process_tick(t, tick)
 
     def _process_tick(self, t: float, tick: dict) -> list[HandFrame]:
         try:
