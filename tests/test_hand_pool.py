@@ -1341,3 +1341,105 @@ def test_an_intake_that_fails_leaves_the_connection_and_its_messages_to_the_app_
     assert got == ["hello", {"type": "sync", "id": 9}, {"type": "sync", "id": 19}, {"type": "sync", "id": 29}], got
     assert len(calls) == 3                          # no intake after it failed
     assert sum("intake failed" in r.getMessage() for r in caplog.records) == 1
+
+
+class _Writes:
+    """A worker link's transport that keeps each write."""
+
+    def __init__(self):
+        self.writes: list[bytes] = []
+
+    def write(self, data: bytes) -> None:
+        self.writes.append(data)
+
+    def is_closing(self) -> bool:
+        return False
+
+    def close(self) -> None:
+        pass
+
+    def batches(self) -> list[list]:
+        from service.api.hands.worker import whole_batches
+        return [batch for data in self.writes for batch in whole_batches(bytearray(data))]
+
+
+def test_a_link_with_many_sessions_writes_what_comes_within_its_group_time_at_once_and_one_with_few_each_turn(monkeypatch):
+    """``WorkerLink.send``: with ``GROUP_SESSIONS`` sessions or more, messages queued over several turns of the
+    loop within ``GROUP_S`` of the link's last write wait and go in one write, in order (here a group time no
+    test outlasts, then the stop's write: what waits is written before the close; then a short one, waited for
+    by its write); the first message after a quiet time goes at the end of its turn; with fewer sessions (one
+    hand at 1 kHz) every turn's messages go at the end of that turn."""
+    from service.api.hands import pool as pool_module
+
+    async def run(sessions: int, group_s: float):
+        monkeypatch.setattr(pool_module, "GROUP_S", group_s)
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        link, transport = pool.links[0], _Writes()
+        link._writer = transport
+        link.sessions = {sid: None for sid in range(sessions)}
+        link.send(["a", 0])                         # after a quiet time: at the end of the turn
+        await asyncio.sleep(0)
+        first = len(transport.writes)
+        for k in range(5):
+            link.send(["b", k])
+            link.send(["c", k])
+            if group_s > 60:                        # (a short group time: all in one turn, which no timer splits)
+                await asyncio.sleep(0)
+        for _ in range(5):
+            await asyncio.sleep(0)
+        within = len(transport.writes)
+        if group_s > 60:
+            await link.stop()
+        else:
+            await _until(lambda: len(transport.writes) > first, "the group's write")
+        return first, within, transport.batches()
+
+    many = pool_module.GROUP_SESSIONS
+    everything = [["a", 0], *[m for k in range(5) for m in (["b", k], ["c", k])]]
+    assert asyncio.run(run(many, 3600.0)) == (1, 1, [[["a", 0]], everything[1:]])
+    first, within, batches = asyncio.run(run(many + 3, 0.01))
+    assert first == 1 and batches == [[["a", 0]], everything[1:]]
+    first, within, batches = asyncio.run(run(many - 1, 3600.0))
+    assert (first, within) == (1, 6) and batches == [[["a", 0]], *[[["b", k], ["c", k]] for k in range(5)]]
+    first, within, batches = asyncio.run(run(1, 3600.0))
+    assert (first, within) == (1, 6) and [m for b in batches for m in b] == everything
+
+
+def test_a_worker_s_reply_to_a_run_of_messages_releases_them_as_their_replies_one_by_one_would():
+    """``["reps", sid, first, last]`` (``hands.worker``): the session's messages ``first`` to ``last`` are
+    answered (the source's window, the worker's count of what it owes, the messages received, the pool's count
+    of answers), and an answer due after the run's last message is released, not one due after a later one; a
+    session's ``lost`` errors go to its source with it."""
+    async def run():
+        settings, metrics, live, sent = _offline_session()
+        got = []
+
+        async def error(code, detail, *samples):
+            got.append(code)
+        live.attach_source(error)
+        for _ in range(5):
+            live._send_source("imu", ["chk", "{}", False], None)
+        answers = []
+
+        def answer_after(k):
+            async def answer():
+                answers.append(k)
+            return answer
+        live.answer_in_order(answer_after(5))       # due once 1..5 are answered
+        link, pool = live.link, live.link.pool
+        owed = link.owed
+        live.lost = [["invalid_message", "its calibration"]]
+        link._dispatch(["reps", live.sid, 1, 3])
+        for _ in range(5):
+            await asyncio.sleep(0)
+        middle = (sorted(live._pending), owed - link.owed, pool.answered, list(answers), list(got),
+                  metrics.messages_in.labels("s")._value.get())
+        link._dispatch(["reps", live.sid, 4, 5])
+        await _until(lambda: answers, "the answer due after the run")
+        return middle, (sorted(live._pending), link.owed, pool.answered, answers, got,
+                        metrics.messages_in.labels("s")._value.get())
+
+    middle, end = asyncio.run(run())
+    assert middle == ([4, 5], 3, 3, [], ["invalid_message"], 3)
+    assert end == ([], 0, 5, [5], ["invalid_message"], 5)

@@ -331,6 +331,11 @@ def test_hand_workers_end_when_the_web_process_is_killed_also_a_stopped_one():
                 os.kill(pid, signal.SIGKILL)
 
 
+def _answers(reply: list, n: int) -> bool:
+    """Whether a worker's message is the reply to message ``n`` (a ``rep``, or a ``reps`` run covering it)."""
+    return (reply[0] == "rep" and reply[2] == n) or (reply[0] == "reps" and reply[2] <= n <= reply[3])
+
+
 class _Peer:
     """A ``hands.worker.Worker`` run by a thread of this process, and the web process's end of its socket."""
 
@@ -372,7 +377,14 @@ class _Peer:
                 del self._buffer[:4 + size]
 
     def replies(self, sid: int) -> list:
-        return [m for m in self.received if m[0] == "rep" and m[1] == sid]
+        """The session's replies in order, a ``reps`` run as the ``rep`` of each of its messages."""
+        out = []
+        for m in self.received:
+            if m[0] == "rep" and m[1] == sid:
+                out.append(m)
+            elif m[0] == "reps" and m[1] == sid:
+                out.extend(["rep", sid, n, [], True] for n in range(m[2], m[3] + 1))
+        return out
 
     def close(self) -> None:
         self.ours.close()
@@ -646,7 +658,7 @@ def test_a_worker_does_not_yield_after_a_frame_with_few_ticks_behind_it(monkeypa
             for i, x in enumerate(w):
                 if x[0] == "out" and x[3][0] == "frame":
                     frames += 1
-                    assert any(y[0] == "rep" and y[2] == x[2] for y in w[i + 1:]), w
+                    assert any(_answers(y, x[2]) for y in w[i + 1:]), w
         assert frames >= 100
     finally:
         peer.close()
@@ -774,3 +786,82 @@ def test_the_web_process_gone_in_the_middle_of_a_batch_ends_the_worker():
     peer.ours.close()
     peer.thread.join(60.0)                          # (bounds a failure)
     assert not peer.thread.is_alive()
+
+
+def _answered_in_order(items: list, first: int) -> int:
+    """A session's outputs and replies (``out``, ``rep``, ``reps``) as the worker sent them: each reply answers
+    the next message(s) in order, and each output comes after every earlier message's reply and before its own
+    message's; the last message answered."""
+    answered = first - 1
+    for m in items:
+        if m[0] == "out":
+            assert m[2] == answered + 1, (m[:3], answered)
+        elif m[0] == "rep":
+            assert m[2] == answered + 1, (m[:3], answered)
+            answered = m[2]
+        else:
+            assert m[2] == answered + 1 and m[3] >= m[2], (m, answered)
+            answered = m[3]
+    return answered
+
+
+def test_a_worker_answers_a_run_of_accepted_messages_in_one_reply_in_order_with_their_outputs_and_errors():
+    """Two sessions' data messages (``chk``) interleaved in large batches (a worker with many sessions): the
+    accepted ones without error replies are answered by ``reps`` runs, far fewer replies than messages; every
+    message is answered once, in order, after its outputs and before the next message's; a message refused
+    (invalid JSON) gets a ``rep`` of its own with its error, in its place."""
+    import json
+
+    msgs = {sid: [m for _, m in _messages(hand, 0.5, sid) if m["type"] in ("imu", "imu_batch", "pose")]
+            for sid, hand in ((1, "right"), (2, "left"))}
+    count = len(msgs[1])
+    bad = count // 2 + 2                            # session 1's message number ``bad``: not JSON
+    peer = _Peer()
+    try:
+        peer.send([["open", sid, f"s{sid}", None] for sid in msgs] +
+                  [["src", sid, 1, {"type": "hello", "protocol": 1, "hand": hand, "source": "worker-test"}]
+                   for sid, hand in ((1, "right"), (2, "left"))])
+        checks = [["chk", sid, n, "{not json" if (sid, n) == (1, bad) else json.dumps(m), False]
+                  for n in range(2, count + 2) for sid in msgs if n - 2 < len(msgs[sid]) for m in [msgs[sid][n - 2]]]
+        for i in range(0, len(checks), 16):
+            peer.send(checks[i:i + 16])
+
+        peer.until(lambda: all(len(peer.replies(sid)) == len(msgs[sid]) + 1 for sid in msgs), "every message's reply")
+        for sid in msgs:
+            items = [m for m in peer.received if m[1:2] == [sid] and m[0] in ("out", "rep", "reps")]
+            assert _answered_in_order(items, 1) == len(msgs[sid]) + 1
+            assert sum(m[0] == "out" for m in items) >= 5
+        refused = [m for m in peer.received if m[0] == "rep" and m[1] == 1 and m[2] == bad]
+        assert len(refused) == 1 and refused[0][3][0][0] == "invalid_json" and refused[0][4] is False
+        replies = sum(m[0] in ("rep", "reps") for m in peer.received)
+        assert replies < len(checks) / 2, (replies, len(checks))
+    finally:
+        peer.close()
+
+
+def test_a_worker_with_many_sessions_sends_a_batch_s_outputs_in_one_write_at_its_end():
+    """With ``GROUP_SESSIONS`` sessions a worker sends no frame as soon as it is made (a pose at 1 kHz makes one
+    while it has ticks left, which a worker with few sessions writes alone: the test above): each batch's outputs
+    go in one write with its replies, and each output before its reply."""
+    from service.api.hands import worker as hands_worker
+
+    config = SimConfig(motion="sequence", hand="right", noise="white", seed=7, duration_s=0.3, rate_hz=1000.0)
+    msgs = list(enumerate((m for _, m in source_messages(config)), 2))
+    hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "worker-test"}
+    sessions = range(1, hands_worker.GROUP_SESSIONS + 1)
+    peer = _Peer()
+    try:
+        peer.send([x for sid in sessions for x in (["open", sid, f"s{sid}", None], ["src", sid, 1, hello])])
+        peer.until(lambda: all(len(peer.replies(sid)) == 1 for sid in sessions), "the hellos answered")
+        start = len(peer.writes)
+        for n, m in msgs:
+            peer.send([["src", 1, n, m]])
+            peer.until(lambda: len(peer.replies(1)) == n, f"message {n} answered")
+        writes = peer.writes[start:]
+        assert sum(x[0] == "out" and x[3][0] == "frame" for w in writes for x in w) >= 10
+        for w in writes:
+            for i, x in enumerate(w):
+                if x[0] == "out":
+                    assert any(_answers(y, x[2]) for y in w[i + 1:]), [y[:3] for y in w]
+    finally:
+        peer.close()

@@ -53,7 +53,8 @@ class _Feed:
             if not chunk:
                 return
             buf += chunk
-            answered = sum(m[0] == "rep" for batch in whole_batches(buf) for m in batch)
+            answered = sum(1 if m[0] == "rep" else m[3] - m[2] + 1 if m[0] == "reps" else 0
+                           for batch in whole_batches(buf) for m in batch)
             if answered:
                 with self.changed:
                     self.replies += answered
