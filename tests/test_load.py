@@ -37,6 +37,9 @@ def test_the_load_spread_over_two_generator_processes_is_accounted_for_as_from_o
     assert lv["behind_schedule_beyond_alignment_ms"] is not None
     assert 0.0 < lv["generator_cpu_share_max"] and lv["generator_cpu_share"] >= lv["generator_cpu_share_max"]
     assert 0.0 <= lv["generator_system_cpu_s_per_hand_s"] <= lv["generator_cpu_s_per_hand_s"] and lv["generator_cpu_s_per_hand_s"] > 0.0
+    # no glove sent before its message was due; every message a subscriber read was decoded or compared
+    assert lv["glove_send_lag_ms"]["p50"] >= 0.0 and lv["glove_send_lag_ms"]["max"] >= lv["glove_send_lag_ms"]["p99"]
+    assert lv["subscriber_messages_decoded"] + lv["subscriber_messages_compared"] >= lv["frames_delivered"]
 
 
 def test_the_integrity_check_sees_reordering_and_cross_talk():
@@ -798,3 +801,137 @@ def test_a_load_subscriber_makes_of_any_bytes_what_the_websocket_library_makes_o
             if want["state"] == "OPEN":
                 assert cut_itself, name
     assert len(_outcome_of_library(cases["lengths"], False)[0]["rows"]) == 10     # (the cases mean something)
+
+
+def test_a_session_s_subscribers_take_a_message_decoded_for_another_only_when_its_bytes_are_the_same():
+    """``SessionDecodes``: a message whose bytes equal one already decoded for the session is taken as it
+    is (counted in ``hits``) and let go once every other subscriber took it; one of the same length and
+    the same first bytes that differs further on (another seq) is decoded on its own, and one that does
+    not decode raises though a message of its length and head was kept."""
+    import json
+
+    import msgspec
+
+    from service.bench.loadclients import SessionDecodes
+
+    def text(seq):                                   # the seq past the head the messages are found by
+        return json.dumps({"type": "frame", "pad": "x" * SessionDecodes.KEY, **_frame(seq, "right", 0.1)}).encode()
+
+    shared = SessionDecodes(sharers=2)
+    first = text(12)
+    a = shared.decode(memoryview(bytearray(first)))
+    b = shared.decode(memoryview(bytearray(first)))                 # the other subscriber, the same bytes
+    assert (a.seq, a.hand, a.t) == (b.seq, b.hand, b.t) == (12, "right", 0.1)
+    assert (shared.decoded, shared.hits, len(shared.kept)) == (1, 1, 0)   # both took it: let go
+    assert shared.decode(first).seq == 12 and (shared.decoded, shared.hits) == (2, 1)
+    other = text(21)
+    assert len(other) == len(first) and other[:SessionDecodes.KEY + 8] == first[:SessionDecodes.KEY + 8]
+    assert shared.decode(memoryview(bytearray(other))).seq == 21 and (shared.decoded, shared.hits) == (3, 1)
+    assert shared.decode(first).seq == 12 and (shared.decoded, shared.hits) == (4, 1)     # not taken for the other
+    broken = first[:-1] + b"x"                                      # same length and head, not JSON
+    with pytest.raises(msgspec.DecodeError):
+        shared.decode(broken)
+    assert shared.decode(first).seq == 12 and (shared.decoded, shared.hits) == (4, 2)
+
+
+def test_two_subscribers_sharing_their_session_s_decodes_still_see_their_own_order_and_hands():
+    """Two subscribers of one session with one ``SessionDecodes``, from a real WebSocket server: the first
+    gets frames 1, 2, 3, the second the same frames as 1, 3, 2 and then a frame of the other hand with
+    the seq of one it had: the rows are each subscriber's own, and the integrity check finds the second
+    subscriber's reordering and the foreign hand."""
+    import asyncio
+    import json
+
+    from websockets.asyncio.server import serve
+
+    from service.bench.loadclients import LeanSubscription, SessionDecodes
+
+    order = {"0": [(1, "right"), (2, "right"), (3, "right")], "1": [(1, "right"), (3, "right"), (2, "right"), (4, "left")]}
+
+    async def handler(ws):
+        which = ws.request.path.split("?")[0].rsplit("/", 1)[-1][-1]
+        await ws.send(json.dumps({"type": "hello", "protocol": 1}))
+        for seq, hand in order[which]:
+            await ws.send(json.dumps(_frame(seq, hand, seq / 90)))
+        await ws.wait_closed()
+
+    async def main():
+        async with serve(handler, "127.0.0.1", 0) as server:
+            url = f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}"
+            shared = SessionDecodes()
+            rows = {"0": [], "1": []}
+            subs = [LeanSubscription(url, f"s{k}", "t", lambda m, arrival, k=k: rows[k].append((arrival, 0.0, m.seq, m.hand, m.t)),
+                                     shared=shared) for k in "01"]
+            for s in subs:
+                s.start()
+            while len(rows["0"]) < 3 or len(rows["1"]) < 4:
+                await asyncio.sleep(0.01)
+            for s in subs:
+                await s.close()
+            return rows, shared
+
+    rows, shared = asyncio.run(asyncio.wait_for(main(), 60))
+    assert [(r[2], r[3]) for r in rows["0"]] == order["0"] and [(r[2], r[3]) for r in rows["1"]] == order["1"]
+    assert shared.decoded + shared.hits == 2 + 7 and shared.hits >= 1      # the hellos too; one taken at least
+    assert _integrity({("a", 0): rows["0"]}, {"a": "right"}) == 0
+    assert _integrity({("a", 1): rows["1"]}, {"a": "right"}) == 2
+
+
+def test_the_gloves_timer_wakes_once_per_arm_at_the_latest_time_armed_and_never_before_it():
+    """``_Ticker`` (a ``timerfd`` on Linux): armed twice, it calls back once, not before the later time;
+    armed in the past it calls back at once; closed, it calls back no more. ``stream_gloves`` sends no
+    message before its due time (each lag >= 0, one per message)."""
+    import asyncio
+    import json
+    import sys
+    import time
+
+    from service.bench.loadclients import _Ticker
+
+    async def ticks():
+        loop = asyncio.get_running_loop()
+        calls: list = []
+        ticker = _Ticker(loop, lambda: calls.append(time.monotonic()))
+        assert ticker.precise or not sys.platform.startswith("linux")
+        first = time.monotonic() + 0.002
+        ticker.arm(first)
+        later = time.monotonic() + 0.0055
+        ticker.arm(later)                                   # replaces the first
+        while not calls:
+            await asyncio.sleep(0.001)
+        await asyncio.sleep(0.02)
+        assert len(calls) == 1 and calls[0] >= later
+        ticker.arm(time.monotonic() - 1.0)                  # past: at once
+        while len(calls) < 2:
+            await asyncio.sleep(0.001)
+        ticker.arm(time.monotonic() + 0.003)
+        ticker.close()
+        await asyncio.sleep(0.02)
+        assert len(calls) == 2
+
+    asyncio.run(asyncio.wait_for(ticks(), 60))
+
+    from websockets.asyncio.server import serve
+
+    from service.bench.loadclients import LeanGlove, stream_gloves, ws_frames
+
+    msgs = _imu_messages(60)
+
+    async def handler(ws):
+        async for data in ws:
+            m = json.loads(data)
+            if m["type"] in ("hello", "sync"):
+                await ws.send(json.dumps({"type": "hello", "protocol": 1} if m["type"] == "hello" else m))
+
+    async def stream():
+        async with serve(handler, "127.0.0.1", 0) as server:
+            glove = LeanGlove(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "g", "t")
+            await glove.open(msgs[0][1])
+            lags: list = []
+            await stream_gloves([glove], [msgs], [ws_frames([json.dumps(m) for _, m in msgs])], [lambda w, m: None],
+                                time.perf_counter(), lags=lags)
+            await glove.close()
+            return lags
+
+    lags = asyncio.run(asyncio.wait_for(stream(), 60))
+    assert len(lags) == len(msgs) and min(lags) >= 0.0

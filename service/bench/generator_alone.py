@@ -7,7 +7,8 @@ pipeline made (about 7 kB of JSON). This process streams ``hands`` simulated glo
 subscribers per hand, with ``bench load``'s clients (``lean``: ``loadclients``) or the product's
 (``product``: ``clients.glove.stream_glove`` and ``clients.client.Subscription`` decoding every frame, as
 ``bench load``'s generator did before), and prints its own CPU time per second of one hand's data
-(user + system, and system alone) while the gloves stream, as JSON. The sink's CPU is not counted;
+(user + system, and system alone) while the gloves stream, and (lean clients) how late the gloves sent
+their messages (p50 and p99 of send time minus due time), as JSON. The sink's CPU is not counted;
 it shares the machine.
 """
 from __future__ import annotations
@@ -68,7 +69,9 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
     from clients.glove import encoded_messages, source_messages, stream_glove
     from service.sim.session import SimConfig
 
-    from .loadclients import LeanGlove, LeanSubscription, stream_gloves, ws_frames
+    import numpy as np
+
+    from .loadclients import LeanGlove, LeanSubscription, SessionDecodes, stream_gloves, ws_frames
 
     configs = [SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=i,
                          hand="right" if i % 2 == 0 else "left") for i in range(hands)]
@@ -79,7 +82,8 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
     if clients == "lean":
         def count(_msg, _arrival):
             frames[0] += 1
-        subs = [LeanSubscription(url, n, "t", count) for n in names for _ in range(2)]
+        shared = {n: SessionDecodes() for n in names}
+        subs = [LeanSubscription(url, n, "t", count, shared=shared[n]) for n in names for _ in range(2)]
         for s in subs:
             s.start()
         gloves = [LeanGlove(url, n, "t") for n in names]
@@ -99,9 +103,10 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
             await asyncio.sleep(0.05)
     gc.collect()                              # as ``bench load``'s generator: the simulated messages kept
     gc.freeze()                               # out of the collector's generations while they stream
+    lags: list[float] = []
     cpu0, sys0, wall0 = time.process_time(), os.times().system, time.perf_counter()
     if clients == "lean":
-        await stream_gloves(gloves, msgs, framed, [lambda w, m: None] * hands, wall0)
+        await stream_gloves(gloves, msgs, framed, [lambda w, m: None] * hands, wall0, lags=lags)
     else:
         pubs = await asyncio.gather(*(stream_glove(url, n, "t", c, messages=m, encoded=e)
                                       for n, c, m, e in zip(names, configs, msgs, encoded)))
@@ -120,7 +125,9 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
         await asyncio.gather(*readers, return_exceptions=True)
     return {"clients": clients, "hands": hands, "seconds": seconds, "stream_wall_s": wall, "frames_received": frames[0],
             "frames_sent": expected,
-            "cpu_ms_per_hand_s": 1e3 * cpu / (hands * seconds), "system_ms_per_hand_s": 1e3 * system / (hands * seconds)}
+            "cpu_ms_per_hand_s": 1e3 * cpu / (hands * seconds), "system_ms_per_hand_s": 1e3 * system / (hands * seconds),
+            "send_lag_ms_p50_p99": ([round(float(x), 3) for x in np.percentile(np.array(lags) * 1e3, [50, 99])]
+                                    if lags else None)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -22,8 +22,10 @@ level it reports:
 
 The gloves and subscribers run in load-generator processes (``GENERATOR_HANDS`` hands each, or
 ``--generators N``), started together once each has simulated its gloves, framed their messages,
-connected them and opened its subscriptions; a process's gloves are sent from one timer and its
-subscribers read each frame for the checked fields only as it arrives (``loadclients``). Each reports
+connected them and opened its subscriptions; a process's gloves are sent from one timer, each message
+at its due time (their lag behind it is reported), and its subscribers read each frame for the checked
+fields only as it arrives, a session's second subscriber comparing its bytes with the first's decoded
+message (``loadclients``). Each reports
 its frames, and the frames' delay behind the source's schedule beyond the pipeline's alignment wait
 (``_timing``), back as JSON.
 """
@@ -47,11 +49,11 @@ from .process import bound_to_this_process, service_process, torn_down_on_signal
 
 
 
-GENERATOR_HANDS = 16
+GENERATOR_HANDS = 25
 """hands per load-generator process (gloves and subscribers); more hands: more processes. Each process
-wakes at every tick of its gloves' schedule (about 290 a second) whatever its number of hands, and a
-wake costs about 50 us of CPU here: 16 hands share them where 8 did (``generator_alone``: 9.7 against
-13.3 ms of CPU per hand per second)"""
+wakes at every tick of its gloves' schedule (about 280 a second) whatever its number of hands, and a
+wake costs about 50 us of CPU here: 25 hands share them where 16 did (a process of 25 hands used about
+a third of a core at most: far from being the bottleneck)"""
 
 
 def generator_processes(hands: int) -> int:
@@ -97,7 +99,7 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     once set, ends the gloves' streams early."""
     from clients.glove import encoded_messages, source_messages
 
-    from .loadclients import LeanGlove, LeanSubscription, stream_gloves, ws_frames
+    from .loadclients import LeanGlove, LeanSubscription, SessionDecodes, stream_gloves, ws_frames
 
     urls, viewer, subscribers, seconds, binary = spec["urls"], spec["viewer"], spec["subscribers"], spec["seconds"], spec["binary"]
     indices = spec["indices"]
@@ -122,9 +124,11 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             rows.append((arrival, arrival - sent if sent > 0 else np.nan, msg.seq, msg.hand, msg.t))
         return on_frame
 
-    # read as they arrive, decoded only for the fields checked (``loadclients``)
+    # read as they arrive, decoded only for the fields checked (``loadclients``); a session's subscribers
+    # get the same bytes: one decodes a message, the others compare theirs with it whole (``SessionDecodes``)
+    shared = {n: SessionDecodes(binary, subscribers) for n in names}
     subs = {(n, k): LeanSubscription(urls[(i + k) % len(urls)], n, viewer, on_frame_for(n, received[(n, k)]),
-                                     binary=binary)
+                                     binary=binary, shared=shared[n])
             for i, n in zip(indices, names) for k in range(subscribers)}
     for s in subs.values():
         s.start()
@@ -147,7 +151,8 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
 
     cpu0, sys0, wall0 = time.process_time(), os.times().system, time.perf_counter()
     first_send = {n: wall0 for n in names}   # every glove's schedule starts then (its first message is due)
-    await stream_gloves(gloves, msgs, frames, [on_send_for(n) for n in names], wall0, stop)   # one timer for all
+    lags: list[float] = []                   # each message's send time minus its due time
+    await stream_gloves(gloves, msgs, frames, [on_send_for(n) for n in names], wall0, stop, lags)   # one timer for all
     await asyncio.sleep(0.1)
     wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     generator_sys = os.times().system - sys0
@@ -181,7 +186,10 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             "malformed": sum(s.malformed_count for s in subs.values()),
             "malformed_examples": [repr(m) for s in subs.values() for m in s.malformed][:10],
             "gestures": sum(s.gestures for s in subs.values()), "other_messages": sum(s.others for s in subs.values()),
-            "wall_s": wall, "generator_cpu_s": generator_cpu, "generator_system_cpu_s": generator_sys}
+            "wall_s": wall, "generator_cpu_s": generator_cpu, "generator_system_cpu_s": generator_sys,
+            "send_lags_us": np.round(np.array(lags) * 1e6).astype(int).tolist(),
+            "messages_decoded": sum(d.decoded for d in shared.values()),
+            "messages_compared": sum(d.hits for d in shared.values())}
 
 
 def _generator_main() -> int:
@@ -309,6 +317,9 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
             "generator_processes": len(results), "generator_cpu_share": sum(shares),
             "generator_system_cpu_s": sum(r["generator_system_cpu_s"] for r in results),
             "generator_cpu_share_max": max(shares),
+            "send_lag_ms": _quantiles(np.array([x for r in results for x in r["send_lags_us"]]) * 1e-3),
+            "messages_decoded": sum(r["messages_decoded"] for r in results),
+            "messages_compared": sum(r["messages_compared"] for r in results),
             "service_cpu_until_drained_s": None if service0 is None or service2 is None else service2 - service0,
             "until_drained_wall_s": busy_wall,
             "errors": sum(r["errors"] for r in results),
@@ -518,6 +529,12 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                    / (hands * seconds)),
         "generator_processes": lvl["generator_processes"],
         "generator_cpu_share_max": lvl["generator_cpu_share_max"],
+        # how late the gloves sent their messages (send time minus due time, every message): the
+        # generator's own lag, which the frames' delay behind schedule includes
+        "glove_send_lag_ms": lvl["send_lag_ms"],
+        # the subscribers' messages decoded, and those compared whole with a decoded one of the session
+        "subscriber_messages_decoded": lvl["messages_decoded"],
+        "subscriber_messages_compared": lvl["messages_compared"],
         # the generator's CPU seconds (user + system; system alone) per second of one hand's data
         "generator_cpu_s_per_hand_s": lvl["generator_cpu_s"] / (hands * seconds),
         "generator_system_cpu_s_per_hand_s": lvl["generator_system_cpu_s"] / (hands * seconds),
@@ -581,9 +598,10 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
              "| hands | frames produced | delivered / expected | dropped | unaccounted | send -> receive p50 / p99, ms | "
              "behind schedule beyond the alignment wait p50 / p99 / max, ms | alignment wait p50 / p99, ms | "
              "service still busy after the stream, s | service CPU, % of a core | "
-             "generator CPU, % of a core (processes; busiest, %) | integrity violations | source errors | "
+             "generator CPU, % of a core (processes; busiest, %) | gloves' send lag p50 / p99, ms | "
+             "integrity violations | source errors | "
              "/health p50 / p99, ms | /metrics p50 / p99, ms | reconnects: subscribers / gloves |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         lat = lv["latency_ms"]
         lat_s = "-" if lat is None else f"{lat['p50']:.1f} / {lat['p99']:.1f}"
@@ -594,10 +612,12 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
         cpu = "-" if lv["service_cpu_share"] is None else f"{100 * lv['service_cpu_share']:.0f}"
         gen = (f"{100 * lv['generator_cpu_share']:.0f} ({lv['generator_processes']}; "
                f"{100 * lv['generator_cpu_share_max']:.0f})")
+        lag = lv.get("glove_send_lag_ms")
+        lag_s = "-" if not lag else f"{lag['p50']:.2f} / {lag['p99']:.2f}"
         probe = lv.get("probe") or {}
         lines.append(f"| {lv['hands']} | {lv['frames_produced']} | {lv['frames_delivered']} / {lv['frames_expected']} | "
                      f"{lv['frames_dropped']} | {lv['frames_unaccounted']} | {lat_s} | {delay_s} | {align_s} | "
-                     f"{lv['drain_after_stream_s']:.1f} | {cpu} | {gen} | "
+                     f"{lv['drain_after_stream_s']:.1f} | {cpu} | {gen} | {lag_s} | "
                      f"{lv['integrity_violations']} | {lv['source_errors']} | {_ms(probe.get('health'))} | {_ms(probe.get('metrics'))} | "
                      f"{lv.get('subscriber_reconnects', '-')} / {lv.get('glove_reconnects', '-')} |")
     front = "web process" if bus_workers is None else "gateways"
@@ -636,7 +656,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "which are then neither delivered nor counted as dropped. Each level runs in a fresh service; "
               f"the generator (gloves and subscribers, {GENERATOR_HANDS} hands per process) shares the machine with it: "
               "its CPU is the sum over its processes while they stream, the busiest process's share beside it (near "
-              "100 % it would be the bottleneck)."]
+              "100 % it would be the bottleneck). Gloves' send lag: each message's send time minus its due time by "
+              "the source's schedule, over every message (the gloves' timer wakes at the due times to the kernel "
+              "timer's precision; a lag there, e.g. a generator short of CPU, is in the delay behind schedule too)."]
     text = "\n".join(lines) + "\n"
     if out is not None:
         (out / "summary.md").write_text(text)

@@ -9,16 +9,22 @@ the transport's own callbacks, with no task, queue or future per message:
   ``msgspec``), as it arrives, in place: the transport reads into the connection's own buffer
   (``asyncio.BufferedProtocol``), where whole server messages are cut without websockets' parser
   (every other frame, and the handshake, still go to the protocol); a message that does not decode, or a frame without those fields, is counted
-  (``malformed_count``), not dropped silently. It reconnects with back-off, as
-  ``clients.client.Subscription`` does, counting ``reconnects``.
+  (``malformed_count``), not dropped silently. A session's subscribers may share a ``SessionDecodes``:
+  they get the same bytes, and one compares its whole message with one the other decoded before taking
+  its fields. It reconnects with back-off, as ``clients.client.Subscription`` does, counting ``reconnects``.
 * ``LeanGlove`` streams a simulated glove's messages, each framed (masked) before the clock starts
   (``ws_frames``) and written as it is, with ``clients.client.Publisher``'s flow control (a ``sync``
   every 64 messages, at most 256 unconfirmed) and its reconnect (hello and calibration sent again);
-  ``stream_gloves`` sends every glove of a process from one timer: at each wake, every message due.
+  ``stream_gloves`` sends every glove of a process from one timer (a ``timerfd``: at the due time to
+  the kernel timer's precision, where asyncio's timers come up to 1 ms late): at each wake, every
+  message due.
 """
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import os
+import sys
 import time
 from typing import Callable
 
@@ -50,6 +56,44 @@ def decode_received(data: bytes | memoryview | str, binary: bool) -> Received:
     """``data`` (a whole WebSocket message) read for ``Received``'s fields; raises
     ``msgspec.DecodeError`` (a ``ValueError``) for what is not such a message."""
     return _DECODERS[binary].decode(data)
+
+
+class SessionDecodes:
+    """The messages one session's subscribers decoded and its other subscribers have not all read yet,
+    kept as their bytes and ``Received``, so that the session's other subscribers, which get the same
+    bytes (the service encodes a frame once for all of them), take a decode only after comparing their
+    whole message with one already decoded: equal bytes decode to the same fields, and a message that
+    differs in any byte is decoded on its own. Found by the message's length and first ``KEY`` bytes
+    (a frame's type, time and seq); a kept message is let go once ``sharers - 1`` others took it, or
+    when ``KEEP`` newer ones are kept (a subscriber that far behind the other decodes for itself).
+    ``hits`` counts the messages taken so, ``decoded`` the ones decoded."""
+
+    KEY, KEEP = 48, 256
+
+    def __init__(self, binary: bool = False, sharers: int = 2):
+        self.binary = binary
+        self.sharers = sharers
+        self.kept: dict[tuple[int, bytes], list] = {}       # (length, head) -> [bytes, Received, taken]
+        self.hits = self.decoded = 0
+
+    def decode(self, data: bytes | memoryview) -> Received:
+        """``decode_received(data)``; raises as it does (nothing undecodable is kept)."""
+        data = bytes(data)                          # (bytes with bytes: a memcmp; with a memoryview: per item)
+        key = (len(data), data[:self.KEY])
+        kept = self.kept.get(key)
+        if kept is not None and kept[0] == data:
+            self.hits += 1
+            kept[2] += 1
+            if kept[2] >= self.sharers - 1:
+                del self.kept[key]
+            return kept[1]
+        msg = _DECODERS[self.binary].decode(data)
+        self.decoded += 1
+        if self.sharers > 1:
+            self.kept[key] = [data, msg, 0]         # (a message with the same key as a kept one replaces it)
+            if len(self.kept) > self.KEEP:
+                del self.kept[next(iter(self.kept))]
+        return msg
 
 
 READ_SIZE = 65536
@@ -289,12 +333,15 @@ class LeanSubscription(_LeanConnection):
     did not decode and the frames without their ``seq``, ``hand`` or ``t`` (``malformed`` keeps the
     first 10, as read); they are not passed on. ``start()`` connects in the background (reconnecting
     after a drop, with back-off, counted in ``reconnects``); ``close()`` ends it and raises what refused
-    it for good, if anything did."""
+    it for good, if anything did. ``shared``: the session's ``SessionDecodes``, which its other
+    subscribers use too."""
 
     def __init__(self, url: str, session: str, token: str, on_frame: Callable[[Received, float], None],
-                 binary: bool = False, backoff: Backoff | None = None):
+                 binary: bool = False, backoff: Backoff | None = None, shared: SessionDecodes | None = None):
         super().__init__(_url(url, _path("stream", session), token, binary))
         self.binary = binary
+        self._decode = (shared.decode if shared is not None and shared.binary == binary
+                        else _DECODERS[binary].decode)
         self.on_frame = on_frame
         self.gestures = self.others = 0
         self.backoff = backoff or Backoff()
@@ -325,7 +372,7 @@ class LeanSubscription(_LeanConnection):
 
     def _message(self, data: bytes | memoryview, binary: bool, arrival: float) -> None:
         try:
-            msg = decode_received(data, binary)
+            msg = self._decode(data) if binary == self.binary else decode_received(data, binary)
         except (msgspec.DecodeError, UnicodeDecodeError):
             self._malformed(bytes(data[:200]))
             return
@@ -513,30 +560,125 @@ PER_WAKE = 32
 over several turns of the loop, the subscribers read in between)"""
 
 
+class _Ticker:
+    """Calls ``callback`` at an absolute ``time.monotonic()`` time (``arm``; a later ``arm`` replaces
+    it) with the kernel's timer precision: a ``timerfd`` (Linux) read by the event loop. asyncio's own
+    timers wait in ``epoll``, whose timeout is whole milliseconds, rounded up: a glove's message due in
+    3.4 ms went out at 4 ms, its frame then counted that much more behind schedule. Elsewhere (no
+    ``timerfd``) ``loop.call_at``. ``close()`` stops it."""
+
+    CLOCK_MONOTONIC, TFD_NONBLOCK, TFD_CLOEXEC, TFD_TIMER_ABSTIME = 1, 0o4000, 0o2000000, 1
+
+    def __init__(self, loop: asyncio.AbstractEventLoop, callback: Callable[[], None]):
+        self.loop, self.callback = loop, callback
+        self._handle: asyncio.TimerHandle | None = None
+        self._fd = -1
+        timerfd = _timerfd()
+        if timerfd is not None:
+            create, self._settime, self._spec = timerfd
+            fd = create(self.CLOCK_MONOTONIC, self.TFD_NONBLOCK | self.TFD_CLOEXEC)
+            if fd >= 0:
+                self._fd = fd
+                loop.add_reader(fd, self._expired)
+
+    @property
+    def precise(self) -> bool:
+        return self._fd >= 0
+
+    def arm(self, when: float) -> None:
+        if self._fd >= 0:
+            sec = int(when)
+            spec = self._spec(0, 0, sec, max(int((when - sec) * 1e9), 0 if sec else 1))     # (all zero: disarmed)
+            if self._settime(self._fd, self.TFD_TIMER_ABSTIME, ctypes.byref(spec), None) != 0:
+                raise OSError(ctypes.get_errno(), "timerfd_settime failed")
+            return
+        if self._handle is not None:
+            self._handle.cancel()
+        self._handle = self.loop.call_at(self.loop.time() + (when - time.monotonic()), self._expired)
+
+    def _expired(self) -> None:
+        if self._fd >= 0:
+            try:
+                os.read(self._fd, 8)
+            except BlockingIOError:                 # re-armed after it expired and before it was read
+                return
+        else:
+            self._handle = None
+        self.callback()
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            self.loop.remove_reader(self._fd)
+            os.close(self._fd)
+            self._fd = -1
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
+
+
+_TIMERFD: list = []
+
+
+def _timerfd():
+    """libc's ``timerfd_create`` and ``timerfd_settime`` with the ``itimerspec`` structure they take,
+    looked up once (Linux); None elsewhere."""
+    if not _TIMERFD:
+        found = None
+        if sys.platform.startswith("linux"):
+            try:
+                libc = ctypes.CDLL(None, use_errno=True)
+                create, settime = libc.timerfd_create, libc.timerfd_settime
+            except (OSError, AttributeError):
+                pass
+            else:
+                create.argtypes, create.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+
+                class ItimerSpec(ctypes.Structure):
+                    _fields_ = [("interval_s", ctypes.c_long), ("interval_ns", ctypes.c_long),
+                                ("value_s", ctypes.c_long), ("value_ns", ctypes.c_long)]
+                settime.argtypes = [ctypes.c_int, ctypes.c_int, ctypes.POINTER(ItimerSpec), ctypes.c_void_p]
+                settime.restype = ctypes.c_int
+                found = (create, settime, ItimerSpec)
+        _TIMERFD.append(found)
+    return _TIMERFD[0]
+
+
 async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float, dict]]], frames: list[list[bytes]],
-                        on_send: list[Callable[[float, dict], None]], start: float, stop=None) -> None:
+                        on_send: list[Callable[[float, dict], None]], start: float, stop=None,
+                        lags: list[float] | None = None) -> None:
     """Stream every glove in real time from one timer: glove i's message j is due ``messages[i][j][0] -
     messages[i][0][0]`` s after ``start`` (``time.perf_counter()``) and written as ``frames[i][j]``; at
     each wake every glove that is ``ready()`` writes what is due, the gloves taken in turn from a
     different one each wake (a glove not ready, e.g. held by flow control, waits without holding the
     others), then ``on_send[i](time.perf_counter(), message)``. A ``hello`` is not written
-    (``LeanGlove.open`` sent it). ``stop``: a ``threading.Event`` that ends the stream early once set."""
+    (``LeanGlove.open`` sent it). The wakes come at the due times to the kernel timer's precision
+    (``_Ticker``), never before. ``stop``: a ``threading.Event`` that ends the stream early once set.
+    ``lags``: each message's send time minus its due time is appended there (s)."""
     loop = asyncio.get_running_loop()
-    t0 = loop.time() + (start - time.perf_counter())
+    mono = time.monotonic()
+    t0 = mono + (start - time.perf_counter())       # ``start`` on the monotonic clock (the timer's)
     due = [[t0 + (a - m[0][0]) for a, _ in m] for m in messages]
     turn = [0]
     pos = [0] * len(gloves)
     done = loop.create_future()
-    timer: list = [None, 0.0]                       # the pending wake and its time
+    soon: list = [None]                             # a wake asked for at once (call_soon), not yet run
+    ticker = _Ticker(loop, lambda: fire())
+    perf_counter, monotonic = time.perf_counter, time.monotonic
 
     def wake(when: float | None = None) -> None:
-        if timer[0] is not None:
-            timer[0].cancel()
-        timer[0], timer[1] = (loop.call_soon(fire), loop.time()) if when is None else (loop.call_at(when, fire), when)
+        if when is not None:
+            ticker.arm(when)
+        elif soon[0] is None:
+            soon[0] = loop.call_soon(fire_soon)
+
+    def fire_soon() -> None:
+        soon[0] = None
+        fire()
 
     def fire() -> None:
-        now = max(loop.time(), timer[1])
-        timer[0] = None
+        if done.done():
+            return
+        now = monotonic()
         if stop is not None and stop.is_set():
             done.set_result(None)
             return
@@ -551,7 +693,9 @@ async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float
                 msg = messages[i][j][1]
                 if msg.get("type") != "hello":
                     glove.write(frames[i][j], msg)
-                on_send[i](time.perf_counter(), msg)
+                on_send[i](perf_counter(), msg)
+                if lags is not None:
+                    lags.append(monotonic() - d[j])
                 j += 1
                 sent += 1
             pos[i] = j
@@ -568,20 +712,25 @@ async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float
             wake(nearest)
 
     def on_ready() -> None:                         # a glove held back may write again
-        if not done.done() and (timer[0] is None or timer[1] > loop.time()):
+        if not done.done():
             wake()
 
     for g in gloves:
         g.on_ready = on_ready
-    wake()
-    if stop is not None:
-        async def watch():
-            while not done.done():
-                await asyncio.sleep(0.05)
-                if stop.is_set() and not done.done():
-                    wake()
-        watcher = loop.create_task(watch())
-        await done
-        watcher.cancel()
-    else:
-        await done
+    try:
+        wake()
+        if stop is not None:
+            async def watch():
+                while not done.done():
+                    await asyncio.sleep(0.05)
+                    if stop.is_set() and not done.done():
+                        wake()
+            watcher = loop.create_task(watch())
+            await done
+            watcher.cancel()
+        else:
+            await done
+    finally:
+        ticker.close()
+        if soon[0] is not None:
+            soon[0].cancel()
