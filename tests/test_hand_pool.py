@@ -1378,6 +1378,8 @@ def test_a_link_with_many_sessions_writes_what_comes_within_its_group_time_at_on
         link, transport = pool.links[0], _Writes()
         link._writer = transport
         link.sessions = {sid: None for sid in range(sessions)}
+        for sid in range(sessions):                 # each sent a source message just now
+            link.active.note(sid, time.monotonic())
         link.send(["a", 0])                         # after a quiet time: at the end of the turn
         await asyncio.sleep(0)
         first = len(transport.writes)
@@ -1443,3 +1445,45 @@ def test_a_worker_s_reply_to_a_run_of_messages_releases_them_as_their_replies_on
     middle, end = asyncio.run(run())
     assert middle == ([4, 5], 3, 3, [], ["invalid_message"], 3)
     assert end == ([], 0, 5, [5], ["invalid_message"], 5)
+
+
+def test_open_but_silent_sessions_make_no_link_group_its_writes():
+    """Grouping counts the sessions that sent source messages lately (``ActiveSessions``): a link with many
+    sessions of which fewer than ``GROUP_SESSIONS`` sent one (one hand at 1 kHz beside idle sessions) writes
+    every turn's messages at the end of that turn."""
+    from service.api.hands import pool as pool_module
+
+    async def run():
+        pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
+        pool.loop = asyncio.get_running_loop()
+        link, transport = pool.links[0], _Writes()
+        link._writer = transport
+        link.sessions = {sid: None for sid in range(pool_module.GROUP_SESSIONS + 3)}
+        for sid in range(pool_module.GROUP_SESSIONS - 1):
+            link.active.note(sid, time.monotonic())
+        for k in range(5):
+            link.send(["b", k])
+            await asyncio.sleep(0)
+        return len(transport.writes)
+
+    assert asyncio.run(run()) == 5
+
+
+def test_active_sessions_count_from_their_first_message_and_let_the_silent_go_after_active_s():
+    """``ActiveSessions``: a session counts at once; one silent for more than ``ACTIVE_S`` is let go at the
+    next sweep (at most every ``ACTIVE_S / 2``), one that sent meanwhile is kept."""
+    from service.api.hands.worker import ACTIVE_S, GROUP_SESSIONS, ActiveSessions
+
+    active = ActiveSessions()
+    assert not active.many(0.0)
+    for sid in range(GROUP_SESSIONS):
+        active.note(sid, 0.0)
+    assert active.many(0.1)                         # at once, before any sweep is due
+    active.note(0, 0.9 * ACTIVE_S)
+    assert active.many(ACTIVE_S)                    # swept now: none older than ACTIVE_S yet
+    assert active.many(1.4 * ACTIVE_S)              # no sweep due before 1.5 ACTIVE_S: the silent still count
+    assert not active.many(1.5 * ACTIVE_S)          # swept: only session 0 sent within ACTIVE_S
+    assert set(active.seen) == {0}
+    for sid in range(1, GROUP_SESSIONS):
+        active.note(sid, 1.6 * ACTIVE_S)
+    assert active.many(1.6 * ACTIVE_S)

@@ -805,13 +805,16 @@ def _answered_in_order(items: list, first: int) -> int:
     return answered
 
 
-def test_a_worker_answers_a_run_of_accepted_messages_in_one_reply_in_order_with_their_outputs_and_errors():
+def test_a_worker_answers_a_run_of_accepted_messages_in_one_reply_in_order_with_their_outputs_and_errors(monkeypatch):
     """Two sessions' data messages (``chk``) interleaved in large batches (a worker with many sessions): the
     accepted ones without error replies are answered by ``reps`` runs, far fewer replies than messages; every
     message is answered once, in order, after its outputs and before the next message's; a message refused
     (invalid JSON) gets a ``rep`` of its own with its error, in its place."""
     import json
 
+    from service.api.hands import worker as hands_worker
+
+    monkeypatch.setattr(hands_worker, "FLUSH_S", 3600.0)   # a batch's replies in one write however slow the machine
     msgs = {sid: [m for _, m in _messages(hand, 0.5, sid) if m["type"] in ("imu", "imu_batch", "pose")]
             for sid, hand in ((1, "right"), (2, "left"))}
     count = len(msgs[1])
@@ -839,12 +842,16 @@ def test_a_worker_answers_a_run_of_accepted_messages_in_one_reply_in_order_with_
         peer.close()
 
 
-def test_a_worker_with_many_sessions_sends_a_batch_s_outputs_in_one_write_at_its_end():
+@pytest.mark.parametrize("idle_others", [False, True])
+def test_a_worker_with_many_sessions_sends_a_batch_s_outputs_in_one_write_at_its_end(monkeypatch, idle_others):
     """With ``GROUP_SESSIONS`` sessions a worker sends no frame as soon as it is made (a pose at 1 kHz makes one
     while it has ticks left, which a worker with few sessions writes alone: the test above): each batch's outputs
     go in one write with its replies, and each output before its reply."""
     from service.api.hands import worker as hands_worker
 
+    # the other sessions' hellos keep them active, or (idle_others) only the batch's own sessions count: then
+    # the worker has one active session and sends a frame made while ticks are left at once, alone
+    monkeypatch.setattr(hands_worker, "ACTIVE_S", 0.0 if idle_others else 3600.0)
     config = SimConfig(motion="sequence", hand="right", noise="white", seed=7, duration_s=0.3, rate_hz=1000.0)
     msgs = list(enumerate((m for _, m in source_messages(config)), 2))
     hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "worker-test"}
@@ -859,9 +866,11 @@ def test_a_worker_with_many_sessions_sends_a_batch_s_outputs_in_one_write_at_its
             peer.until(lambda: len(peer.replies(1)) == n, f"message {n} answered")
         writes = peer.writes[start:]
         assert sum(x[0] == "out" and x[3][0] == "frame" for w in writes for x in w) >= 10
-        for w in writes:
-            for i, x in enumerate(w):
-                if x[0] == "out":
-                    assert any(_answers(y, x[2]) for y in w[i + 1:]), [y[:3] for y in w]
+        alone = sum(x[0] == "out" and not any(_answers(y, x[2]) for y in w[i + 1:])
+                    for w in writes for i, x in enumerate(w))
+        if idle_others:
+            assert alone > 0
+        else:
+            assert alone == 0, [[y[:3] for y in w] for w in writes]
     finally:
         peer.close()

@@ -9,7 +9,8 @@ unanswered, beyond that the source waits); the worker's replies become the sourc
 and its frames and gesture events go to the subscribers as the bytes the worker encoded them to (this
 process decodes a frame only to answer a summary or to move its session). What is sent to a worker
 within one turn of the event loop goes in one write (a batch). A worker with at least ``GROUP_SESSIONS``
-sessions is written at most every ``GROUP_S``: a message queued sooner after the last write waits for the
+active sessions (a source message within about ``hands.worker.ACTIVE_S``: open but silent ones do not count)
+is written at most every ``GROUP_S``: a message queued sooner after the last write waits for the
 end of that time, with everything else queued meanwhile (one write and one wake of the worker for what
 would have been several); one queued later goes at the end of its turn, as with fewer sessions (a single
 hand, e.g. at 1 kHz, waits for nothing; a message waits at most ``GROUP_S`` more). Such a worker sends its
@@ -101,7 +102,7 @@ from ...protocol.wire import fast_fields_only
 from ..buffers import read_buffer
 from ..outgoing import Outgoing
 from ..sessions import LiveSession, SessionConfig, SessionConfigChange
-from .worker import GROUP_SESSIONS, HEADER, frame
+from .worker import GROUP_SESSIONS, HEADER, ActiveSessions, frame
 
 log = logging.getLogger("fingertrack")
 WINDOW = 512
@@ -120,7 +121,7 @@ run (a turn of the loop per frame, and a wake of every subscriber's sender per f
 more than moving the frame); at most half a subscriber queue (``subscriber_queue_frames``), so that no
 frame is dropped for it"""
 GROUP_S = 0.002
-"""the least time between two writes to a worker with ``GROUP_SESSIONS`` sessions or more, s"""
+"""the least time between two writes to a worker with ``GROUP_SESSIONS`` active sessions or more, s"""
 CONFIG_WAIT_S = 300.0
 """longest wait for a worker to apply a configuration change (it may compile an estimator first), s"""
 CAUGHT_UP = 16
@@ -168,6 +169,8 @@ class WorkerLink:
         self._held: list = []                       # while restarting: messages other than source messages
         self._restarting = False
         self._flush_scheduled = False
+        self.active = ActiveSessions()
+        """its sessions that sent source messages lately (``GROUP_SESSIONS`` counts these)"""
         self._flush_timer: asyncio.TimerHandle | None = None
         """the delayed write of a grouping worker (``GROUP_S``), while one is due"""
         self._flushed = float("-inf")
@@ -211,7 +214,7 @@ class WorkerLink:
 
     def send(self, message: list) -> None:
         """Queue a message for the worker; what is queued within one turn of the loop goes in one write, and
-        with ``GROUP_SESSIONS`` sessions or more, what is queued within ``GROUP_S`` of its last write (module
+        with ``GROUP_SESSIONS`` active sessions or more, what is queued within ``GROUP_S`` of its last write (module
         docstring). While the worker restarts, only ``close`` is held here: each session's ``reopen`` sends the
         rest (its state, its unanswered source messages and configuration changes)."""
         if self._restarting:
@@ -222,7 +225,8 @@ class WorkerLink:
         if not self._flush_scheduled:
             self._flush_scheduled = True
             loop = self.pool.loop or asyncio.get_running_loop()
-            wait = self._flushed + GROUP_S - time.monotonic() if len(self.sessions) >= GROUP_SESSIONS else 0.0
+            now = time.monotonic()
+            wait = self._flushed + GROUP_S - now if self.active.many(now) else 0.0
             if wait > 0.0:
                 self._flush_timer = loop.call_later(wait, self._flush)
             else:
@@ -960,6 +964,7 @@ class ProcessSession(LiveSession):
         self._n += 1
         self.link.owe()
         self._pending[self._n] = (kind, body, time.perf_counter(), kept)
+        self.link.active.note(self.sid, time.monotonic())
         self.link.owed += 1
         self._tell_worker()
         self.link.send([body[0], self.sid, self._n, *body[1:]])

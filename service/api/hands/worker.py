@@ -115,9 +115,12 @@ AT_ONCE_BATCH = 4
 """in a batch of at most this many messages every frame goes back as soon as it is made (``handle_batch``):
 one hand at 1 kHz sends a worker 1-3 at a time, a pose first in 2 of 3 of them when the machine is busy"""
 GROUP_SESSIONS = 4
-"""a worker with at least this many sessions sends its outputs once per batch (or every ``FLUSH_S`` of a long
-one), none as soon as it is made (``handle_batch``); the web process writes to it at most every ``GROUP_S`` then
-(``hands.pool``)"""
+"""a worker with at least this many active sessions (``ActiveSessions``) sends its outputs once per batch (or
+every ``FLUSH_S`` of a long one), none as soon as it is made (``handle_batch``); the web process writes to it at
+most every ``GROUP_S`` then (``hands.pool``)"""
+ACTIVE_S = 1.0
+"""a session counts as active for ``GROUP_SESSIONS`` until this long after its last source message, s (at most
+half as long again: ``ActiveSessions``)"""
 WARM_POLL_S = 0.05
 """how often a worker compiling kernels in a separate process looks whether it has finished, s"""
 ALIVE_S = 0.2
@@ -290,12 +293,41 @@ class OwnedHand:
         return [list(reply) for reply in drop_replies(msg, dropped)]
 
 
+class ActiveSessions:
+    """The sessions of one worker that sent a source message within about ``ACTIVE_S``, for ``GROUP_SESSIONS``
+    (both ends of a worker link keep one): sessions that are open but silent (a subscriber's, or one kept after
+    its glove left) make no worker group its messages, so one hand at 1 kHz beside three idle sessions keeps its
+    at-once path. A session counts from its first message at once; the silent ones are let go at most every
+    ``ACTIVE_S / 2`` (a sweep instead of a look at every session per message), so one counts until 1-1.5
+    ``ACTIVE_S`` after its last message."""
+
+    __slots__ = ("seen", "swept")
+
+    def __init__(self):
+        self.seen: dict[int, float] = {}
+        """sid -> the time of its last source message (a monotonic clock, s)"""
+        self.swept = float("-inf")
+
+    def note(self, sid: int, now: float) -> None:
+        self.seen[sid] = now
+
+    def many(self, now: float) -> bool:
+        """Whether at least ``GROUP_SESSIONS`` sessions are active at ``now`` (the same clock as ``note``)."""
+        if now - self.swept >= ACTIVE_S / 2:
+            self.swept = now
+            since = now - ACTIVE_S
+            self.seen = {sid: t for sid, t in self.seen.items() if t >= since}
+        return len(self.seen) >= GROUP_SESSIONS
+
+
 class Worker:
     def __init__(self, sock: socket.socket, settings: ServiceSettings):
         self.sock = sock
         self.settings = settings
         self.metrics = Metrics()
         self.hands: dict[int, OwnedHand] = {}
+        self.active = ActiveSessions()
+        """the sessions that sent source messages lately (``handle_batch``'s grouping)"""
         self.out: list = []
         self.warming: dict[str, subprocess.Popen | threading.Thread] = {}
         """estimator name -> its compiling process, then the thread that loads its kernels here"""
@@ -393,10 +425,15 @@ class Worker:
         with many sessions: fewer writes, each a turn of the web process's loop). A worker with
         ``GROUP_SESSIONS`` sessions or more sends none at once: its batch's outputs go in one write at its
         end (or every ``FLUSH_S``): each write wakes the web process, which then often takes this worker's
-        core, and at 25 hands a worker wrote about twice for each batch it read."""
+        core, and at 25 hands a worker wrote about twice for each batch it read. Only active sessions count
+        (``ActiveSessions``: a source message within about ``ACTIVE_S``)."""
         flushed = time.perf_counter()
         last = len(batch) - 1
-        few = len(self.hands) < GROUP_SESSIONS
+        note = self.active.note
+        for message in batch:
+            if message[0] == "chk" or message[0] == "src":
+                note(message[1], flushed)
+        few = not self.active.many(flushed)
         small = few and len(batch) <= AT_ONCE_BATCH
         for i, message in enumerate(batch):
             self.dispatch(message, at_once=small or (few and i == last))
