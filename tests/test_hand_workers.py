@@ -874,3 +874,31 @@ def test_a_worker_with_many_sessions_sends_a_batch_s_outputs_in_one_write_at_its
             assert alone == 0, [[y[:3] for y in w] for w in writes]
     finally:
         peer.close()
+
+
+def test_a_configuration_change_ends_a_session_s_reps_run(monkeypatch):
+    """A configuration change between a session's data messages (numbered apart from them) ends the session's
+    ``reps`` run: the data message after it is answered after the configuration's answer, those before it
+    before it, as they came (the batch in one write: no flush in between ends the run)."""
+    import json
+
+    from service.api.hands import worker as hands_worker
+
+    monkeypatch.setattr(hands_worker, "FLUSH_S", 3600.0)
+
+    data = [m for _, m in _messages("right", 0.2, 5) if m["type"] in ("imu", "imu_batch", "pose")][:3]
+    hello = {"type": "hello", "protocol": 1, "hand": "right", "source": "worker-test"}
+    peer = _Peer()
+    try:
+        peer.send([["open", 1, "a", None], ["src", 1, 1, hello]])
+        peer.until(lambda: len(peer.replies(1)) == 1, "the hello answered")
+        peer.send([["chk", 1, 2, json.dumps(data[0]), False], ["chk", 1, 3, json.dumps(data[1]), False],
+                   ["cfg", 1, 1, {}], ["chk", 1, 4, json.dumps(data[2]), False]])
+        peer.until(lambda: len(peer.replies(1)) == 4 and any(m[0] == "cfgrep" for m in peer.received),
+                   "every answer")
+        order = [m for m in peer.received if m[0] in ("rep", "reps", "cfgrep")]
+        at = next(i for i, m in enumerate(order) if m[0] == "cfgrep")
+        assert all(any(_answers(m, n) for m in order[:at]) for n in (2, 3)), order
+        assert any(_answers(m, 4) for m in order[at + 1:]) and not any(_answers(m, 4) for m in order[:at]), order
+    finally:
+        peer.close()
