@@ -353,7 +353,7 @@ class GestureRecognizer:
         x = self.features(frame)
         t = frame.t
         curl = x.curl
-        others = _mean([curl["middle"], curl["ring"], curl["little"]])    # (``QUANTITIES["others_curl_mean"]``)
+        others = _mean([curl[finger] for finger in OTHERS])               # (``QUANTITIES["others_curl_mean"]``)
         if self._previous is not None and t > self._previous[0]:
             dt = t - self._previous[0]
             k = dt / (dt + RATE_TAU_S)           # first-order low-pass of the finite difference

@@ -536,7 +536,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "generator_processes": lvl["generator_processes"],
         "generator_cpu_share_max": lvl["generator_cpu_share_max"],
         # how late the gloves sent their messages (send time minus due time, every message): the
-        # generator's own lag, which the frames' delay behind schedule includes
+        # generator's own lag, which the frames' delay behind schedule includes, and the time a glove held a
+        # message while 256 of its messages were unconfirmed (the glove's flow control, when the service is behind)
         "glove_send_lag_ms": lvl["send_lag_ms"],
         # the subscribers' messages decoded, and those compared whole with a decoded one of the session
         "subscriber_messages_decoded": lvl["messages_decoded"],
@@ -664,7 +665,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "its CPU is the sum over its processes while they stream, the busiest process's share beside it (near "
               "100 % it would be the bottleneck). Gloves' send lag: each message's send time minus its due time by "
               "the source's schedule, over every message (the gloves' timer wakes at the due times to the kernel "
-              "timer's precision; a lag there, e.g. a generator short of CPU, is in the delay behind schedule too)."]
+              "timer's precision; a lag there, e.g. a generator short of CPU, is in the delay behind schedule too); it also "
+              "counts the time a glove held a message while the service had many of its messages unconfirmed (flow "
+              "control: seconds when the service is behind)."]
     text = "\n".join(lines) + "\n"
     if out is not None:
         (out / "summary.md").write_text(text)

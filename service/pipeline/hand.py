@@ -713,8 +713,9 @@ class HandSession:
             # a diverging filter is detected and reset, not warned about: numpy's floating-point warnings are
             # off while a tick is processed tick by tick (``_tick``; never held across a ``yield``, the caller's
             # own setting applies there); a steady run's numbers are the compiled kernels', which give none, and
-            # the numpy around them only copies, so it runs without that setting's cost (``_steady_run``); each
-            # tick's time and readiness found once
+            # the numpy around them allocates, copies and tests for finite values (a finger whose run diverged is
+            # rebuilt with a fresh estimator, which computes nothing that warns), so it runs without that
+            # setting's cost (``_steady_run``); each tick's time and readiness found once
             while True:
                 frames = self._steady_run(t, given)
                 given = None
