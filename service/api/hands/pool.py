@@ -1021,14 +1021,7 @@ class ProcessSession(LiveSession):
             self.link.owed -= 1
         if entry is not None and entry[0] == "calibration" and not errors:
             self.calibration = entry[3]
-        if self.lost:                               # first what its new worker could not restore (as on the bus)
-            errors, self.lost = self.lost + list(errors), []
-        if errors and self._source_error is not None:
-            self._errors.extend(errors)
-            self._send_errors_soon()
-        if self._answers:
-            self._release_answers()
-        self._replied.set()
+        self._answered(errors)
 
     def on_replies(self, first: int, last: int) -> None:
         """Source messages ``first`` to ``last``, each validated by the worker (``chk``), accepted and without
@@ -1039,11 +1032,16 @@ class ProcessSession(LiveSession):
                 popped += 1
         self.link.owed -= popped
         self.metrics.of_session(self.name).messages_in.inc(last - first + 1)
-        if self.lost:                               # first what its new worker could not restore (``on_reply``)
-            errors, self.lost = self.lost, []
-            if self._source_error is not None:
-                self._errors.extend(errors)
-                self._send_errors_soon()
+        self._answered(())
+
+    def _answered(self, errors) -> None:
+        """After replies: their error ``errors`` to the source, after what a new worker could not restore
+        (``lost``, as on the bus); the answers and waits that were waiting for them released."""
+        if self.lost:
+            errors, self.lost = self.lost + list(errors), []
+        if errors and self._source_error is not None:
+            self._errors.extend(errors)
+            self._send_errors_soon()
         if self._answers:
             self._release_answers()
         self._replied.set()
