@@ -1371,6 +1371,10 @@ def test_a_link_with_many_sessions_writes_what_comes_within_its_group_time_at_on
     hand at 1 kHz) every turn's messages go at the end of that turn."""
     from service.api.hands import pool as pool_module
 
+    from service.api.hands import worker as worker_module
+
+    monkeypatch.setattr(worker_module, "ACTIVE_S", 3600.0)   # the sessions noted stay active however slow the test
+
     async def run(sessions: int, group_s: float):
         monkeypatch.setattr(pool_module, "GROUP_S", group_s)
         pool = HandPool(ServiceSettings.load(port=0, hand_workers=1), Metrics())
