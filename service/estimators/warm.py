@@ -7,7 +7,7 @@ NAME [PARAMS_JSON]``), which fills the on-disk cache without competing with the 
 interpreter lock, then runs a few samples in a worker thread, which loads the cached code into this
 process. The container image runs the same command at build time.
 
-The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values, the flexion-axis fit) are warmed the same way, under the name
+The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values, the flexion-axis fit, a frame's text) are warmed the same way, under the name
 ``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
 cache (the usual case after the first run, and in the container image) the separate process is skipped:
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
@@ -76,9 +76,9 @@ def compile_command(name: str, params: dict | None = None) -> list[str]:
 def _pipeline_kernels() -> tuple:
     from gestures import values
     from ..model import openxr_kernel
-    from ..pipeline import mounting_kernel, optical_kernel
+    from ..pipeline import frame_text_kernel, mounting_kernel, optical_kernel
     return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, optical_kernel.keeps,
-            values.values_kernel, mounting_kernel.correct, mounting_kernel.fit)
+            values.values_kernel, mounting_kernel.correct, mounting_kernel.fit, frame_text_kernel.merge)
 
 
 def _kernels(name: str) -> tuple:
@@ -103,7 +103,7 @@ def _warm_pipeline() -> None:
     from ..model.hand import default_calibration
     from ..model.openxr import joint_poses_compiled
 
-    from ..pipeline import optical_kernel
+    from ..pipeline import frame_text_kernel, optical_kernel
     from ..pipeline.mounting import HandMountings
     from ..pipeline.optical import OpticalTrack
 
@@ -125,6 +125,10 @@ def _warm_pipeline() -> None:
     mountings.correct(rows, raw)
     mountings.fit(rows, raw, np.concatenate([np.eye(3).ravel(), np.zeros(9)]),
                   np.zeros(sum(angles[n].shape[0] for n in angles)), np.ones(len(calib.fingers), dtype=np.bool_))
+    # a frame's text (``frame_text``: the numbers, small parts and fixed parts read-only, as bytes are)
+    frame_text_kernel.merge(np.frombuffer(b"[1.0]", np.uint8), np.frombuffer(b"{}{}{}", np.uint8), 2, 2,
+                            np.frombuffer(b",,,,,", np.uint8), np.arange(1, 6, dtype=np.int64),
+                            np.array([0, 1, 1], dtype=np.int64), np.empty(32, dtype=np.uint8))
 
 
 def _to_warm(name: str) -> list[str]:

@@ -230,9 +230,11 @@ class FingerAngles(Mapping):
 
 
 def joint_pose_arrays(calib: HandCalibration, joint_angles: dict[str, np.ndarray],
-                      hand_rotation: np.ndarray, hand_position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                      hand_rotation: np.ndarray, hand_position: np.ndarray, positions: np.ndarray | None = None,
+                      quats: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``joint_poses_compiled`` as two arrays in ``JOINT_NAMES`` order: positions (26, 3) and
-    quaternions (26, 4)."""
+    quaternions (26, 4), written into ``positions`` and ``quats`` where given (C-contiguous float64 of those
+    shapes)."""
     kernel = _kernel[0]
     if kernel is None:          # imported when first needed (it brings numba), then kept
         from .openxr_kernel import joint_poses as kernel
@@ -244,8 +246,10 @@ def joint_pose_arrays(calib: HandCalibration, joint_angles: dict[str, np.ndarray
         for f, name in enumerate(_FINGER_ORDER):
             a = joint_angles[name]
             phi[f, :len(a)] = a
-    positions = np.empty((len(JOINT_NAMES), 3))
-    quats = np.empty((len(JOINT_NAMES), 4))
+    if positions is None:
+        positions = np.empty((len(JOINT_NAMES), 3))
+    if quats is None:
+        quats = np.empty((len(JOINT_NAMES), 4))
     kernel(_packed_calibration(calib), phi, np.ascontiguousarray(hand_rotation, dtype=float),
            np.ascontiguousarray(hand_position, dtype=float), positions, quats)
     return positions, quats

@@ -18,33 +18,51 @@ by ``encode`` (``FrameOutput.text``'s fallback). ``tests/test_frame_text.py`` ch
 """
 from __future__ import annotations
 
+import numpy as np
 import orjson
 
 from ..model.openxr import JOINT_NAMES, FingerAngles, joint_radii_list
 from ..protocol.wire import _ORJSON_STRICT, _nulls_all_known, encode
+from .frame_text_kernel import merge
 from .hand import JointPoses
 
 _HOLE = "\x01"
 """Where a number goes in the fixed parts while they are written (a string no key or value of a frame holds)."""
 _HOLE_TEXT = orjson.dumps(_HOLE)
 _NUMPY = orjson.OPT_SERIALIZE_NUMPY
+_POSITIONS, _QUATS = (len(JOINT_NAMES), 3), (len(JOINT_NAMES), 4)
 
 
 class _Layout:
     """The fixed parts of a frame's ``fingers`` and ``joints`` for one calibration, finger layout, modes and
-    tracked flags, with a hole for each number (``None`` in ``parts``): the joint angles, then per joint its
-    position and its orientation (each a run of numbers as ``orjson`` writes a list's items); and holes for the
-    frame's head (first), its status and its gesture annotation (the last but three and the last but one)."""
+    tracked flags, as ``frame_text_kernel.merge`` reads them: ``fixed`` the parts one after the other (uint8),
+    part ``k`` up to ``ends[k]``; a hole between each two for a run of numbers (``holes``: its first number
+    and its count in the frame's numbers, the joint angles, then the 26 positions, then the 26 orientations;
+    the angles one hole each, then per joint its position and its orientation), and after the last one
+    ``,"status":``, ``,"gesture":`` and ``}`` around the frame's status and gesture annotation. ``fixed`` is
+    ``None`` where the frame cannot be laid out so (``_layout_of``)."""
 
-    __slots__ = ("key", "parts", "n_angles")
+    __slots__ = ("key", "fixed", "ends", "holes", "n_angles", "size")
 
     def __init__(self, key: tuple, parts: list | None, n_angles: int):
         self.key = key          # (the objects themselves: while kept, no other object has their ids)
-        self.parts, self.n_angles = parts, n_angles
+        self.n_angles = n_angles
+        self.fixed = self.ends = self.holes = None
+        self.size = 0
+        if parts is not None:
+            parts = [*parts, b',"status":', b',"gesture":', b"}"]
+            self.fixed = np.frombuffer(b"".join(parts), dtype=np.uint8)
+            self.ends = np.cumsum([len(p) for p in parts], dtype=np.int64)
+            n, joints = n_angles, len(JOINT_NAMES)
+            holes = [(k, 1) for k in range(n)]
+            for j in range(joints):
+                holes += ((n + 3 * j, 3), (n + 3 * joints + 4 * j, 4))
+            self.holes = np.array([x for h in holes for x in h] + [n + 7 * joints], dtype=np.int64)
+            self.size = len(self.fixed)
 
 
 def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
-    """The frame's fixed parts (``_Layout``); ``parts`` is ``None`` where they cannot be laid out so (a finger
+    """The frame's fixed parts (``_Layout``); ``fixed`` is ``None`` where they cannot be laid out so (a finger
     whose angle count differs from its joint names, a joint without a radius: ``to_message``'s message then)."""
     key = (calib, layout, modes, tracked)
     names_of = {f: g.joint_names for f, g in calib.fingers.items()}
@@ -65,11 +83,7 @@ def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
     pieces = (b"," + text[1:-1]).split(_HOLE_TEXT)
     if not all(p.isascii() and b"null" not in p for p in pieces) or len(pieces) != layout.n + 2 * len(JOINT_NAMES) + 1:
         return _Layout(key, None, 0)
-    parts: list = [None, pieces[0]]                   # (the frame's head first; its status and gesture last)
-    for p in pieces[1:]:
-        parts += (None, p)
-    parts += (b',"status":', None, b',"gesture":', None, b"}")
-    return _Layout(key, parts, layout.n)
+    return _Layout(key, pieces, layout.n)
 
 
 class Layouts(dict):
@@ -154,30 +168,32 @@ class FrameOutput:
                 layout = layouts[ids] = _layout_of(*key)
             if type(layouts) is Layouts:
                 layouts.last = (*key, layout)   # (its objects held there: no other object takes their ids meanwhile)
-        if layout.parts is None:
+        if layout.fixed is None:
             return None
         try:
             # the small parts first: one that ``encode`` would write otherwise (e.g. a sensor's age ``null``)
             # sends the frame to ``encode`` before the arrays are written
             head = orjson.dumps({"type": "frame", "t": frame.t, "seq": self.seq, "hand": frame.hand}, option=_ORJSON_STRICT)
             status = orjson.dumps(frame.status, option=_ORJSON_STRICT)
-            gesture = orjson.dumps(self.annotation, option=_ORJSON_STRICT)
             # (asked of the three at once: no ``null`` can span two of them, each a whole object)
-            small = head + status + gesture
+            small = head + status + orjson.dumps(self.annotation, option=_ORJSON_STRICT)
             if not (small.isascii() and _nulls_all_known(small)):
                 return None
-            numbers = orjson.dumps(angles.flat, option=_NUMPY)
-            positions = orjson.dumps(joints.positions, option=_NUMPY)
-            quats = orjson.dumps(joints.quats, option=_NUMPY)
-            # ``orjson`` writes a non-finite number as ``null``: a list of numbers without an ``n`` has none
-            if b"n" in numbers or b"n" in positions or b"n" in quats:
-                return None
-            n, parts = layout.n_angles, layout.parts.copy()
-            parts[0], parts[-4], parts[-2] = head[:-1], status, gesture
-            if n:
-                parts[2:2 * n + 1:2] = numbers[1:-1].split(b",")
-            parts[2 * n + 2:-5:4] = positions[2:-2].split(b"],[")
-            parts[2 * n + 4:-5:4] = quats[2:-2].split(b"],[")
-        except (orjson.JSONEncodeError, TypeError, ValueError):    # (ValueError: arrays not of the layout's sizes)
+            numbers = joints.numbers
+            if numbers is None or joints.angles is not angles.flat:     # (not one array: made one)
+                positions, quats = joints.positions, joints.quats
+                if positions.shape != _POSITIONS or quats.shape != _QUATS:
+                    return None
+                numbers = np.concatenate((angles.flat, positions.ravel(), quats.ravel()), dtype=np.float64)
+            numbers = orjson.dumps(numbers, option=_NUMPY)
+        except (orjson.JSONEncodeError, TypeError, ValueError):
             return None
-        return b"".join(parts).decode()
+        # ``orjson`` writes a non-finite number as ``null``: a list of numbers without an ``n`` has none
+        if b"n" in numbers:
+            return None
+        out = np.empty(layout.size + len(small) + len(numbers), dtype=np.uint8)
+        size = merge(np.frombuffer(numbers, dtype=np.uint8), np.frombuffer(small, dtype=np.uint8), len(head),
+                     len(status), layout.fixed, layout.ends, layout.holes, out)
+        if size < 0:                            # (numbers not of the layout's count)
+            return None
+        return str(out[:size], "ascii")

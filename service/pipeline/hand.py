@@ -171,10 +171,15 @@ class JointPoses(Mapping):
     (rows in ``JOINT_NAMES`` order): a joint's pair is made when it is read (the gesture layer reads
     three of them), not 26 for every frame."""
 
-    __slots__ = ("positions", "quats")
+    __slots__ = ("positions", "quats", "numbers", "angles")
 
-    def __init__(self, positions: np.ndarray, quats: np.ndarray):
+    def __init__(self, positions: np.ndarray, quats: np.ndarray, numbers: np.ndarray | None = None,
+                 angles: np.ndarray | None = None):
         self.positions, self.quats = positions, quats
+        self.numbers, self.angles = numbers, angles
+        """the pipeline's (``HandSession._frame``): the frame's numbers in one float64 array, its joint angles
+        (``angles``, the ``FingerAngles.flat`` of the frame, a view of its start), then ``positions`` and
+        ``quats`` (views of it too), what a frame's text writes in one go (``frame_text``); else ``None``"""
 
     def __getitem__(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         k = _JOINT_INDEX[name]
@@ -188,6 +193,9 @@ class JointPoses(Mapping):
 
 
 _JOINT_INDEX = {n: k for k, n in enumerate(JOINT_NAMES)}
+_POSITION_NUMBERS = 3 * len(JOINT_NAMES)
+_POSE_NUMBERS = 7 * len(JOINT_NAMES)
+"""A frame's numbers after its joint angles: the joints' positions, then their orientations (``JointPoses``)."""
 
 _kept_names: dict[int, tuple[HandCalibration, dict[str, tuple[str, ...]]]] = {}
 _kept_constants: dict[tuple[int, int], tuple[HandCalibration, dict, tuple]] = {}
@@ -1199,11 +1207,17 @@ class HandSession:
             fingers = self._frame_fingers = (self._fingers, tuple(self._fingers), list(self._fingers.values()), {})
         _, names, states, kept = fingers
         phis, modes, live = zip(*[(fs.phi, fs.mode, fs.active_sensors) for fs in states]) if states else ((), (), ())
-        # every finger's angles copied into one array (``FingerAngles``: a finger's are a view of it)
-        flat = np.concatenate(phis, dtype=np.float64) if phis else np.zeros(0)
+        # every finger's angles copied into one array (``FingerAngles``: a finger's are a view of it), the start
+        # of the frame's numbers (its joints' positions and orientations after them: ``JointPoses.numbers``)
+        counts = tuple(map(len, phis))
+        n = sum(counts)
+        numbers = np.empty(n + _POSE_NUMBERS)
+        flat = numbers[:n]
+        if phis:
+            np.concatenate(phis, out=flat)
         # what depends only on the fingers' modes, live sensors and angle counts and on the optics: one of each
         # per combination (a hand has few), shared by the frames that have it (never modified)
-        key = (self._tracking, modes, live, tuple(map(len, phis)))
+        key = (self._tracking, modes, live, counts)
         last = kept.get(None)               # (the frame before's: compared item by item, no hash of the key)
         if last is not None and last[0] == key:
             constants = last[1]
@@ -1217,10 +1231,12 @@ class HandSession:
             kept[None] = (key, constants)
         layout, modes_of, tracked = constants
         angles = FingerAngles(flat, layout)
-        positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position)
+        positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position,
+                                             numbers[n:n + _POSITION_NUMBERS].reshape(-1, 3),
+                                             numbers[n + _POSITION_NUMBERS:].reshape(-1, 4))
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes_of, hand.rotation.copy(), hand.position.copy(),
-                         JointPoses(positions, quats), self._status(t, live), tracked)
+                         JointPoses(positions, quats, numbers, flat), self._status(t, live), tracked)
 
     def status(self, t: float | None = None) -> FrameStatusDict:
         """The frame's ``status`` (``protocol.outgoing.FrameStatus``) at source time ``t``."""
