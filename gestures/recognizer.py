@@ -45,6 +45,7 @@ origin at the index fingertip, direction from the index MCP joint to the fingert
 from __future__ import annotations
 
 from collections import deque
+from operator import itemgetter
 from dataclasses import dataclass, field
 from typing import Callable, Literal
 
@@ -53,8 +54,12 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from service.protocol.outgoing import GestureDict, GestureStateDict, RayDict
 
+from service.model.openxr import FingerAngles
+
 from .confidence import calibrated_confidence
-from .values import frame_values
+from .values import (_FLOAT64, _POSITIONS_SHAPE, _RAY_ROWS, STEP_LOOKAHEAD_S, STEP_OUT, STEP_RATE_TAU_S, Values,
+                     frame_values, step_kernel, step_table)
+from .values import _layout as _values_layout
 
 GESTURES = ("grasp", "point", "pinch", "open")   # priority order
 FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
@@ -164,6 +169,7 @@ QUANTITIES: dict[str, Callable[[Features], float]] = {
     "index_curl_ahead": lambda x: x.curl["index"] + PINCH_LOOKAHEAD_S * x.index_curl_rate,
 }
 """The scalar quantities the rules threshold, by name (curls dimensionless, distances in metres)."""
+assert (STEP_RATE_TAU_S, STEP_LOOKAHEAD_S) == (RATE_TAU_S, PINCH_LOOKAHEAD_S)   # (``values.step_kernel``'s copies)
 
 
 @dataclass(frozen=True)
@@ -286,6 +292,9 @@ class GestureRecognizer:
     """``(settings, _rule_table(settings))`` of the settings object last used (``GestureSettings`` is frozen:
     other thresholds are another object, which rebuilds the table; one changed in place behind pydantic's
     back would not)."""
+    _steps: dict = field(default_factory=dict, repr=False, compare=False)
+    """``_step``'s layouts: per finger layout (``AnglesLayout``), the settings object it was made with and what
+    ``_step`` needs (``_step_layout``)."""
     history: deque = field(default_factory=lambda: deque(maxlen=HISTORY_FRAMES))
     """``(t, curls in FINGER_ORDER, pinch distance m, others' curl rate 1/s)`` of the latest frames."""
 
@@ -315,8 +324,84 @@ class GestureRecognizer:
         return ev
 
     def update(self, frame) -> tuple[GestureStateDict, list[GestureDict]]:
-        """The frame's gesture annotation and the events it caused (module docstring)."""
+        """The frame's gesture annotation and the events it caused (module docstring). A pipeline frame with
+        the five fingers goes through ``values.step_kernel`` (``_step``), any other through ``_update``."""
+        if type(frame.joint_angles) is FingerAngles:
+            done = self._step(frame)
+            if done is not None:
+                return done
         return self._update(frame, self._judge)
+
+    def _step(self, frame) -> tuple[GestureStateDict, list[GestureDict]] | None:
+        """``_update(frame, self._judge)`` with its values, rates, quantities and rules computed in one
+        ``values.step_kernel`` call; ``None`` (nothing done) for a frame without the five fingers or without
+        the pipeline's joint array."""
+        s = self.settings
+        angles = frame.joint_angles
+        kept = self._steps
+        step = kept.get(angles.layout)
+        if step is None or step[0] is not s:
+            step = self._step_layout(angles, s)
+        if len(step) == 1:
+            return None
+        _, names, ends, full, long_rows, fingers, table, n, curls_of = step
+        positions = getattr(frame.joints, "positions", None)
+        if type(positions) is not np.ndarray or positions.dtype is not _FLOAT64 or positions.shape != _POSITIONS_SHAPE:
+            return None
+        t = frame.t
+        out = np.empty(2 * n + 13 + STEP_OUT)
+        previous = self._previous
+        if previous is None:
+            step_kernel(angles.flat, ends, full, positions, _RAY_ROWS, long_rows, fingers, table, float(t), False, 0.0, 0.0,
+                        0.0, 0.0, self._rate, self._index_rate, self._tips_rate, out)
+        else:
+            step_kernel(angles.flat, ends, full, positions, _RAY_ROWS, long_rows, fingers, table, float(t), True, *previous,
+                        self._rate, self._index_rate, self._tips_rate, out)
+        v = out.tolist()
+        b = 2 * n + 13
+        others, rate, index_rate, self._tips_rate = v[b:b + 4]
+        self._rate, self._index_rate = rate, index_rate
+        distance = v[n]
+        self._previous = (t, others, v[fingers[1]], distance)
+        self.history.append((t, curls_of(v), distance, rate, index_rate))
+        candidates, pinch_enters, stays = [], False, True
+        active = self.active
+        for k, g in enumerate(GESTURES):
+            if v[b + 4 + 3 * k] == 1.0:
+                candidates.append((g, v[b + 5 + 3 * k]))
+                pinch_enters = pinch_enters or g == HANDOVER[1]
+            if g == active:
+                stays = v[b + 6 + 3 * k] == 1.0
+        curl = dict(zip(names, v[:n]))
+        ray = {"origin": v[n + 3:n + 6], "direction": v[n + 6:n + 9]} if v[n + 2] == 1.0 else None
+        if v[2 * n + 12] == 1.0:
+            rounded = (dict(zip(names, v[n + 10:2 * n + 10])), v[2 * n + 10], v[2 * n + 11])
+            self._frame_values = (frame, Values(curl, distance, v[n + 1], ray, rounded))
+        else:                       # (``round4_into`` left some to Python's ``round``, as ``_update``)
+            self._frame_values = (frame, Values(curl, distance, v[n + 1], ray))
+            rounded = ({f: round(c, 4) for f, c in curl.items()}, round(v[n + 1], 4),
+                       round(_band(distance, s.pinch_full_m, s.pinch_zero_m), 4))
+        return self._advance(frame, t, candidates, pinch_enters, stays, rounded)
+
+    def _step_layout(self, angles, s: "GestureSettings") -> tuple:
+        """What ``_step`` needs of a finger layout and settings, kept in ``_steps`` (only the settings where
+        the layout lacks one of the five fingers)."""
+        kept = self._steps
+        if len(kept) > 16:
+            kept.clear()
+        names = angles.layout.names
+        if not _FINGERS <= set(names):
+            step = kept[angles.layout] = (s,)
+            return step
+        table = self._table
+        if table is None or table[0] is not s:
+            table = self._table = (s, _rule_table(s))
+        names_, ends, full, long_rows, n_angles = _values_layout(angles, s.curl_full_long_rad, s.curl_full_thumb_rad,
+                                                                 s.pinch_full_m, s.pinch_zero_m)
+        fingers = [names.index(f) for f in FINGER_ORDER]
+        step = kept[angles.layout] = (s, names_, ends, full, long_rows, np.array(fingers, dtype=np.int64),
+                                      step_table(table[1]), len(names_), itemgetter(*fingers))
+        return step
 
     def update_reference(self, frame) -> tuple[GestureStateDict, list[GestureDict]]:
         """``update`` with every rule evaluated by its ``GestureRule`` (``enters``, ``stays``, ``score``
@@ -364,9 +449,21 @@ class GestureRecognizer:
         x.others_curl_rate, x.index_curl_rate = self._rate, self._index_rate
         self.history.append((t, tuple(map(x.curl.get, FINGER_ORDER, _ZEROS)), x.pinch_distance_m, self._rate,
                              self._index_rate))
-        events: list[GestureDict] = []
         # candidates for starting: the highest-priority enter condition that holds
         candidates, pinch_enters, stays = judge(x, s)
+        seen, values = self._frame_values
+        rounded = values.rounded if seen is frame else None
+        if rounded is None:         # not rounded by the kernel (``gestures.values.round4_into``): Python's ``round``
+            rounded = ({f: round(v, 4) for f, v in x.curl.items()}, round(x.grab_strength, 4),
+                       round(_band(x.pinch_distance_m, s.pinch_full_m, s.pinch_zero_m), 4))
+        return self._advance(frame, t, candidates, pinch_enters, stays, rounded)
+
+    def _advance(self, frame, t: float, candidates: list, pinch_enters: bool, stays: bool,
+                 rounded: tuple) -> tuple[GestureStateDict, list[GestureDict]]:
+        """The state machine on one frame's judgement (``_update``): its annotation (``rounded``: its curls,
+        grab strength and pinch band, rounded) and events."""
+        s = self.settings
+        events: list[GestureDict] = []
         best = candidates[0] if candidates else None
         higher = best is not None and self.active is not None and GESTURES.index(best[0]) < GESTURES.index(self.active)
         if best is not None and (self.active is None or higher):
@@ -404,11 +501,6 @@ class GestureRecognizer:
             self.active = self._candidate
             self._candidate, self._candidate_since, self._failing_since = None, None, None
             events.append(self._event(frame, self.active, "start", conf))
-        seen, values = self._frame_values
-        rounded = values.rounded if seen is frame else None
-        if rounded is None:         # not rounded by the kernel (``gestures.values.round4_into``): Python's ``round``
-            rounded = ({f: round(v, 4) for f, v in x.curl.items()}, round(x.grab_strength, 4),
-                       round(_band(x.pinch_distance_m, s.pinch_full_m, s.pinch_zero_m), 4))
         annotation: GestureStateDict = {
             "active": self.active,
             "curl": rounded[0],

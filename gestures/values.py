@@ -243,3 +243,111 @@ _POSITIONS_SHAPE = (len(JOINT_NAMES), 3)
 
 _FIRST_THREE = np.arange(3, dtype=np.int64)
 _RAY_ROWS = np.array([JOINT_NAMES.index(j) for j in RAY_JOINTS], dtype=np.int64)
+
+
+# -- the recogniser's step in one call ----------------------------------------------------------------------
+# ``GestureRecognizer.update`` on a pipeline frame: ``values_kernel``'s values, then what ``_update`` and
+# ``_judge`` compute from them in Python (the other fingers' mean curl, the low-passed rates, the quantities of
+# ``recognizer.QUANTITIES``, each rule's enter, score and stay), the same operations in the same order (the
+# same numbers: ``tests/test_gesture_values.py`` checks ``update`` against ``update_reference``, whose every
+# condition goes through its ``GestureRule``). The recogniser's state machine reads the results.
+
+STEP_RATE_TAU_S = 0.03
+"""``recognizer.RATE_TAU_S`` (the kernel's copy, checked equal there)."""
+STEP_LOOKAHEAD_S = 0.15
+"""``recognizer.PINCH_LOOKAHEAD_S`` (the kernel's copy, checked equal there)."""
+STEP_RULES = 4
+"""Rules in a step table (``recognizer.GESTURES``)."""
+STEP_TERMS = 4
+"""The most conditions of one rule."""
+STEP_OUT = 4 + 3 * STEP_RULES
+"""What ``step_kernel`` writes after ``values_kernel``'s ``2n + 13`` values."""
+
+
+@numba.njit(cache=JIT_CACHE, inline="always")
+def _min_first(a, b):  # pragma: no cover - compiled
+    """Python's ``min(a, b)``: ``b`` only if ``b < a`` (a NaN first stays, a NaN second is passed over)."""
+    return b if b < a else a
+
+
+@numba.njit(cache=JIT_CACHE, inline="always")
+def _max_first(a, b):  # pragma: no cover - compiled
+    """Python's ``max(a, b)``: ``b`` only if ``b > a``."""
+    return b if b > a else a
+
+
+@numba.njit(cache=JIT_CACHE)
+def step_kernel(phi, ends, full, positions, rows, long_fingers, fingers, table, t, has_previous, previous_t,
+                previous_others, previous_index, previous_pinch, rate, index_rate, tips_rate, out):  # pragma: no cover - compiled
+    """``values_kernel`` into ``out[:2n + 13]``, then from ``b = 2n + 13``: the mean curl of middle, ring and
+    little, the three low-passed rates (others', index's, tips'; updated from the previous frame's values when
+    ``has_previous`` and ``t`` is later than ``previous_t``), and per rule ``g`` of ``table`` (priority order)
+    at ``b + 4 + 3g``: 1.0 if its enter condition holds (else 0.0), its score (0.0 where it does not enter) and
+    1.0 if its stay condition holds. ``fingers``: the rows in ``out`` of the curls of thumb, index, middle,
+    ring and little. ``table[g, kind]`` (kind 0 enter, 1 stay, 2 score): ``table[g, kind, 0, 0]`` terms, then
+    term ``c`` at ``table[g, kind, 1 + c]``: quantity index, above (1.0) or below (0.0) or the ideal, the
+    threshold."""
+    values_kernel(phi, ends, full, positions, rows, long_fingers, out)
+    n = ends.shape[0]
+    b = 2 * n + 13
+    ct, ci, cm, cr, cl = out[fingers[0]], out[fingers[1]], out[fingers[2]], out[fingers[3]], out[fingers[4]]
+    others = (((0.0 + cm) + cr) + cl) / 3.0          # (``_mean``: Python's sum from 0, then divided by 3)
+    distance = out[n]
+    if has_previous and t > previous_t:
+        dt = t - previous_t
+        k = dt / (dt + STEP_RATE_TAU_S)
+        rate += k * ((others - previous_others) / dt - rate)
+        index_rate += k * ((ci - previous_index) / dt - index_rate)
+        tips_rate += k * ((distance - previous_pinch) / dt - tips_rate)
+    out[b] = others
+    out[b + 1] = rate
+    out[b + 2] = index_rate
+    out[b + 3] = tips_rate
+    q = np.empty(10)                                 # ``recognizer._quantities``, in ``QUANTITIES``' order
+    q[0] = _min_first(_min_first(_min_first(ci, cm), cr), cl)
+    q[1] = _max_first(_max_first(_max_first(ci, cm), cr), cl)
+    q[2] = ci
+    q[3] = ct
+    q[4] = _min_first(_min_first(cm, cr), cl)
+    q[5] = others
+    q[6] = distance
+    q[7] = rate
+    q[8] = others + STEP_LOOKAHEAD_S * rate
+    q[9] = ci + STEP_LOOKAHEAD_S * index_rate
+    for g in range(table.shape[0]):
+        at = b + 4 + 3 * g
+        for kind in range(2):                        # enter, stay: every condition holds (``_all_hold``)
+            holds = True
+            for c in range(int(table[g, kind, 0, 0])):
+                v = q[int(table[g, kind, 1 + c, 0])]
+                threshold = table[g, kind, 1 + c, 2]
+                if not (v >= threshold if table[g, kind, 1 + c, 1] == 1.0 else v <= threshold):
+                    holds = False
+                    break
+            out[at + 2 * kind] = 1.0 if holds else 0.0
+        score = 0.0
+        if out[at] == 1.0:                           # the weakest condition's band (``min`` of ``_band``s)
+            for c in range(int(table[g, 2, 0, 0])):
+                value, inside, outside = q[int(table[g, 2, 1 + c, 0])], table[g, 2, 1 + c, 1], table[g, 2, 1 + c, 2]
+                band = 1.0
+                if inside != outside:
+                    band = (value - outside) / (inside - outside)
+                    if 0.0 > band:
+                        band = 0.0
+                    if 1.0 < band:
+                        band = 1.0
+                score = band if c == 0 else _min_first(score, band)
+        out[at + 1] = score
+
+
+def step_table(rules) -> np.ndarray:
+    """``step_kernel``'s table of ``rules``: per rule (priority order) its enter conditions, its stay
+    conditions and its score's terms, each ``(quantity index, above or ideal, threshold)`` as
+    ``recognizer._rule_table`` gives them."""
+    table = np.zeros((len(rules), 3, 1 + STEP_TERMS, 3))
+    for g, (_, enter, stay, score) in enumerate(rules):
+        for kind, terms in enumerate((enter, stay, score)):
+            table[g, kind, 0, 0] = len(terms)
+            for c, (i, second, threshold) in enumerate(terms):
+                table[g, kind, 1 + c] = (i, float(second), threshold)
+    return table

@@ -117,6 +117,7 @@ def test_recorded_frames_equal_the_reference_and_the_recogniser_output_is_unchan
     ruled = GestureRecognizer()               # every rule asked through its GestureRule (no rule table)
     assert [ruled.update_reference(f) for f in frames] == fast_out
     monkeypatch.setattr(rec_module, "frame_values", reference)
+    monkeypatch.setattr(GestureRecognizer, "_step", lambda self, frame: None)     # (values through frame_values)
     slow = GestureRecognizer()
     slow_out = [slow.update(f) for f in frames]
     assert fast_out == slow_out
@@ -325,5 +326,72 @@ def test_the_annotation_rounded_by_the_kernel_equals_pythons_round_at_ties_and_n
     assert any(kinds) and not all(kinds)          # some frames left to round, most rounded by the kernel
     monkeypatch.setattr(rec_module, "frame_values", lambda a, j, long_rad, thumb_rad, *pinch:
                         reference_values(a, j, long_rad, thumb_rad))
+    monkeypatch.setattr(GestureRecognizer, "_step", lambda self, frame: None)     # (values through frame_values)
     slow = GestureRecognizer()
     assert repr([slow.update(f) for f in frames]) == repr(fast_out)   # (repr: exact, a zero's sign and NaN too)
+
+
+def _pipeline_kind(frame):
+    """``frame`` with its angles as the pipeline's ``FingerAngles`` (one array, finger after finger)."""
+    names = tuple(frame.joint_angles)
+    layout = angles_layout(names, tuple(len(frame.joint_angles[f]) for f in names))
+    flat = np.concatenate([np.asarray(frame.joint_angles[f], dtype=np.float64) for f in names])
+    return HandFrame(frame.t, frame.seq, frame.hand, FingerAngles(flat, layout), frame.modes, frame.hand_rotation,
+                     frame.hand_position, frame.joints, frame.status, frame.tracked)
+
+
+def _state(rec):
+    return repr((rec.active, rec._candidate, rec._candidate_since, rec._failing_since, rec._confidence, rec._previous,
+                 rec._rate, rec._index_rate, rec._tips_rate, rec._handover_since, list(rec.history)))
+
+
+def test_the_step_kernel_equals_the_rules_on_random_frames(monkeypatch):
+    """``update`` on the pipeline's frames (``FingerAngles``: values, rates, quantities and rules in one
+    ``step_kernel`` call, ``_step``) against ``update_reference`` (values by ``frame_values``, every condition
+    through its ``GestureRule``): the same annotations, events and state after every frame (a float's repr is
+    exact), on the frames of ``test_the_rule_table_equals_the_rules_on_random_frames`` (every enter condition
+    the only failing one somewhere, a grasp handed over to a pinch, NaN angles), with the settings changed
+    midway; a frame whose fingers lack the thumb is left to ``_update`` (and raises as the rules do)."""
+    stepped = []
+    step = GestureRecognizer._step
+
+    def counted(self, frame):
+        out = step(self, frame)
+        stepped.append(out is not None)
+        return out
+
+    monkeypatch.setattr(GestureRecognizer, "_step", counted)
+    rng = np.random.default_rng(12)
+    enrolled = GestureSettings(grasp_curl_enter=0.55, pinch_enter_m=0.03, pinch_exit_m=0.04, open_curl_enter=0.2,
+                               pinch_others_curl_max=0.7, start_dwell_s=0.03, handover_rate_max=2.5)
+    for fingers in (("thumb", "index", "middle", "ring", "little"), ("index", "thumb", "little", "middle", "ring"),
+                    ("index", "middle", "ring", "little")):
+        frames = [_pipeline_kind(f) for f in _random_frames(rng, 1000, fingers)]
+        fast, ruled = GestureRecognizer(), GestureRecognizer()
+        del stepped[:]
+        started = set()
+        for k, f in enumerate(frames):
+            if k == 500:
+                fast.settings = ruled.settings = enrolled
+            a, b = _outcome(fast.update, f), _outcome(ruled.update_reference, f)
+            assert repr(a) == repr(b)
+            assert _state(fast) == _state(ruled)
+            if a[0] != "KeyError":
+                started |= {e["gesture"] for e in a[1] if e["event"] == "start"}
+        if "thumb" in fingers:
+            assert all(stepped) and len(stepped) == len(frames)
+            assert started == {"grasp", "point", "pinch", "open"}
+        else:
+            assert not any(stepped) and started >= {"grasp", "point"}
+
+
+def test_a_recording_steps_as_it_updates_through_the_rules():
+    """The frames of a recording through the pipeline: ``update`` (``_step``) and ``update_reference`` give the
+    same outputs and state, frame after frame."""
+    frames = _recorded_frames()
+    fast, ruled = GestureRecognizer(), GestureRecognizer()
+    for f in frames:
+        assert type(f.joint_angles) is FingerAngles
+        assert repr(fast.update(f)) == repr(ruled.update_reference(f))
+        assert _state(fast) == _state(ruled)
+    assert fast._steps

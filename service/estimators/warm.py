@@ -7,7 +7,7 @@ NAME [PARAMS_JSON]``), which fills the on-disk cache without competing with the 
 interpreter lock, then runs a few samples in a worker thread, which loads the cached code into this
 process. The container image runs the same command at build time.
 
-The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values, the flexion-axis fit, a frame's text) are warmed the same way, under the name
+The hand pipeline's own kernels (the optical fit, the OpenXR joint poses, the gesture values and the recogniser's step, the flexion-axis fit, a frame's text) are warmed the same way, under the name
 ``pipeline``, with whatever estimator comes first. When every kernel to warm is already in the on-disk
 cache (the usual case after the first run, and in the container image) the separate process is skipped:
 loading cached code takes a fraction of a second, where starting that process costs a full interpreter
@@ -78,7 +78,8 @@ def _pipeline_kernels() -> tuple:
     from ..model import openxr_kernel
     from ..pipeline import frame_text_kernel, mounting_kernel, optical_kernel
     return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, optical_kernel.keeps,
-            values.values_kernel, mounting_kernel.correct, mounting_kernel.fit, frame_text_kernel.merge)
+            values.values_kernel, mounting_kernel.correct, mounting_kernel.fit, frame_text_kernel.merge,
+            values.step_kernel)
 
 
 def _kernels(name: str) -> tuple:
@@ -125,6 +126,16 @@ def _warm_pipeline() -> None:
     mountings.correct(rows, raw)
     mountings.fit(rows, raw, np.concatenate([np.eye(3).ravel(), np.zeros(9)]),
                   np.zeros(sum(angles[n].shape[0] for n in angles)), np.ones(len(calib.fingers), dtype=np.bool_))
+    # the gesture recogniser's step on a pipeline frame (``GestureRecognizer._step``), first and later frames
+    from gestures.recognizer import GestureRecognizer
+    from ..model.openxr import FingerAngles, angles_layout, joint_pose_arrays
+    from ..pipeline.hand import HandFrame, JointPoses
+    flat = FingerAngles(np.zeros(sum(angles[n].shape[0] for n in angles)),
+                        angles_layout(tuple(angles), tuple(angles[n].shape[0] for n in angles)))
+    recognizer = GestureRecognizer()
+    for k in range(2):
+        recognizer.update(HandFrame(0.01 * k, k, "right", flat, {}, np.eye(3), np.zeros(3),
+                                    JointPoses(*joint_pose_arrays(calib, flat, np.eye(3), np.zeros(3))), {}))
     # a frame's text (``frame_text``: the numbers, small parts and fixed parts read-only, as bytes are)
     frame_text_kernel.merge(np.frombuffer(b"[1.0]", np.uint8), np.frombuffer(b"{}{}{}", np.uint8), 2, 2,
                             np.frombuffer(b",,,,,", np.uint8), np.arange(1, 6, dtype=np.int64),
