@@ -55,17 +55,17 @@ def merge(numbers, small, n_head, n_status, fixed, ends, holes, out):  # pragma:
     if count < 0 or size < 2 or numbers[0] != OPEN or numbers[size - 1] != CLOSE:
         return -1
     # where each number's text starts (``starts[i]``) and ends (``starts[i + 1] - 1``, at its comma)
+    commas = 0
+    for p in range(1, size - 1):                 # (no branch per byte: one pass to count, one to place)
+        commas += numbers[p] == COMMA
+    if commas != count - 1 if size > 2 else count != 0:      # (``[]``: no number)
+        return -1
     starts = np.empty(count + 1, dtype=np.int64)
     starts[0] = 1
-    i = 1 if size > 2 else 0
+    i = 1
     for p in range(1, size - 1):
-        if numbers[p] == COMMA:
-            if i >= count:
-                return -1
-            starts[i] = p + 1
-            i += 1
-    if i != count:
-        return -1
+        starts[i] = p + 1                        # (overwritten until the comma: the last write is a number's)
+        i += numbers[p] == COMMA
     starts[count] = size
     need = n_head - 1 + small.shape[0] - n_head + fixed.shape[0]     # (every byte written counted first)
     for k in range(k_holes):
