@@ -49,3 +49,40 @@ def test_joint_poses_from_the_pipelines_one_array_of_angles_equal_those_from_a_d
             for a, b in zip(joint_pose_arrays(calib, angles, rotation, position),
                             joint_pose_arrays(calib, plain, rotation, position)):
                 assert np.array_equal(a, b)
+
+
+def test_a_frames_poses_written_into_its_numbers_equal_joint_pose_arrays():
+    """``openxr_frame_kernel.frame_poses`` (the poses written after the angles in a frame's one array of
+    numbers) equals ``joint_pose_arrays`` to the bit, on random angles, poses and finger orders of both hands
+    and a recalibrated one, a NaN angle among them; and writes nothing where the array or the padding does not
+    fit."""
+    from service.model.openxr import _packed_calibration
+    from service.model.openxr_frame_kernel import frame_poses
+
+    rng = np.random.default_rng(13)
+    for trial in range(60):
+        calib = default_calibration("left" if trial % 3 == 0 else "right")
+        if trial % 4 == 1:
+            calib = calib.with_overrides({"thumb": {"lengths": [0.05, 0.03]}})
+        order = tuple(rng.permutation(tuple(calib.fingers)))
+        layout = angles_layout(order, tuple(calib.finger(f).n_phalanges for f in order))
+        numbers = np.empty(layout.n + 7 * len(JOINT_NAMES))
+        flat = numbers[:layout.n]
+        flat[:] = rng.uniform(-1.5, 3.0, layout.n)
+        if trial == 7:
+            flat[2] = np.nan
+        rotation = Rotation.random(random_state=rng).as_matrix()
+        position = rng.normal(0.0, 1.0, 3)
+        assert frame_poses(_packed_calibration(calib), flat, layout.padded, rotation, position, numbers)
+        positions, quats = joint_pose_arrays(calib, FingerAngles(flat.copy(), layout), rotation, position)
+        written = numbers[layout.n:]
+        assert np.array_equal(written, np.concatenate([positions.ravel(), quats.ravel()]), equal_nan=True)
+    calib = default_calibration("right")
+    layout = angles_layout(tuple(calib.fingers), tuple(g.n_phalanges for g in calib.fingers.values()))
+    packed, flat = _packed_calibration(calib), np.zeros(layout.n)
+    for numbers, padded in ((np.full(layout.n + 181, 7.0), layout.padded),      # no room for the poses
+                            (np.full(layout.n + 182, 7.0), layout.padded[1:]),  # padding not of the angles
+                            (np.full(layout.n + 182, 7.0), np.where(layout.padded == layout.padded[-1], 15,
+                                                                    layout.padded))):   # beyond (5, 3)
+        assert not frame_poses(packed, flat, padded, np.eye(3), np.zeros(3), numbers)
+        assert (numbers == 7.0).all()

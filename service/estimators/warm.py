@@ -75,11 +75,11 @@ def compile_command(name: str, params: dict | None = None) -> list[str]:
 
 def _pipeline_kernels() -> tuple:
     from gestures import values
-    from ..model import openxr_kernel
+    from ..model import openxr_frame_kernel, openxr_kernel
     from ..pipeline import frame_text_kernel, mounting_kernel, optical_kernel
     return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, optical_kernel.keeps,
             values.values_kernel, mounting_kernel.correct, mounting_kernel.fit, frame_text_kernel.merge,
-            values.step_kernel)
+            values.step_kernel, openxr_frame_kernel.frame_poses)
 
 
 def _kernels(name: str) -> tuple:
@@ -136,6 +136,11 @@ def _warm_pipeline() -> None:
     for k in range(2):
         recognizer.update(HandFrame(0.01 * k, k, "right", flat, {}, np.eye(3), np.zeros(3),
                                     JointPoses(*joint_pose_arrays(calib, flat, np.eye(3), np.zeros(3))), {}))
+    # a frame's joint poses into its numbers (``HandSession._frame``: the angles a view of them)
+    from ..model.openxr import JOINT_NAMES, _packed_calibration
+    from ..model.openxr_frame_kernel import frame_poses
+    numbers = np.zeros(flat.layout.n + 7 * len(JOINT_NAMES))
+    frame_poses(_packed_calibration(calib), numbers[:flat.layout.n], flat.layout.padded, np.eye(3), np.zeros(3), numbers)
     # a frame's text (``frame_text``: the numbers, small parts and fixed parts read-only, as bytes are)
     frame_text_kernel.merge(np.frombuffer(b"[1.0]", np.uint8), np.frombuffer(b"{}{}{}", np.uint8), 2, 2,
                             np.frombuffer(b",,,,,", np.uint8), np.arange(1, 6, dtype=np.int64),

@@ -48,8 +48,9 @@ from ..model.hand import METACARPUS_SENSOR_ID, FingerGeometry, HandCalibration, 
     joint_to_phalanx_angles
 from ..model.frames import rot_x
 from ..model.kinematics import BaseMotion
-from ..model.openxr import JOINT_NAMES, FingerAngles, angles_layout, joint_pose_arrays, joint_radii, joint_radii_list, \
-    joint_tracked_list
+from ..model.openxr import JOINT_NAMES, FingerAngles, _packed_calibration, angles_layout, joint_pose_arrays, joint_radii, \
+    joint_radii_list, joint_tracked_list
+from ..model.openxr_frame_kernel import frame_poses
 from ..protocol import Calibration, Hello, ReferencePose, Truth
 from ..protocol.fast import IMU, IMU_BATCH, POSE, FastImuBatch, FastPose
 from ..protocol.outgoing import FingerAnglesDict, FrameDict, FrameStatusDict, JointPoseDict, SensorStatusDict
@@ -193,6 +194,7 @@ class JointPoses(Mapping):
 
 
 _JOINT_INDEX = {n: k for k, n in enumerate(JOINT_NAMES)}
+_FLOAT64 = np.dtype(np.float64)
 _POSITION_NUMBERS = 3 * len(JOINT_NAMES)
 _POSE_NUMBERS = 7 * len(JOINT_NAMES)
 """A frame's numbers after its joint angles: the joints' positions, then their orientations (``JointPoses``)."""
@@ -1231,11 +1233,19 @@ class HandSession:
             kept[None] = (key, constants)
         layout, modes_of, tracked = constants
         angles = FingerAngles(flat, layout)
-        positions, quats = joint_pose_arrays(self.calibration, angles, hand.rotation, hand.position,
-                                             numbers[n:n + _POSITION_NUMBERS].reshape(-1, 3),
-                                             numbers[n + _POSITION_NUMBERS:].reshape(-1, 4))
+        positions = numbers[n:n + _POSITION_NUMBERS].reshape(-1, 3)
+        quats = numbers[n + _POSITION_NUMBERS:].reshape(-1, 4)
+        rotation, position = hand.rotation, hand.position
+        # the poses written into the numbers in one call where the five fingers are padded as the kernel wants
+        # them and the metacarpus pose is what it reads (``openxr_frame_kernel``), else by ``joint_pose_arrays``
+        if layout.padded is None or type(rotation) is not np.ndarray or type(position) is not np.ndarray \
+                or rotation.dtype is not _FLOAT64 or position.dtype is not _FLOAT64 \
+                or not rotation.flags.c_contiguous or not position.flags.c_contiguous \
+                or not frame_poses(_packed_calibration(self.calibration), flat, layout.padded, rotation, position,
+                                   numbers):
+            joint_pose_arrays(self.calibration, angles, rotation, position, positions, quats)
         self._seq += 1
-        return HandFrame(t, self._seq, self.hand, angles, modes_of, hand.rotation.copy(), hand.position.copy(),
+        return HandFrame(t, self._seq, self.hand, angles, modes_of, rotation.copy(), position.copy(),
                          JointPoses(positions, quats, numbers, flat), self._status(t, live), tracked)
 
     def status(self, t: float | None = None) -> FrameStatusDict:
