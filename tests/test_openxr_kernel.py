@@ -86,3 +86,25 @@ def test_a_frames_poses_written_into_its_numbers_equal_joint_pose_arrays():
                                                                     layout.padded))):   # beyond (5, 3)
         assert not frame_poses(packed, flat, padded, np.eye(3), np.zeros(3), numbers)
         assert (numbers == 7.0).all()
+
+
+def test_the_pipelines_frames_hold_joint_pose_arrays_poses():
+    """Every frame of a simulated session (faults, a back-of-hand IMU, hand motion) holds in its numbers
+    (``openxr_frame_kernel.frame_poses``, written by ``HandSession._frame``) the poses ``joint_pose_arrays``
+    gives for its angles and metacarpus pose, to the bit."""
+    from service.pipeline.hand import HandSession
+    from service.protocol import parse_message
+    from service.sim.session import SimConfig, simulate
+
+    session = HandSession("right")
+    frames = []
+    for m in simulate(SimConfig(motion="grasp", noise="white", seed=6, metacarpus_imu=True, hand_motion="slow-rotation",
+                                t_m_s=1.0)).messages():
+        frames.extend(session.handle(parse_message(m)).frames)
+    assert len(frames) > 50
+    for f in frames:
+        assert f.joints.numbers is not None and f.joints.angles is f.joint_angles.flat
+        positions, quats = joint_pose_arrays(session.calibration, FingerAngles(f.joint_angles.flat.copy(),
+                                             f.joint_angles.layout), f.hand_rotation, f.hand_position)
+        assert np.array_equal(f.joints.positions, positions) and np.array_equal(f.joints.quats, quats)
+        assert np.array_equal(f.joints.numbers[f.joint_angles.layout.n:], np.concatenate([positions.ravel(), quats.ravel()]))
