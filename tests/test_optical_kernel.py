@@ -220,3 +220,37 @@ def test_at_with_work_arrays_kept_from_call_to_call_gives_the_bits_of_a_fresh_ca
             slid += bool(windows) and len(window) == len(windows[-1]) and window != windows[-1]
             windows.append(window)
     assert kept > 1000 and slid > 10
+
+
+def test_pose_keeps_is_keeps_then_usable_in_one_call():
+    """``optical_kernel.pose_keeps`` (``HandSession._pose_keeps``' one call) answers -1 where ``keeps`` says a new pose
+    changes a fit from ``t0`` on, else ``usable``'s count with the same outputs and results, on a jittery stream
+    with occlusions, gaps past the fit window and positions whose fits overflow."""
+    from service.pipeline import optical_kernel
+
+    rng = np.random.default_rng(13)
+    seen = {"changes": 0, "all": 0, "fewer": 0}
+    for trial in range(40):
+        track = OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=16)
+        t = rng.uniform(-5.0, 5.0)
+        rot = Rotation.random(random_state=rng)
+        for k in range(60):
+            t += rng.choice([1 / 90, 1 / 90, 1 / 90, 0.2]) + rng.uniform(-0.002, 0.002)
+            rot = Rotation.from_rotvec(rng.normal(0.0, 0.05, 3)) * rot
+            p = np.full(3, 1e308) if rng.random() < 0.03 else rng.normal(0.0, 0.3, 3)
+            track.add(t, p, rot.as_quat(), bool(rng.random() > 0.1))
+            times = np.sort(rng.uniform(t - 0.1, t, int(rng.integers(1, 5))))
+            t0, t_new = float(times[0]), t + rng.choice([1 / 90, 0.5])
+            args = track.kernel_args()
+            want_outs, want_st = np.full((len(times), 24), np.nan), np.full(len(times), -7)
+            if optical_kernel.keeps(t_new, t0, track._t, track._valid, track._lo, track._hi, track._max_poses,
+                                    track.window_s, track.timeout_s):
+                want = optical_kernel.usable(times, *args, want_outs, want_st)
+            else:
+                want = -1
+            outs, st = np.full((len(times), 24), np.nan), np.full(len(times), -7)
+            got = optical_kernel.pose_keeps(t_new, t0, times, *args, track._max_poses, outs, st)
+            assert got == want
+            assert np.array_equal(outs, want_outs, equal_nan=True) and np.array_equal(st, want_st)
+            seen["changes" if want < 0 else "all" if want == len(times) else "fewer"] += 1
+    assert all(n > 5 for n in seen.values()), seen

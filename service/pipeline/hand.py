@@ -649,20 +649,20 @@ class HandSession:
         if not optics.covers(next(reversed(deferred))):
             return False                    # a tick past the last pose (released by pose_timeout_s): a pose
             # now would be interpolated into it where it was extrapolated
-        if not optics.add_keeps(t_new, next(iter(deferred))):
-            return False
-        times = list(deferred)[self._deferred_fits:]
-        if times:
-            # ``optics.at`` of each and ``_finite_motion`` of what it gives, in one compiled call, its outputs kept
-            # for the run that processes them (``_given_fits``: by ``add_keeps``, the same as they are then)
-            done = self._deferred_fits
-            try:
-                if optical_kernel.usable(np.array(times), *optics.kernel_args(), self._fit_rows[done:],
-                                         self._fit_status[done:]) < len(times):
-                    return False
-            except (ValueError, np.linalg.LinAlgError):
+        done = self._deferred_fits
+        if done == len(deferred):
+            return optics.add_keeps(t_new, next(iter(deferred)))
+        times = list(deferred)[done:]
+        # ``add_keeps``, then ``optics.at`` of each tick not checked yet and ``_finite_motion`` of what it gives, in
+        # one compiled call (``optical_kernel.pose_keeps``), their outputs kept for the run that processes them
+        # (``_given_fits``: by ``add_keeps``, the same as they are then)
+        try:
+            if optical_kernel.pose_keeps(float(t_new), float(next(iter(deferred))), np.array(times), *optics.kernel_args(),
+                                         optics._max_poses, self._fit_rows[done:], self._fit_status[done:]) < len(times):
                 return False
-            self._deferred_fits += len(times)
+        except (ValueError, np.linalg.LinAlgError):
+            return False
+        self._deferred_fits = done + len(times)
         return True
 
     def _given_fits(self) -> tuple | None:

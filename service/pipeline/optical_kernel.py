@@ -329,3 +329,15 @@ def keeps(t_new, t0, ts, valid, lo, hi, max_poses, window_s, timeout_s):
         if u < t0 and valid[i]:
             return True
     return False
+
+
+@njit(cache=JIT_CACHE, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def pose_keeps(t_new, t0, times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
+               max_poses, outs, statuses):
+    """``keeps`` (a pose at ``t_new`` leaves ``at`` the same from ``t0`` on) and, if it does, ``usable`` of ``times``
+    (with ``outs`` and ``statuses``): the checks ``HandSession._pose_keeps`` makes of a pose in one call. Returns -1
+    where ``keeps`` says no, else ``usable``'s count."""
+    if not keeps(t_new, t0, ts, valid, lo, hi, max_poses, window_s, timeout_s):
+        return -1
+    return usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs,
+                  statuses)

@@ -90,7 +90,11 @@ class ProtocolError(ValueError):
 def _check_unit(q: list[float] | None, name: str) -> list[float] | None:
     if q is None:
         return q
-    norm = math.sqrt(sum(v * v for v in q))
+    if len(q) == 4:                         # (every quaternion: the sum below without its generator, in its order)
+        x, y, z, w = q
+        norm = math.sqrt(x * x + y * y + z * z + w * w)
+    else:
+        norm = math.sqrt(sum(v * v for v in q))
     if abs(norm - 1.0) > QUATERNION_NORM_TOLERANCE:
         raise ValueError(f"{name} must be a unit quaternion [x, y, z, w]; its norm is {norm:.6g}")
     return q
