@@ -935,3 +935,156 @@ def test_the_gloves_timer_wakes_once_per_arm_at_the_latest_time_armed_and_never_
 
     lags = asyncio.run(asyncio.wait_for(stream(), 60))
     assert len(lags) == len(msgs) and min(lags) >= 0.0
+
+
+def test_a_subscriber_read_at_the_gloves_wakes_takes_a_frame_s_arrival_as_the_moment_its_bytes_reached_the_socket():
+    """``TickReads``: a subscriber taken from the event loop is read only at ``read()``; a frame written
+    by the server, then left unread 30 ms, arrives (the kernel's receive time) between the server's
+    write's start and end, not at the read; ``stop()`` gives the connection back to the loop, which reads
+    the next frame by itself."""
+    import asyncio
+    import time
+
+    from websockets.frames import Frame, Opcode
+
+    from service.bench.loadclients import LeanSubscription, TickReads
+
+    if not TickReads.available:
+        pytest.skip("TickReads needs Linux (epoll, SO_TIMESTAMPNS)")
+
+    def wire(obj) -> bytes:
+        import json
+        return Frame(Opcode.TEXT, json.dumps(obj).encode()).serialize(mask=False)
+
+    async def main():
+        conn = {}
+
+        async def handle(reader, writer):
+            writer.write(_accept((await reader.readuntil(b"\r\n\r\n")).decode()) + wire({"type": "hello", "protocol": 1}))
+            conn["writer"] = writer
+            await reader.read()
+
+        server = await _raw_server_port(handle)
+        port = server.sockets[0].getsockname()[1]
+        reads, rows = TickReads(), []
+        sub = LeanSubscription(f"http://127.0.0.1:{port}", "a", "t", lambda m, arrival: rows.append((arrival, m.seq)),
+                               reads=reads)
+        sub.start()
+        while sub.server_hello is None:
+            await asyncio.sleep(0.01)
+        reads.start([sub])
+        writer = conn["writer"]
+        # frames until one came with the kernel's time (the kernel turns its receive times on shortly after
+        # the first socket asks)
+        seq = 0
+        while reads.reads == reads.unstamped and seq < 200:
+            seq += 1
+            writer.write(wire(_frame(seq, "right", seq / 90)))
+            time.sleep(0.005)
+            reads.read()
+        assert reads.reads > reads.unstamped and [s for _, s in rows] == list(range(1, seq + 1))
+        moments = []
+        for k in range(3):
+            seq += 1
+            before = time.perf_counter()
+            writer.write(wire(_frame(seq, "right", seq / 90)))          # sent at once (nothing queued)
+            after = time.perf_counter()
+            time.sleep(0.03)                        # the loop does not run: only read() reads the subscriber
+            assert len(rows) == seq - 1
+            reads.read()
+            moments.append((before, after, time.perf_counter()))
+        assert len(rows) == seq
+        for (arrival, _), (before, after, read_at) in zip(rows[-3:], moments):
+            assert before - 1e-3 <= arrival <= after + 1e-3 and arrival < read_at - 0.02
+        reads.stop()                                # back to the loop: the next frame read without read()
+        writer.write(wire(_frame(seq + 1, "right", (seq + 1) / 90)))
+        while len(rows) < seq + 1:
+            await asyncio.sleep(0.01)
+        await sub.close()
+        server.close()
+        return rows, sub
+
+    rows, sub = asyncio.run(asyncio.wait_for(main(), 60))
+    assert [s for _, s in rows] == list(range(1, len(rows) + 1)) and sub.reconnects == 0 and not sub._polled
+
+
+def test_a_subscriber_read_at_the_gloves_wakes_whose_connection_ends_reconnects_and_is_read_so_again():
+    """The server ends a polled subscriber's first connection (a close frame, then TCP) after two frames:
+    ``read()`` gives the end to the event loop, the subscriber reconnects, is taken again once open, and
+    reads the second connection's frames at ``read()`` too; every frame comes once, in order."""
+    import asyncio
+    import json
+
+    from websockets.frames import Close, Frame, Opcode
+
+    from service.bench.loadclients import LeanSubscription, TickReads
+
+    if not TickReads.available:
+        pytest.skip("TickReads needs Linux (epoll, SO_TIMESTAMPNS)")
+
+    def wire(obj) -> bytes:
+        return Frame(Opcode.TEXT, json.dumps(obj).encode()).serialize(mask=False)
+
+    connections = []
+
+    async def handle(reader, writer):
+        connections.append(writer)
+        n = len(connections)
+        writer.write(_accept((await reader.readuntil(b"\r\n\r\n")).decode()) + wire({"type": "hello", "protocol": 1}))
+        for seq in ((1, 2) if n == 1 else (3, 4, 5)):
+            writer.write(wire(_frame(seq, "right", seq / 90)))
+            await asyncio.sleep(0.01)
+        if n == 1:
+            writer.write(Frame(Opcode.CLOSE, Close(1011, "restarting").serialize()).serialize(mask=False))
+            await asyncio.sleep(0.05)
+            writer.close()
+            return
+        await reader.read()
+
+    async def main():
+        server = await _raw_server_port(handle)
+        reads, rows = TickReads(), []
+        sub = LeanSubscription(f"http://127.0.0.1:{server.sockets[0].getsockname()[1]}", "a", "t",
+                               lambda m, arrival: rows.append(m.seq), reads=reads)
+        reads.start([])                             # taken as soon as it is open
+        sub.start()
+        while len(rows) < 5:
+            reads.read()
+            await asyncio.sleep(0.002)
+        polled_then = sub._polled
+        await sub.close()
+        server.close()
+        return rows, sub, reads, polled_then
+
+    rows, sub, reads, polled_then = asyncio.run(asyncio.wait_for(main(), 60))
+    assert rows == [1, 2, 3, 4, 5] and sub.reconnects == 1 and len(connections) == 2
+    assert polled_then and reads.reads >= 2 and not sub._polled
+
+
+def test_the_gloves_schedule_puts_every_message_on_one_timeline_and_starts_each_time_with_another_glove():
+    from service.bench.loadclients import GloveSchedule
+
+    def msgs(t0):
+        return [(t0, {"type": "hello"}), (t0, {"type": "calibration"}), (t0 + 0.25, {"type": "imu_batch"}),
+                (t0 + 0.5, {"type": "imu_batch"})]
+    messages = [msgs(0.0), msgs(2.0), msgs(0.5)[:3]]
+    frames = [[b"h", b"c", b"1", b"2"], [b"H", b"C", b"3", b"4"], [b"x", b"y", b"5"]]
+    plan = GloveSchedule(messages, frames)
+    assert plan.offsets == [0.0, 0.25, 0.5]                       # each glove's times from its first message
+    assert plan.gloves == [[0, 0, 1, 1, 2, 2], [1, 2, 0], [0, 1]]     # hello and calibration at 0: twice each
+    assert plan.frames[0] == [None, b"c", b"1", b"2"] and plan.calibrations == [{1}, {1}, {1}]
+    assert plan.due[2] == [0.0, 0.0, 0.25]
+
+
+def test_a_frame_s_latency_counts_from_its_glove_s_latest_send_before_it_arrived():
+    import numpy as np
+
+    from service.bench.load import _rows
+    from service.bench.loadclients import Received
+
+    got = [(0.5, Received("frame", 1, "right", 0.0)), (1.25, Received("frame", 2, "right", 0.01)),
+           (2.0, Received("frame", 3, "right", 0.02))]
+    rows = _rows(got, [1.0, 1.2, 1.3, 2.0])       # a frame read after sends made after it arrived
+    assert np.isnan(rows[0][1]) and rows[1][1] == pytest.approx(0.05) and rows[2][1] == 0.0
+    assert [r[2:] for r in rows] == [(1, "right", 0.0), (2, "right", 0.01), (3, "right", 0.02)]
+    assert _rows([], [1.0]) == [] and np.isnan(_rows(got[:1], [])[0][1])

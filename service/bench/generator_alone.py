@@ -7,8 +7,9 @@ pipeline made (about 7 kB of JSON). This process streams ``hands`` simulated glo
 subscribers per hand, with ``bench load``'s clients (``lean``: ``loadclients``) or the product's
 (``product``: ``clients.glove.stream_glove`` and ``clients.client.Subscription`` decoding every frame, as
 ``bench load``'s generator did before), and prints its own CPU time per second of one hand's data
-(user + system, and system alone) while the gloves stream, and (lean clients) how late the gloves sent
-their messages (p50 and p99 of send time minus due time), as JSON. The sink's CPU is not counted;
+(user + system, and system alone) and its wakes per second (voluntary context switches) while the gloves
+stream, and (lean clients) how late the gloves sent their messages (p50 and p99 of send time minus due
+time), as JSON; the lean subscribers are read at the gloves' wakes (``TickReads``), as in ``bench load``. The sink's CPU is not counted;
 it shares the machine.
 """
 from __future__ import annotations
@@ -18,6 +19,7 @@ import asyncio
 import gc
 import json
 import os
+import resource
 import sys
 import time
 
@@ -71,7 +73,7 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
 
     import numpy as np
 
-    from .loadclients import LeanGlove, LeanSubscription, SessionDecodes, stream_gloves, ws_frames
+    from .loadclients import GloveSchedule, LeanGlove, LeanSubscription, SessionDecodes, TickReads, stream_gloves, ws_frames
 
     configs = [SimConfig(motion="random", t_m_s=seconds, noise="both", hand_motion="slow-rotation", seed=i,
                          hand="right" if i % 2 == 0 else "left") for i in range(hands)]
@@ -83,12 +85,14 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
         def count(_msg, _arrival):
             frames[0] += 1
         shared = {n: SessionDecodes() for n in names}
-        subs = [LeanSubscription(url, n, "t", count, shared=shared[n]) for n in names for _ in range(2)]
+        reads = TickReads()
+        subs = [LeanSubscription(url, n, "t", count, shared=shared[n], reads=reads) for n in names for _ in range(2)]
         for s in subs:
             s.start()
         gloves = [LeanGlove(url, n, "t") for n in names]
         await asyncio.gather(*(g.open(m[0][1]) for g, m in zip(gloves, msgs)))
         framed = [ws_frames(e) for e in encoded]
+        schedule = GloveSchedule(msgs, framed)
         while not all(s.server_hello is not None for s in subs):
             await asyncio.sleep(0.05)
     else:
@@ -104,13 +108,19 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
     gc.collect()                              # as ``bench load``'s generator: the simulated messages kept
     gc.freeze()                               # out of the collector's generations while they stream
     lags: list[float] = []
+    sent = [[] for _ in names]
+    usage0 = resource.getrusage(resource.RUSAGE_SELF)
     cpu0, sys0, wall0 = time.process_time(), os.times().system, time.perf_counter()
     if clients == "lean":
-        await stream_gloves(gloves, msgs, framed, [lambda w, m: None] * hands, wall0, lags=lags)
+        reads.start(subs)
+        await stream_gloves(gloves, msgs, framed, None, wall0, sent=sent, schedule=schedule, reads=reads)
     else:
         pubs = await asyncio.gather(*(stream_glove(url, n, "t", c, messages=m, encoded=e)
                                       for n, c, m, e in zip(names, configs, msgs, encoded)))
     cpu, system, wall = time.process_time() - cpu0, os.times().system - sys0, time.perf_counter() - wall0
+    usage1 = resource.getrusage(resource.RUSAGE_SELF)
+    if clients == "lean":
+        lags = [t - (wall0 + d) for times, due in zip(sent, schedule.due) for t, d in zip(times, due)]
     for closing in (gloves if clients == "lean" else pubs):
         await closing.close()                 # the sink has answered every message: its frames are on the way
     expected = 2 * sum(1 for m in msgs for _, x in m if x["type"] == "pose")
@@ -126,8 +136,12 @@ async def _generate(url: str, hands: int, seconds: float, clients: str) -> dict:
     return {"clients": clients, "hands": hands, "seconds": seconds, "stream_wall_s": wall, "frames_received": frames[0],
             "frames_sent": expected,
             "cpu_ms_per_hand_s": 1e3 * cpu / (hands * seconds), "system_ms_per_hand_s": 1e3 * system / (hands * seconds),
+            "wakes_per_s": (usage1.ru_nvcsw - usage0.ru_nvcsw) / wall,
+            "tick_reads": reads.reads if clients == "lean" else None,
             "send_lag_ms_p50_p99": ([round(float(x), 3) for x in np.percentile(np.array(lags) * 1e3, [50, 99])]
-                                    if lags else None)}
+                                    if lags else None),
+            "send_lag_ms_p90_p999_max": ([round(float(x), 3) for x in np.percentile(np.array(lags) * 1e3, [90, 99.9, 100])]
+                                         if lags else None)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -24,8 +24,10 @@ The gloves and subscribers run in load-generator processes (``GENERATOR_HANDS`` 
 ``--generators N``), started together once each has simulated its gloves, framed their messages,
 connected them and opened its subscriptions; a process's gloves are sent from one timer, each message
 at its due time (their lag behind it is reported), and its subscribers read each frame for the checked
-fields only as it arrives, a session's second subscriber comparing its bytes with the first's decoded
-message (``loadclients``). Each reports
+fields only, a session's second subscriber comparing its bytes with the first's decoded message; while
+the gloves stream the subscribers are read at the gloves' timer's wakes, a frame's arrival the moment
+its bytes reached the socket (the kernel's receive time), not the moment the generator read them
+(``loadclients``). Each reports
 its frames, and the frames' delay behind the source's schedule beyond the pipeline's alignment wait
 (``_timing``), back as JSON.
 """
@@ -99,7 +101,7 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     once set, ends the gloves' streams early."""
     from clients.glove import encoded_messages, source_messages
 
-    from .loadclients import LeanGlove, LeanSubscription, SessionDecodes, stream_gloves, ws_frames
+    from .loadclients import GloveSchedule, LeanGlove, LeanSubscription, SessionDecodes, TickReads, stream_gloves, ws_frames
 
     urls, viewer, subscribers, seconds, binary = spec["urls"], spec["viewer"], spec["subscribers"], spec["seconds"], spec["binary"]
     indices = spec["indices"]
@@ -116,25 +118,25 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     try:
         msgs = [source_messages(c) for c in configs]
         frames = [ws_frames(encoded_messages(m, binary)) for m in msgs]
+        schedule = GloveSchedule(msgs, frames)
     finally:
         gc.enable()
     gc.collect()
     gc.freeze()
     names = [f"load-{i}" for i in indices]
-    last_send = {n: 0.0 for n in names}
-    received = {(n, k): [] for n in names for k in range(subscribers)}      # (arrival, latency, seq, hand, t)
+    frames_got = {(n, k): [] for n in names for k in range(subscribers)}    # (arrival, Received)
 
-    def on_frame_for(name, rows):
-        def on_frame(msg, arrival):
-            sent = last_send[name]
-            rows.append((arrival, arrival - sent if sent > 0 else np.nan, msg.seq, msg.hand, msg.t))
-        return on_frame
+    def on_frame_for(got):
+        append = got.append
+        return lambda msg, arrival: append((arrival, msg))
 
-    # read as they arrive, decoded only for the fields checked (``loadclients``); a session's subscribers
-    # get the same bytes: one decodes a message, the others compare theirs with it whole (``SessionDecodes``)
+    # decoded only for the fields checked (``loadclients``); a session's subscribers get the same bytes: one
+    # decodes a message, the others compare theirs with it whole (``SessionDecodes``); read at the gloves'
+    # wakes while they stream, each read's arrival the kernel's receive time of its bytes (``TickReads``)
     shared = {n: SessionDecodes(binary, subscribers) for n in names}
-    subs = {(n, k): LeanSubscription(urls[(i + k) % len(urls)], n, viewer, on_frame_for(n, received[(n, k)]),
-                                     binary=binary, shared=shared[n])
+    reads = TickReads()
+    subs = {(n, k): LeanSubscription(urls[(i + k) % len(urls)], n, viewer, on_frame_for(frames_got[(n, k)]),
+                                     binary=binary, shared=shared[n], reads=reads)
             for i, n in zip(indices, names) for k in range(subscribers)}
     for s in subs.values():
         s.start()
@@ -150,23 +152,23 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     await ready()
     await asyncio.sleep(max(0.0, await start_at() - time.time()))
 
-    def on_send_for(name):
-        def on_send(wall, _msg):
-            last_send[name] = wall
-        return on_send
-
+    switches0 = _waits()
     cpu0, sys0, wall0 = time.process_time(), os.times().system, time.perf_counter()
     first_send = {n: wall0 for n in names}   # every glove's schedule starts then (its first message is due)
-    lags: list[float] = []                   # each message's send time minus its due time
-    await stream_gloves(gloves, msgs, frames, [on_send_for(n) for n in names], wall0, stop, lags)   # one timer for all
+    sent = [[] for _ in names]               # each glove's send times, message after message
+    reads.start(subs.values())
+    await stream_gloves(gloves, msgs, frames, None, wall0, stop, None, sent, schedule, reads)   # one timer for all
     await asyncio.sleep(0.1)
     wall, generator_cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     generator_sys = os.times().system - sys0
+    wakes = _waits() - switches0
+    # each message's send time minus its due time
+    lags = np.concatenate([np.array(t) - (wall0 + np.array(due[:len(t)])) for t, due in zip(sent, schedule.due)])
     # each glove closes once the service has handled everything it sent (sync)
     for r in await asyncio.gather(*(g.close() for g in gloves), return_exceptions=True):
         if isinstance(r, BaseException):
             raise RuntimeError(f"a glove failed: {r!r}") from r
-    accounts = await _until_delivered(urls, names, received, subscribers, spec["admin"], indices)
+    accounts = await _until_delivered(urls, names, frames_got, subscribers, spec["admin"], indices)
     errors = sum(len(g.errors) for g in gloves)               # after closing: replies to the last messages included
     # a subscriber that reconnects loses what its old connection had queued: neither delivered nor dropped
     reconnects = sum(s.reconnects for s in subs.values())
@@ -174,6 +176,11 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     for r in await asyncio.gather(*(s.close() for s in subs.values()), return_exceptions=True):
         if isinstance(r, BaseException):
             raise RuntimeError(f"a subscriber failed: {r!r}") from r
+    reads.close()
+    # each frame as (arrival, latency, seq, hand, t): its latency the time since its glove's latest send
+    # before it arrived, from the send times kept per glove (a frame is read after the sends of the wake
+    # it is read at, and may have arrived before some of them)
+    received = {(n, k): _rows(frames_got[(n, k)], sent[gi]) for gi, n in enumerate(names) for k in range(subscribers)}
     # a frame's delay behind the source's schedule: its arrival minus the wall time at which the data
     # of its tick were due to be sent (the first message was sent at first_send, source time m[0][0])
     delays, beyond, align, beyond_by = [], [], [], []
@@ -193,9 +200,34 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             "malformed_examples": [repr(m) for s in subs.values() for m in s.malformed][:10],
             "gestures": sum(s.gestures for s in subs.values()), "other_messages": sum(s.others for s in subs.values()),
             "wall_s": wall, "generator_cpu_s": generator_cpu, "generator_system_cpu_s": generator_sys,
-            "send_lags_us": np.round(np.array(lags) * 1e6).astype(int).tolist(),
+            "generator_wakes": wakes,
+            "send_lags_us": np.round(lags * 1e6).astype(int).tolist(),
             "messages_decoded": sum(d.decoded for d in shared.values()),
-            "messages_compared": sum(d.hits for d in shared.values())}
+            "messages_compared": sum(d.hits for d in shared.values()),
+            "tick_reads": reads.reads, "tick_reads_unstamped": reads.unstamped}
+
+
+def _waits() -> int:
+    """How often this process has waited so far (voluntary context switches: each is a wake after it);
+    0 where that cannot be read."""
+    try:
+        import resource
+    except ImportError:
+        return 0
+    return resource.getrusage(resource.RUSAGE_SELF).ru_nvcsw
+
+
+def _rows(got: list, sent: list[float]) -> list[tuple]:
+    """A subscriber's frames ``(arrival, Received)`` as rows ``(arrival, latency, seq, hand, t)``: latency the
+    time since its glove's latest send at or before the frame's arrival (``sent``: the glove's send times,
+    in order; NaN for a frame before its glove's first send)."""
+    if not got:
+        return []
+    arrivals, times = np.array([a for a, _ in got]), np.array(sent, dtype=float)
+    latest = np.searchsorted(times, arrivals, side="right") - 1
+    latency = np.full(len(got), np.nan)
+    latency[latest >= 0] = arrivals[latest >= 0] - times[latest[latest >= 0]]
+    return [(a, float(lat), m.seq, m.hand, m.t) for (a, m), lat in zip(got, latency)]
 
 
 def _generator_main() -> int:
@@ -326,6 +358,9 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
             "send_lag_ms": _quantiles(np.array([x for r in results for x in r["send_lags_us"]]) * 1e-3),
             "messages_decoded": sum(r["messages_decoded"] for r in results),
             "messages_compared": sum(r["messages_compared"] for r in results),
+            "generator_wakes_per_s": sum(r["generator_wakes"] / r["wall_s"] for r in results),
+            "tick_reads": sum(r["tick_reads"] for r in results),
+            "tick_reads_unstamped": sum(r["tick_reads_unstamped"] for r in results),
             "service_cpu_until_drained_s": None if service0 is None or service2 is None else service2 - service0,
             "until_drained_wall_s": busy_wall,
             "errors": sum(r["errors"] for r in results),
@@ -535,6 +570,8 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                                    / (hands * seconds)),
         "generator_processes": lvl["generator_processes"],
         "generator_cpu_share_max": lvl["generator_cpu_share_max"],
+        # the generator processes' wakes (voluntary context switches) per second while they stream, summed
+        "generator_wakes_per_s": lvl["generator_wakes_per_s"],
         # how late the gloves sent their messages (send time minus due time, every message): the
         # generator's own lag, which the frames' delay behind schedule includes, and the time a glove held a
         # message while 256 of its messages were unconfirmed (the glove's flow control, when the service is behind)
@@ -542,6 +579,9 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         # the subscribers' messages decoded, and those compared whole with a decoded one of the session
         "subscriber_messages_decoded": lvl["messages_decoded"],
         "subscriber_messages_compared": lvl["messages_compared"],
+        # the subscribers' reads at the gloves' wakes while they streamed (``TickReads``), and those of them
+        # without the kernel's receive time (their frames' arrival then taken at the read)
+        "subscriber_tick_reads": lvl["tick_reads"], "subscriber_tick_reads_unstamped": lvl["tick_reads_unstamped"],
         # the generator's CPU seconds (user + system; system alone) per second of one hand's data
         "generator_cpu_s_per_hand_s": lvl["generator_cpu_s"] / (hands * seconds),
         "generator_system_cpu_s_per_hand_s": lvl["generator_system_cpu_s"] / (hands * seconds),
@@ -651,7 +691,10 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule beyond "
               "the alignment wait: a frame's arrival after the moment the message that completed its tick (the reorder "
               "window passed and a pose at or after the tick arrived, `bench latency`'s rule) was due to be sent by the "
-              "source's schedule; it grows without bound when the service or the generator falls behind. Alignment "
+              "source's schedule; it grows without bound when the service or the generator falls behind. A frame's "
+              "arrival: while the gloves stream, the moment its bytes reached the generator's socket (the kernel's "
+              "receive time of the last TCP segment read with it; the subscribers are read at the gloves' timer's "
+              "wakes), after that the moment it was read. Alignment "
               "wait: the pipeline's deliberate wait, that message's due time minus the tick's (the optics' 20 ms latency "
               "and the 20 ms reorder window). Unaccounted: frames the service sent out that were neither delivered nor "
               "counted as dropped. /health and /metrics: response times measured during the stream by a probe "

@@ -12,18 +12,25 @@ the transport's own callbacks, with no task, queue or future per message:
   (``malformed_count``), not dropped silently. A session's subscribers may share a ``SessionDecodes``:
   they get the same bytes, and one compares its whole message with one the other decoded before taking
   its fields. It reconnects with back-off, as ``clients.client.Subscription`` does, counting ``reconnects``.
+  While the gloves stream, a ``TickReads`` may read it instead, at the gloves' timer's wakes, each
+  frame's arrival then the kernel's receive time of its bytes (the process wakes for the gloves' due
+  times, not again for each frame).
 * ``LeanGlove`` streams a simulated glove's messages, each framed (masked) before the clock starts
   (``ws_frames``) and written as it is, with ``clients.client.Publisher``'s flow control (a ``sync``
   every 64 messages, at most 256 unconfirmed) and its reconnect (hello and calibration sent again);
   ``stream_gloves`` sends every glove of a process from one timer (a ``timerfd``: at the due time to
   the kernel timer's precision, where asyncio's timers come up to 1 ms late): at each wake, every
-  message due.
+  message due, on one timeline of every glove's due times made before the clock starts
+  (``GloveSchedule``), each message's send time kept.
 """
 from __future__ import annotations
 
 import asyncio
 import ctypes
 import os
+import select
+import socket
+import struct
 import sys
 import time
 from typing import Callable
@@ -184,11 +191,12 @@ class _LeanConnection(asyncio.BufferedProtocol):
             self._closing = True
             self.transport.abort()
 
-    def _received(self, nbytes: int) -> None:
+    def _received(self, nbytes: int, arrival: float | None = None) -> None:
         """The frames of an open connection are cut in the buffer (``_frames``); the handshake's
         response goes to the protocol, exactly up to its end, so that its parser waits at a frame's
-        start."""
-        arrival = time.perf_counter()
+        start. ``arrival``: when the bytes came (None: now)."""
+        if arrival is None:
+            arrival = time.perf_counter()
         self._rend += nbytes
         if self._framing:
             self._frames(arrival)
@@ -212,6 +220,7 @@ class _LeanConnection(asyncio.BufferedProtocol):
             self._view[:len(rest)] = rest
             self._rend = len(rest)
             self._frames(arrival)
+            self._opened_for_frames()
         elif cut < len(data):
             self._to_proto(data[cut:], arrival)
 
@@ -266,6 +275,9 @@ class _LeanConnection(asyncio.BufferedProtocol):
                     self._parts = []
                     self._message(whole, self._binary_message, arrival)
         self._flush()
+
+    def _opened_for_frames(self) -> None:
+        """The handshake is done and the connection's frames are cut from here on."""
 
     def eof_received(self):
         if self._rend > self._rstart:               # a frame cut short: the protocol sees it end
@@ -326,6 +338,93 @@ class _LeanConnection(asyncio.BufferedProtocol):
             self.transport.abort()
 
 
+SO_TIMESTAMPNS = 35
+"""``setsockopt`` option (Linux, ``<asm-generic/socket.h>``; Python does not name it): the kernel's receive
+time of a read's data (``CLOCK_REALTIME``, a ``timespec``) comes with ``recvmsg`` as a control message of
+this type (``SCM_TIMESTAMPNS``); for TCP, the time of the last segment the read took bytes from"""
+
+
+class TickReads:
+    """Subscribers read at the gloves' wakes (``stream_gloves`` calls ``read()`` at each), not each at
+    its frames' own wakes: while the gloves stream, a subscriber's connection is taken from the event
+    loop (its transport paused) and polled at every wake of the gloves' timer, at most one due time of
+    the gloves' schedule apart (5 ms at 200 Hz), so that the process wakes for the gloves' timer and
+    not again for each frame. What this changes for the time a frame is taken to arrive: it is not the
+    moment this process read the bytes but the moment they reached the socket, the kernel's receive
+    time (``SO_TIMESTAMPNS``) of the last TCP segment the read took bytes from (of a frame that ends
+    before that segment, a bound after its own), on the kernel's wall clock (``CLOCK_REALTIME``),
+    converted to ``time.perf_counter()``'s by their difference at the read and never after the read
+    itself; a read without that time (none came) is taken at the read, counted in ``unstamped``.
+    ``reads`` counts the reads so made. Linux only (``available``): elsewhere subscribers read as
+    they would without it. ``start(subscribers)`` takes the subscribers' connections from the event
+    loop, and each one that opens later while started; ``stop()`` gives them back (what is unread is
+    then read by the loop at once)."""
+
+    available = sys.platform.startswith("linux") and hasattr(select, "epoll")
+
+    def __init__(self):
+        self._poll = select.epoll() if self.available else None
+        self._subs: dict[int, "LeanSubscription"] = {}
+        self.active = False
+        self.reads = self.unstamped = 0
+
+    def start(self, subscribers) -> None:
+        self.active = self._poll is not None
+        for sub in subscribers:
+            self.take(sub)
+
+    def take(self, sub: "LeanSubscription") -> None:
+        if not self.active or sub._raw is None or sub._polled or not sub._framing:
+            return
+        transport = sub.transport
+        if transport is None or transport.is_closing() or not transport.is_reading():
+            return
+        transport.pause_reading()
+        fd = sub._raw.fileno()
+        self._poll.register(fd, select.EPOLLIN)
+        self._subs[fd] = sub
+        sub._polled = True
+
+    def give_back(self, sub: "LeanSubscription", resume: bool = True) -> None:
+        if not sub._polled:
+            return
+        sub._polled = False
+        fd = sub._raw.fileno()
+        self._subs.pop(fd, None)
+        self._poll.unregister(fd)
+        transport = sub.transport
+        if resume and transport is not None and not transport.is_closing():
+            transport.resume_reading()
+
+    def read(self) -> None:
+        """Read every subscriber whose connection has bytes (one ``epoll`` look, no wait)."""
+        if not self._subs:
+            return
+        ready = self._poll.poll(0)
+        if ready:
+            offset_ns = time.time_ns() - time.perf_counter_ns()     # CLOCK_REALTIME minus perf_counter's clock
+            subs = self._subs
+            for fd, _ in ready:
+                sub = subs.get(fd)
+                if sub is not None:
+                    sub._read_polled(offset_ns)
+
+    def stop(self) -> None:
+        self.active = False
+        for sub in list(self._subs.values()):
+            self.give_back(sub)
+
+    def close(self) -> None:
+        self.stop()
+        if self._poll is not None:
+            self._poll.close()
+            self._poll = None
+
+
+_ANCILLARY = socket.CMSG_SPACE(16) if hasattr(socket, "CMSG_SPACE") else 0
+_TIMESPEC = struct.Struct("@qq")
+
+
 class LeanSubscription(_LeanConnection):
     """A subscriber of ``session`` at the service ``url``: ``on_frame(frame, arrival)`` for each
     ``frame`` after the server's ``hello`` (a ``Received``; arrival: ``time.perf_counter()``);
@@ -334,11 +433,16 @@ class LeanSubscription(_LeanConnection):
     first 10, as read); they are not passed on. ``start()`` connects in the background (reconnecting
     after a drop, with back-off, counted in ``reconnects``); ``close()`` ends it and raises what refused
     it for good, if anything did. ``shared``: the session's ``SessionDecodes``, which its other
-    subscribers use too."""
+    subscribers use too. ``reads``: a ``TickReads`` that reads it while the gloves stream (its frames'
+    arrival then the kernel's receive time)."""
 
     def __init__(self, url: str, session: str, token: str, on_frame: Callable[[Received, float], None],
-                 binary: bool = False, backoff: Backoff | None = None, shared: SessionDecodes | None = None):
+                 binary: bool = False, backoff: Backoff | None = None, shared: SessionDecodes | None = None,
+                 reads: TickReads | None = None):
         super().__init__(_url(url, _path("stream", session), token, binary))
+        self.reads = reads if reads is not None and reads.available else None
+        self._raw: socket.socket | None = None      # the connection's socket (a duplicate), read by ``reads``
+        self._polled = False
         self.binary = binary
         self._decode = (shared.decode if shared is not None and shared.binary == binary
                         else _DECODERS[binary].decode)
@@ -352,6 +456,71 @@ class LeanSubscription(_LeanConnection):
 
     def start(self) -> None:
         self._task = asyncio.create_task(self._run())
+
+    def connection_made(self, transport) -> None:
+        super().connection_made(transport)
+        self._drop_raw()
+        if self.reads is None or transport.get_extra_info("sslcontext") is not None:
+            return
+        sock = transport.get_extra_info("socket")
+        if sock is None:
+            return
+        try:
+            raw = sock.dup()                        # (a socket.socket on the same connection)
+            raw.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+            raw.setblocking(False)
+        except OSError:
+            return
+        self._raw = raw
+
+    def _drop_raw(self) -> None:
+        if self._raw is not None:
+            if self._polled:
+                self.reads.give_back(self, resume=False)
+            self._raw.close()
+            self._raw = None
+
+    def _opened_for_frames(self) -> None:
+        if self.reads is not None:
+            self.reads.take(self)
+
+    def connection_lost(self, exc) -> None:
+        self._drop_raw()
+        super().connection_lost(exc)
+
+    def _read_polled(self, offset_ns: int) -> None:
+        """One read of the connection's bytes for ``TickReads`` (``offset_ns``: ``CLOCK_REALTIME`` minus
+        ``perf_counter``'s clock); its end (EOF) or an error goes back to the event loop, which reads it
+        as it would have."""
+        if self.transport is None or self.transport.is_closing():
+            self.reads.give_back(self, resume=False)
+            return
+        try:
+            nbytes, ancillary, _, _ = self._raw.recvmsg_into([self.get_buffer(-1)], _ANCILLARY)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError:
+            self.reads.give_back(self)
+            return
+        if not nbytes:
+            self.reads.give_back(self)
+            return
+        now_ns = time.perf_counter_ns()
+        arrival_ns = now_ns
+        for level, kind, data in ancillary:
+            if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(data) >= _TIMESPEC.size:
+                sec, nsec = _TIMESPEC.unpack_from(data)
+                arrival_ns = min(now_ns, sec * 1_000_000_000 + nsec - offset_ns)
+                break
+        else:
+            self.reads.unstamped += 1
+        self.reads.reads += 1
+        try:
+            self._received(nbytes, arrival_ns * 1e-9)
+        except Exception as err:                    # a defect on the message path: the run fails with it
+            self.failure = err
+            self._closing = True
+            self.transport.abort()
 
     async def _run(self) -> None:
         while not self._closing:
@@ -457,13 +626,21 @@ class LeanGlove(_LeanConnection):
 
     def write(self, frame: bytes, message: dict) -> None:
         """Write one message's ready frame (the caller checked ``ready()``)."""
-        if message.get("type") == "calibration":
+        self.write_frame(frame, message.get("type") == "calibration")
+
+    def write_frame(self, frame: bytes, calibration: bool = False) -> bool:
+        """Write one ready frame (the caller checked ``ready()``; ``calibration``: the glove's calibration,
+        sent again after a reconnect); a ``sync`` goes out every quarter of ``max_unconfirmed`` messages and
+        when the glove is held; returns ``ready()`` after it."""
+        if calibration:
             self.calibration = frame
         self.transport.write(frame)
         self._sent += 1
         self._sent_bytes += len(frame)
-        if self._sent % max(1, self.max_unconfirmed // 4) == 0 or not self.ready():
+        ready = self.ready()
+        if not ready or self._sent % max(1, self.max_unconfirmed // 4) == 0:
             self._send_sync()
+        return ready
 
     def _send_sync(self, waiter: asyncio.Future | None = None) -> None:
         self._sync_id += 1
@@ -643,27 +820,64 @@ def _timerfd():
     return _TIMERFD[0]
 
 
+class GloveSchedule:
+    """The gloves' messages on one timeline, made before the clock starts: every distinct due time (s
+    after the stream's start: a message's time minus its glove's first message's) with the gloves that
+    have a message due then (a glove once per message due), each time's gloves in turn from a different
+    one (a glove is not always the first or last to send); per glove its frames (None for a ``hello``,
+    which ``LeanGlove.open`` sent) and which is its calibration."""
+
+    def __init__(self, messages: list[list[tuple[float, dict]]], frames: list[list[bytes]]):
+        count = len(messages)
+        by_time: dict[float, list[int]] = {}
+        for i, m in enumerate(messages):
+            a0 = m[0][0] if m else 0.0
+            for a, _ in m:
+                by_time.setdefault(a - a0, []).append(i)
+        self.offsets = sorted(by_time)
+        self.gloves = [sorted(by_time[t], key=lambda i, k=k: (i - k) % count) for k, t in enumerate(self.offsets)]
+        self.frames = [[None if x.get("type") == "hello" else f for (_, x), f in zip(m, fr)]
+                       for m, fr in zip(messages, frames)]
+        self.calibrations = [{j for j, (_, x) in enumerate(m) if x.get("type") == "calibration"} for m in messages]
+        self.due = [[a - m[0][0] for a, _ in m] for m in messages]   # per glove, s after the start
+
+
 async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float, dict]]], frames: list[list[bytes]],
-                        on_send: list[Callable[[float, dict], None]], start: float, stop=None,
-                        lags: list[float] | None = None) -> None:
+                        on_send: list[Callable[[float, dict], None]] | None, start: float, stop=None,
+                        lags: list[float] | None = None, sent: list[list[float]] | None = None,
+                        schedule: GloveSchedule | None = None, reads: TickReads | None = None) -> None:
     """Stream every glove in real time from one timer: glove i's message j is due ``messages[i][j][0] -
     messages[i][0][0]`` s after ``start`` (``time.perf_counter()``) and written as ``frames[i][j]``; at
     each wake every glove that is ``ready()`` writes what is due, the gloves taken in turn from a
-    different one each wake (a glove not ready, e.g. held by flow control, waits without holding the
-    others), then ``on_send[i](time.perf_counter(), message)``. A ``hello`` is not written
-    (``LeanGlove.open`` sent it). The wakes come at the due times to the kernel timer's precision
-    (``_Ticker``), never before. ``stop``: a ``threading.Event`` that ends the stream early once set.
-    ``lags``: each message's send time minus its due time is appended there (s)."""
+    different one each due time (a glove not ready, e.g. held by flow control, waits without holding the
+    others). A ``hello`` is not written (``LeanGlove.open`` sent it). The wakes come at the due times to
+    the kernel timer's precision (``_Ticker``), never before. Each message's send time
+    (``time.perf_counter()`` once written; a ``hello``'s once reached) is appended to ``sent[i]`` and
+    passed to ``on_send[i](time, message)`` (either may be None). ``stop``: a ``threading.Event`` that ends
+    the stream early once set. ``lags``: each message's send time minus its due time is appended there
+    (s), glove after glove, at the end. ``schedule``: ``GloveSchedule(messages, frames)``, made before the
+    clock starts (else here). ``reads``: subscribers read at each wake once the gloves have written
+    (``TickReads``: started by the caller), given back to the event loop once the last message is due (no
+    wake of the gloves' timer comes after it) and when the stream ends."""
     loop = asyncio.get_running_loop()
-    mono = time.monotonic()
-    t0 = mono + (start - time.perf_counter())       # ``start`` on the monotonic clock (the timer's)
-    due = [[t0 + (a - m[0][0]) for a, _ in m] for m in messages]
-    turn = [0]
-    pos = [0] * len(gloves)
+    plan = schedule or GloveSchedule(messages, frames)
+    count = len(gloves)
+    perf_counter, monotonic = time.perf_counter, time.monotonic
+    t0 = monotonic() + (start - perf_counter())     # ``start`` on the monotonic clock (the timer's)
+    due = [t0 + x for x in plan.offsets]
+    who, plan_frames, calibrations = plan.gloves, plan.frames, plan.calibrations
+    sent = sent if sent is not None else [[] for _ in gloves]
+    sent_appends = [s.append for s in sent]
+    ends = [len(f) for f in plan_frames]
+    upto = [0] * count                              # glove i's messages due so far
+    pos = [0] * count                               # and sent so far
+    pending: dict[int, None] = {}                   # gloves with a message due and not sent (held, or > PER_WAKE)
+    ended = [0]                                     # gloves through their messages or refused for good
+    gone = [False] * count
+    step = [0]                                      # the next due time's index
     done = loop.create_future()
     soon: list = [None]                             # a wake asked for at once (call_soon), not yet run
     ticker = _Ticker(loop, lambda: fire())
-    perf_counter, monotonic = time.perf_counter, time.monotonic
 
     def wake(when: float | None = None) -> None:
         if when is not None:
@@ -675,6 +889,12 @@ async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float
         soon[0] = None
         fire()
 
+    def end(i: int) -> None:
+        if not gone[i]:
+            gone[i] = True
+            ended[0] += 1
+        pending.pop(i, None)
+
     def fire() -> None:
         if done.done():
             return
@@ -682,41 +902,74 @@ async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float
         if stop is not None and stop.is_set():
             done.set_result(None)
             return
-        nearest, behind = None, False
-        turn[0] = (turn[0] + 1) % len(gloves)
-        for i in range(turn[0] - len(gloves), turn[0]):
-            i %= len(gloves)
+        k = step[0]
+        visit: list[int] = list(pending) if pending else []
+        while k < len(due) and due[k] <= now:
+            for i in who[k]:
+                upto[i] += 1
+            visit += who[k]
+            k += 1
+        if k - step[0] > 1 or (pending and k > step[0]):
+            visit = list(dict.fromkeys(visit))      # (a glove once per wake)
+        step[0] = k
+        again = False
+        for i in visit:
+            j, u = pos[i], upto[i]
+            if j >= u or gone[i]:
+                continue
             glove = gloves[i]
-            j, d, n = pos[i], due[i], len(due[i])
-            sent = 0
-            while j < n and d[j] <= now and glove.ready() and sent < PER_WAKE:
-                msg = messages[i][j][1]
-                if msg.get("type") != "hello":
-                    glove.write(frames[i][j], msg)
-                on_send[i](perf_counter(), msg)
-                if lags is not None:
-                    lags.append(monotonic() - d[j])
+            if glove.failure is not None:
+                end(i)
+                continue
+            if not glove.ready():
+                pending[i] = None
+                continue
+            last = u if u - j <= PER_WAKE else j + PER_WAKE
+            fr, append, calib = plan_frames[i], sent_appends[i], calibrations[i]
+            while True:
+                frame = fr[j]
+                ready = glove.write_frame(frame, j in calib) if frame is not None else glove.ready()
+                t = perf_counter()
+                append(t)
+                if on_send is not None and on_send[i] is not None:
+                    on_send[i](t, messages[i][j][1])
                 j += 1
-                sent += 1
+                if j >= last or not ready:
+                    break
             pos[i] = j
-            if j < n and glove.failure is None:
-                if d[j] <= now:
-                    behind = behind or glove.ready()
-                elif nearest is None or d[j] < nearest:
-                    nearest = d[j]
-        if all(pos[i] >= len(due[i]) or g.failure is not None for i, g in enumerate(gloves)):
+            if j >= ends[i]:
+                end(i)
+            elif j < u:
+                pending[i] = None
+                again = again or ready
+            else:
+                pending.pop(i, None)
+        if reads is not None and reads.active:      # after the sends: they go first, the reads' times are the kernel's
+            reads.read()
+            if k >= len(due):
+                reads.stop()
+        if ended[0] >= count:
             done.set_result(None)
-        elif behind:
+        elif again:
             wake()
-        elif nearest is not None:
-            wake(nearest)
+        elif k < len(due):
+            wake(due[k])
 
-    def on_ready() -> None:                         # a glove held back may write again
-        if not done.done():
-            wake()
+    def on_ready_for(i: int) -> Callable[[], None]:
+        def on_ready() -> None:                     # a glove held back may write again (or was refused)
+            if not done.done():
+                if gloves[i].failure is not None and not gone[i]:
+                    end(i)
+                    if ended[0] >= count:
+                        done.set_result(None)
+                        return
+                wake()
+        return on_ready
 
-    for g in gloves:
-        g.on_ready = on_ready
+    for i, g in enumerate(gloves):
+        g.on_ready = on_ready_for(i)
+        if not ends[i]:
+            end(i)
     try:
         wake()
         if stop is not None:
@@ -734,3 +987,8 @@ async def stream_gloves(gloves: list[LeanGlove], messages: list[list[tuple[float
         ticker.close()
         if soon[0] is not None:
             soon[0].cancel()
+        if reads is not None:
+            reads.stop()
+        if lags is not None:
+            for i, times in enumerate(sent):
+                lags.extend(t - (start + d) for t, d in zip(times, plan.due[i]))
