@@ -231,6 +231,27 @@ def test_a_data_message_is_known_by_its_head_only_when_nothing_else_could_make_i
     assert data_type('{"type":"hello","protocol":1}') is None
     assert data_type('{"type":"imu_batchX","samples":[]}') is None
     assert data_type(' {"type":"imu"}') is None and data_type('["type","imu"]') is None
+    many_p = '{"type":"pose","t":0.5,' + '"pp":"ppp",' * 10 + '"type":"sync","id":"x"}'
+    assert data_type(many_p) is None                                       # found past the quick search's 8 p
+    assert data_type(many_p.replace('"type":"sync"', '"typo":"sync"')) == "pose"
+    assert data_type('{"type":"imu_batch","samples":[],"type":"sync"}') is None         # a p before it
+    assert data_type('{"type":"imu","t":1.0,"id":"a","type"') is None                   # at the very end
+
+
+def test_the_quick_search_for_a_second_type_key_finds_what_the_whole_word_search_finds():
+    """``pool._has_type_key``: ``'"type"' in text[start:]`` found by the word's ``p`` (at most 8 of them, then
+    the whole-word search), the same answer on random texts of the word, its pieces, its letters and quotes."""
+    import random
+
+    from service.api.hands.pool import _has_type_key
+
+    rng, pieces, found = random.Random(16), ['"type"', '"ty', 'pe"', "p", '"', "t", "y", "e", "x", ":", "1"], 0
+    for _ in range(50_000):
+        text = "".join(rng.choice(pieces) for _ in range(rng.randrange(40)))
+        start = rng.randrange(6)
+        assert _has_type_key(text, start) is (text.find('"type"', start) >= 0), (text, start)
+        found += _has_type_key(text, start)
+    assert 100 < found < 49_900                                            # both answers were asked for
 
 
 def test_a_session_switched_to_a_costly_estimator_runs_in_a_nicer_worker_of_its_own_and_comes_back_with_its_state():
@@ -1412,6 +1433,78 @@ def test_a_link_with_many_sessions_writes_what_comes_within_its_group_time_at_on
     assert (first, within) == (1, 6) and [m for b in batches for m in b] == everything
 
 
+def test_an_answer_that_can_be_written_at_once_is_written_in_its_place_without_a_task():
+    """``ProcessSession._send_errors_soon``: answers first in line that say they are written at once
+    (``routes.ingest.SyncAnswer.now``) are answered there, in order, with no task; one behind an error reply,
+    one whose ``now`` cannot write (False) or fails, goes the awaited way, after what is before it."""
+    async def run():
+        settings, metrics, live, sent = _offline_session()
+        got = []
+
+        async def error(code, detail, *samples):
+            got.append(code)
+        live.attach_source(error)
+
+        class Answer:
+            def __init__(self, name, can):
+                self.name, self.can = name, can
+
+            def now(self):
+                if self.can is None:
+                    raise RuntimeError("a defect")
+                if self.can:
+                    got.append(self.name + " at once")
+                return self.can
+
+            async def __call__(self):
+                got.append(self.name + " awaited")
+        live._send_source("imu", ["chk", "{}", False], None)
+        live.answer_in_order(Answer("a", True))     # due after message 1
+        assert got == [] and live._error_task is None
+        live.on_reply(1, [])
+        assert got == ["a at once"] and live._error_task is None    # answered in the reply's callback
+        live.answer_in_order(Answer("b", True))     # nothing before it: at once
+        assert got == ["a at once", "b at once"] and live._error_task is None
+        live._send_source("imu", ["chk", "{}", False], None)
+        live.answer_in_order(Answer("c", True))
+        live.on_reply(2, [["invalid_message", "x"]])   # an error reply before it: the awaited way, in order
+        assert got == ["a at once", "b at once"] and live._error_task is not None
+        await live.settled()
+        assert got[2:] == ["invalid_message", "c awaited"]
+        live.answer_in_order(Answer("d", False))
+        live.answer_in_order(Answer("e", None))
+        await live.settled()
+        return got[4:]
+
+    assert asyncio.run(run()) == ["d awaited", "e awaited"]
+
+
+def test_a_plain_sync_is_read_without_its_model_and_anything_else_the_whole_way():
+    """``routes.ingest._plain_sync_id``: the id of exactly ``{"type": "sync", "id": <0..2**53>}`` (what ``Sync``
+    takes as it is); ``None`` for everything ``Sync`` refuses or reads otherwise, which the model then answers."""
+    from service.api.routes.ingest import _plain_sync_id
+    from service.protocol import ProtocolError, Sync, parse_input
+
+    texts = ['{"type":"sync","id":7}', '{ "id": 0, "type": "sync" }', '{"type":"sync","id":9007199254740992}',
+             '{"type":"sync","id":9007199254740993}', '{"type":"sync","id":-1}', '{"type":"sync","id":true}',
+             '{"type":"sync","id":7.0}', '{"type":"sync","id":"7"}', '{"type":"sync","id":7,"x":1}',
+             '{"type":"sync"}', '{"type":"sync","id":NaN}', '{"type":"sync","id":7', '["sync",7]',
+             '{"type":"Sync","id":7}', '{"type":"sync","type":"sync","id":3}']
+    plain = []
+    for text in texts:
+        sync_id = _plain_sync_id(text)
+        if sync_id is not None:
+            plain.append(text)
+            msg = parse_input(text)[1]
+            assert isinstance(msg, Sync) and msg.id == sync_id and type(sync_id) is int
+        else:                                           # (left to the model: refused, or read its own way)
+            try:
+                parse_input(text)
+            except ProtocolError:
+                pass
+    assert plain == texts[:3] + texts[-1:]
+
+
 def test_a_worker_s_reply_to_a_run_of_messages_releases_them_as_their_replies_one_by_one_would():
     """``["reps", sid, first, last]`` (``hands.worker``): the session's messages ``first`` to ``last`` are
     answered (the source's window, the worker's count of what it owes, the messages received, the pool's count
@@ -1439,10 +1532,12 @@ def test_a_worker_s_reply_to_a_run_of_messages_releases_them_as_their_replies_on
         link._dispatch(["reps", live.sid, 1, 3])
         for _ in range(5):
             await asyncio.sleep(0)
+        metrics.publish()                           # (what a scrape shows: counted since the last one)
         middle = (sorted(live._pending), owed - link.owed, pool.answered, list(answers), list(got),
                   metrics.messages_in.labels("s")._value.get())
         link._dispatch(["reps", live.sid, 4, 5])
         await _until(lambda: answers, "the answer due after the run")
+        metrics.publish()
         return middle, (sorted(live._pending), link.owed, pool.answered, answers, got,
                         metrics.messages_in.labels("s")._value.get())
 

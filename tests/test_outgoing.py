@@ -121,6 +121,52 @@ def test_a_session_s_cached_series_count_as_labels_does_and_start_again_after_th
     assert 'fingertrack_messages_in_total{session="a"} 1.0' in text and 'messages_out_total{session="a"}' not in text
 
 
+def test_a_session_s_messages_counted_locally_show_at_the_next_scrape_as_counted_one_by_one():
+    """``SessionSeries.sent``, ``sent_one``, ``received``, ``behind``: messages written to subscribers and received are counted
+    in plain numbers and published into ``messages_out``, the latency histogram, ``messages_in`` and the
+    ``behind`` gauge at the next scrape (``render``), with the counts, buckets (a latency on a bound counts in
+    that bound's bucket, one past the last finite bound in +Inf), sum and value that ``inc``/``observe``/``set``
+    per message give; a forgotten session's unpublished counts go with it."""
+    from service.api.metrics import Metrics
+
+    def text(metrics: Metrics, admin: bool = True) -> list[str]:        # (the series' creation times differ)
+        return [line for line in metrics.render(admin).decode().splitlines() if "_created" not in line]
+
+    latencies = [0.0, 0.0005, 0.00050048828125, 0.001, 0.25, 0.5, 0.75, 3.0, 0.0029296875, 0.5, 2.0 ** -12]
+    one_by_one, local = Metrics(), Metrics()
+    for name in ("a", "b"):
+        for i, x in enumerate(latencies):
+            series = one_by_one.of_session(name)
+            series.messages_out.inc()
+            series.latency.observe(x)
+        local.of_session(name).sent([-x for x in latencies[:4]], 0.0)   # now - t0 = x exactly (binary fractions)
+        local.of_session(name).sent([-x for x in latencies[4:8]], 0.0)
+        for x in latencies[8:]:
+            local.of_session(name).sent_one(x)              # (one message's)
+    assert text(local) == text(one_by_one)            # published by the scrape itself
+    assert text(local) == text(one_by_one)            # ... once
+    local.of_session("a").sent([-0.002], 0.0)
+    one_by_one.of_session("a").messages_out.inc()
+    one_by_one.of_session("a").latency.observe(0.002)
+    for k in (1, 3):
+        local.of_session("a").received(k)
+        one_by_one.of_session("a").messages_in.inc(k)
+    local.of_session("b").behind = 0.5
+    local.of_session("b").behind = 0.25                       # the last one counts
+    one_by_one.behind.labels("b").set(0.25)
+    assert text(local, admin=False) == text(one_by_one, admin=False)     # (no session series shown)
+    assert text(local) == text(one_by_one)
+    local.of_session("b").sent([-0.001], 0.0)
+    local.forget_session("b")
+    one_by_one.forget_session("b")
+    assert text(local) == text(one_by_one)
+    assert not any('session="b"' in line for line in text(local))
+    assert 'fingertrack_messages_out_total{session="a"} 12.0' in text(local)
+    assert 'fingertrack_messages_in_total{session="a"} 4.0' in text(local)
+    local.of_session("a").behind = 0.125
+    assert 'fingertrack_session_behind_seconds{session="a"} 0.125' in text(local)
+
+
 def test_the_metrics_text_is_the_client_library_s_byte_for_byte_as_series_come_and_go():
     """``Metrics.render``: its own writer (each series' line heads formatted once) gives what
     ``prometheus_client.generate_latest`` gives, for admins and others, with every kind of series, label

@@ -8,6 +8,7 @@ lines), each time a monitoring system asks."""
 from __future__ import annotations
 
 import logging
+from bisect import bisect_left
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Summary, generate_latest
 from prometheus_client import metrics as _client_metrics
@@ -58,6 +59,12 @@ class Metrics:
             series = self._series[name] = SessionSeries(self, name)
         return series
 
+    def publish(self) -> None:
+        """What the sessions' series counted locally (``SessionSeries.received``, ``sent``, ``behind``) into their
+        prometheus series: run before every scrape (``render``), so the text shows every message before it."""
+        for series in self._series.values():
+            series.publish()
+
     def forget_session(self, name: str) -> None:
         """Drop the series of a removed session (a name may come back as a new session)."""
         self._series.pop(name, None)
@@ -70,6 +77,7 @@ class Metrics:
     def render(self, admin: bool = True) -> bytes:
         """The exposition text; without ``admin``, series labelled by session are left out (session
         names are not every role's business)."""
+        self.publish()
         text = None
         if self._exposition is not None:
             try:
@@ -83,13 +91,72 @@ class Metrics:
 
 class SessionSeries:
     """A session's ``messages_in``, ``messages_out`` and ``latency`` series, each made on its first use (as
-    ``labels`` makes it: a session that has sent no frame shows no frame series)."""
+    ``labels`` makes it: a session that has sent no frame shows no frame series).
 
-    __slots__ = ("_metrics", "_name", "_in", "_out", "_latency")
+    The messages received from a hand worker's session (``received``) and sent to subscribers (``sent``: a count,
+    the latencies' histogram buckets and sum) are counted here in plain Python numbers, and the session's
+    ``behind`` kept, and added to the prometheus series at the next scrape (``Metrics.publish``): an ``inc``, an
+    ``observe`` or a ``set`` per message (a lock each, and a walk over the histogram's bounds in Python) cost more
+    of the web process's time than a subscriber write's own Python. The counts at a scrape are the same; the
+    latencies' sum is added up per scrape (floats added in another order: the same to about 1e-15 of it)."""
+
+    __slots__ = ("_metrics", "_name", "_in", "_out", "_latency", "_bounds", "_n_sent", "_sent_sum", "_sent_in",
+                 "_n_received", "behind")
 
     def __init__(self, metrics: Metrics, name: str):
         self._metrics, self._name = metrics, name
         self._in = self._out = self._latency = None
+        self._n_received = 0
+        self.behind: float | None = None
+        """the session's ``behind_s`` for the gauge ``behind`` at the next ``publish`` (``None``: unchanged)"""
+        self._bounds = metrics.latency._upper_bounds
+        """the latency histogram's upper bounds (the last one +inf): a latency counts in the first bound >= it"""
+        self._n_sent = 0
+        self._sent_sum = 0.0
+        self._sent_in = [0] * len(self._bounds)
+        """per bucket: the latencies counted in it since the last ``publish``"""
+
+    def received(self, n: int = 1) -> None:
+        """``n`` source messages received (``messages_in``, at the next ``publish``)."""
+        self._n_received += n
+
+    def sent(self, since: list[float], now: float) -> None:
+        """Messages written to a subscriber at ``now`` (``time.perf_counter``), one per time in ``since`` (each
+        its source message's arrival): counted in ``messages_out`` and their latencies (``now - t0``) in
+        ``latency``, at the next ``publish``."""
+        self._n_sent += len(since)
+        bounds, buckets, total = self._bounds, self._sent_in, self._sent_sum
+        for t0 in since:
+            amount = now - t0
+            total += amount
+            buckets[bisect_left(bounds, amount)] += 1       # (``Histogram.observe``'s: the first bound >= it)
+        self._sent_sum = total
+
+    def sent_one(self, amount: float) -> None:
+        """``sent`` of one message whose latency is ``amount``."""
+        self._n_sent += 1
+        self._sent_sum += amount
+        self._sent_in[bisect_left(self._bounds, amount)] += 1
+
+    def publish(self) -> None:
+        """What was counted by ``received`` and ``sent`` (and the last ``behind``) since the last call into the
+        prometheus series."""
+        if self._n_received:
+            n, self._n_received = self._n_received, 0
+            self.messages_in.inc(n)
+        if self.behind is not None:
+            behind, self.behind = self.behind, None
+            self._metrics.behind.labels(self._name).set(behind)
+        n, total, buckets = self._n_sent, self._sent_sum, self._sent_in
+        if not n:
+            return
+        self._n_sent, self._sent_sum, self._sent_in = 0, 0.0, [0] * len(buckets)
+        self.messages_out.inc(n)
+        latency = self.latency
+        latency._sum.inc(total)
+        for bucket, k in zip(latency._buckets, buckets):
+            if k:
+                bucket.inc(k)
 
     @property
     def messages_in(self) -> Counter:

@@ -24,6 +24,8 @@ from .outgoing import WIRE_EXTENSION
 from ..pipeline.gc_policy import serving_gc  # noqa: F401  (re-exported: the CLI and the tests take it from here)
 
 log = logging.getLogger(__name__)
+_OPEN = State.OPEN
+_ENDING = (State.CLOSING, State.CLOSED)
 
 class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
     """uvicorn's WebSocket protocol, except that it pauses reading only once ``QUEUE_HIGH`` messages wait
@@ -79,23 +81,32 @@ class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
             self.data_received(bytes(self._read_into[:nbytes]))
 
     def send_receive_event_to_app(self) -> None:
-        intake = self.intake
-        if intake is not None and self.curr_msg_data_type == "text" and len(self.frames) == 1 \
-                and not self.close_sent and self.queue.empty():
-            try:
-                text = self.frames[0].decode()
-            except UnicodeDecodeError:
-                pass                                          # refused below, as uvicorn does (1007)
-            else:
-                try:
-                    taken = intake(text)
-                except Exception:                             # a defect: the message and the connection's
-                    log.exception("the ingest route's intake failed; this connection's messages go "   # later ones
-                                  "through the app's receive from now on")                             # are queued
-                    self.intake = taken = None
-                if taken:
-                    self.frames = []
-                    return
+        if self.intake is not None and self.curr_msg_data_type == "text" and len(self.frames) == 1 \
+                and not self.close_sent and self._offer(self.frames[0]):
+            self.frames = []
+            return
+        self._to_app()
+
+    def _offer(self, payload: bytes) -> bool:
+        """A received text message's payload to ``intake`` while nothing waits in the queue for the app before it;
+        ``True``: taken. ``False`` for a payload that is not UTF-8 (refused by the app's way, as uvicorn does: 1007)."""
+        if self.queue.qsize():
+            return False
+        try:
+            text = payload.decode()
+        except UnicodeDecodeError:
+            return False
+        try:
+            return bool(self.intake(text))
+        except Exception:                                     # a defect: the message and the connection's later
+            log.exception("the ingest route's intake failed; this connection's messages go "   # ones are queued
+                          "through the app's receive from now on")
+            self.intake = None
+            return False
+
+    def _to_app(self) -> None:
+        """The received message in ``frames`` queued for the app (uvicorn's way), reading paused once ``QUEUE_HIGH``
+        messages wait."""
         paused, self.read_paused = self.read_paused, True     # (so that uvicorn does not pause here)
         try:
             super().send_receive_event_to_app()
@@ -163,7 +174,7 @@ class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
             if length == 126:
                 if size - pos < 4:
                     break
-                length, start = int.from_bytes(buf[start:start + 2], "big"), start + 2
+                length, start = buf[start] << 8 | buf[start + 1], start + 2
             elif length == 127:
                 if size - pos < 10:
                     break
@@ -176,10 +187,12 @@ class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
             end = start + 4 + length
             if end > size:
                 break
-            if head1 == 0x81 and not self._fragmented and conn.state is State.OPEN and not self.close_sent:
-                self.curr_msg_data_type = "text"
-                self.frames = [apply_mask(buf[start + 4:end], buf[start:start + 4])]
-                self.send_receive_event_to_app()
+            if head1 == 0x81 and not self._fragmented and not self.close_sent and conn.state is _OPEN:
+                payload = apply_mask(buf[start + 4:end], buf[start:start + 4])
+                if self.intake is None or not self._offer(payload):
+                    self.curr_msg_data_type = "text"
+                    self.frames = [payload]
+                    self._to_app()
             else:                                 # (the parser is at the next frame's start after it)
                 if opcode < 3:                    # a message's first or next fragment, or its last
                     self._fragmented = not head1 & 0x80
@@ -187,7 +200,7 @@ class DrainingWebSocket(WebSocketsSansIOProtocol, asyncio.BufferedProtocol):
             pos = end
             if self._draining:
                 return
-            if conn.parser_exc is not None or conn.state is State.CLOSING or conn.state is State.CLOSED:
+            if conn.parser_exc is not None or conn.state in _ENDING:
                 self._give_up(buf[pos:])
                 return
         if pos == size:

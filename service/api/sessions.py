@@ -106,7 +106,8 @@ class Subscriber:
             self.closed = True
             raise SubscriberTooSlow()
         self.queue.append((message.type, message, t_ingest))
-        self.dropped += dropped
+        if dropped:
+            self.dropped += dropped
         if self.writer is None:
             self.wake.set()
         elif not self._writing_soon:
@@ -305,7 +306,7 @@ class LiveSession:
         answers later, through ``attach_source``)."""
         t0 = time.perf_counter()
         async with self._lock:          # several sources (glove, tracker) may feed one hand: one at a time
-            self.metrics.of_session(self.name).messages_in.inc()
+            self.metrics.of_session(self.name).received()
             if self.recorder is not None:
                 self.recorder.write(dump_message(parsed))     # as validated: unknown fields dropped
             dropped = self.hand.accept(parsed)

@@ -6,16 +6,19 @@ session (``claim_source``)."""
 from __future__ import annotations
 
 import asyncio
-import functools
 import hmac
 import re
 import time
 
+import orjson
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
+from starlette.websockets import WebSocketState
 
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
+from ...protocol.wire import encode
+from ..outgoing import ws_frame
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
@@ -104,6 +107,50 @@ class _Say:
 
 
 _SYNC_HEAD = re.compile(r'\{\s*"type"\s*:\s*"sync"\s*[,}]')
+_SYNC_ID_MAX = 2 ** 53
+
+
+def _plain_sync_id(text: str) -> int | None:
+    """The ``id`` of a ``sync`` that is exactly ``{"type": "sync", "id": <an integer 0..2**53>}``, which ``Sync``
+    takes as it is (decoded once, no model); ``None`` for anything else (then validated the whole way, with its
+    error reply)."""
+    try:
+        raw = orjson.loads(text)
+    except orjson.JSONDecodeError:
+        return None
+    if type(raw) is dict and len(raw) == 2 and raw.get("type") == "sync":
+        sync_id = raw.get("id")
+        if type(sync_id) is int and 0 <= sync_id <= _SYNC_ID_MAX:
+            return sync_id
+    return None
+
+
+class SyncAnswer:
+    """A ``sync``'s answer (``LiveSession.answer_in_order``): ``await answer()`` sends it as the processor's
+    answer does (``_Say``); ``now()`` writes it at once where the server takes ready-made frames and the
+    connection takes them without waiting (``True``: done, or nothing to send to a connection gone), so that a
+    session with no reply before it answers without a task of its own (a task per ``sync`` cost more of the web
+    process's time than the answer); ``False``: nothing written, await it."""
+
+    __slots__ = ("say", "reply")
+
+    def __init__(self, say: "_Say", reply: SyncReplyDict):
+        self.say, self.reply = say, reply
+
+    async def __call__(self) -> None:
+        await self.say(send, self.reply)
+
+    def now(self) -> bool:
+        say = self.say
+        if say.gone:
+            return True
+        ws = say.ws
+        wire = getattr(ws.state, "wire", None)
+        if wire is None or not wire.writable.is_set() or ws.application_state is not WebSocketState.CONNECTED:
+            return False
+        binary = ws.state.binary
+        data = encode(self.reply, binary)
+        return wire.write_frames(ws_frame(data if binary else data.encode(), binary))
 
 
 async def _close_quietly(ws: WebSocket, code: int, reason: str) -> None:
@@ -209,16 +256,22 @@ class _Door:
     def intake(self, text: str) -> bool:
         """A text message as it arrives: ``True`` if taken here (handed on at once to the session, as ``read``
         would have); ``False``: not now (it goes to ``read`` through the server's queue)."""
-        if not self.waiting or self.processor.done() or self.closing is not None:
+        if not self.waiting or self.closing is not None or self.processor.done():
             return False
         size = len(text) if text.isascii() else len(text.encode("utf-8", "surrogatepass"))     # (``_size``'s)
-        msg = self.live.forwardable_text(text) if self._may_hand_on(size) else None
+        if not self._may_hand_on(size):
+            return False                     # (``answer_sync``'s condition too)
+        live = self.live
+        msg = live.forwardable_text(text)
         if msg is None:
             return _SYNC_HEAD.match(text) is not None and self.answer_sync(text, size)
         if not self.bucket.take():
             return False                     # (a failed take uses no token: ``read`` asks again)
-        if not self.forward(msg):
-            self.closing = asyncio.get_running_loop().create_task(self.close_overloaded())
+        try:                                 # (``forward``'s)
+            live.forward(msg)
+        except Exception as err:
+            if not self.refuse(failure_reply(self.session, msg, err)):
+                self.closing = asyncio.get_running_loop().create_task(self.close_overloaded())
         return True
 
     def answer_sync(self, text: str, size: int) -> bool:
@@ -229,13 +282,18 @@ class _Door:
         one (answered with its error there) or one whose answer cannot wait in its place."""
         if not self._may_hand_on(size):
             return False
-        try:
-            _, msg = self.live.parse_input(text, False)
-        except ProtocolError:
+        sync_id = _plain_sync_id(text)
+        if sync_id is None:
+            try:
+                _, msg = self.live.parse_input(text, False)
+            except ProtocolError:
+                return False
+            if not isinstance(msg, Sync):
+                return False
+            sync_id = msg.id
+        if not self.bucket.take():
             return False
-        if not isinstance(msg, Sync) or not self.bucket.take():
-            return False
-        if not self.live.answer_in_order(functools.partial(self.say, send, SyncReplyDict(type="sync", id=msg.id))):
+        if not self.live.answer_in_order(SyncAnswer(self.say, SyncReplyDict(type="sync", id=sync_id))):
             self.bucket.give_back()
             return False
         return True
@@ -327,7 +385,7 @@ async def _process(ws: WebSocket, session: str, live: LiveSession, backlog: Inge
             await reply("expected_hello", f"the first message must be hello, got {msg.type}")
             continue
         elif isinstance(msg, Sync):           # everything before it is handled: say so
-            answer = functools.partial(say, send, SyncReplyDict(type="sync", id=msg.id))
+            answer = SyncAnswer(say, SyncReplyDict(type="sync", id=msg.id))
             if not live.answer_in_order(answer):    # (a worker's session: the later messages go on meanwhile)
                 await live.settled()
                 await answer()

@@ -39,10 +39,9 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
     """The server's hello, then the subscriber's queue as it fills, until the peer leaves, the subscriber
     is closed (too slow) or the server shuts down."""
     def counted(since: list[float]) -> None:
-        series, now = metrics.of_session(session), time.perf_counter()
-        series.messages_out.inc(len(since))
-        for t0 in since:
-            series.latency.observe(now - t0)
+        metrics.of_session(session).sent(since, time.perf_counter())     # (published at the next scrape)
+
+    connected = WebSocketState.CONNECTED
 
     wire, binary = getattr(ws.state, "wire", None), ws.state.binary     # (set once accepted: ``socket.accept``)
 
@@ -53,12 +52,19 @@ async def _send_all(ws: WebSocket, session: str, waiting: bool, sub: Subscriber,
         queue = sub.queue
         while queue:
             if wire is None or closer.done() or sessions.closing or sub.closed or not wire.writable.is_set() \
-                    or ws.application_state is not WebSocketState.CONNECTED:
+                    or ws.application_state is not connected:
                 sub.wake.set()
                 return
-            batch = [queue[0]] if len(queue) == 1 else list(itertools.islice(queue, SEND_BATCH))
-            data = batch[0][1].wire(binary) if len(batch) == 1 else joined_frames([m for _, m, _ in batch], binary)
-            if not wire.write_frames(data):
+            if len(queue) == 1:                     # (the usual: one frame due)
+                _, msg, t0 = queue[0]
+                if not wire.write_frames(msg.wire(binary)):
+                    sub.wake.set()
+                    return
+                sub.pop()                           # (taken before anything else can fail: written once)
+                metrics.of_session(session).sent_one(time.perf_counter() - t0)
+                return
+            batch = list(itertools.islice(queue, SEND_BATCH))
+            if not wire.write_frames(joined_frames([m for _, m, _ in batch], binary)):
                 sub.wake.set()
                 return
             for _ in batch:                         # (taken before anything else can fail: written once)
