@@ -736,7 +736,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--kill-worker-at", type=_positive_float, default=None, metavar="S",
                    help="kill (SIGKILL) the hand worker owning most sessions S seconds into the stream (default: none)")
     b.add_argument("--generators", type=_positive_int, default=None, metavar="N",
-                   help="load-generator processes for the gloves and subscribers (default: one per 25 hands, bench.load.GENERATOR_HANDS)")
+                   help="load-generator processes for the gloves and subscribers (default: one per 50 hands, bench.load.GENERATOR_HANDS)")
 
     b = benchmark("switch", "estimator switch: how long a live session's switch stalls the other sessions",
                   "Sessions stream in real time into a fresh service process, one subscriber each; one session is "

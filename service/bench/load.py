@@ -51,11 +51,12 @@ from .process import bound_to_this_process, service_process, torn_down_on_signal
 
 
 
-GENERATOR_HANDS = 25
+GENERATOR_HANDS = 50
 """hands per load-generator process (gloves and subscribers); more hands: more processes. Each process
-wakes at every tick of its gloves' schedule (about 280 a second) whatever its number of hands, and a
-wake costs about 50 us of CPU here: 25 hands share them where 16 did (a process of 25 hands used about
-a third of a core at most: far from being the bottleneck)"""
+wakes at every due time of its gloves' schedule (about 280 a second; its subscribers read then too)
+whatever its number of hands, and a wake costs about 50-70 us of CPU here: 50 hands share them where 25
+did (at 50 hands one process used about a quarter of a core, 5.0-5.3 ms per hand-second, where two of 25
+used 5.4-6.4 together: far from being the bottleneck)"""
 
 
 def generator_processes(hands: int) -> int:
