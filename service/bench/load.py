@@ -51,6 +51,12 @@ from .process import bound_to_this_process, service_process, torn_down_on_signal
 
 
 
+FIRST_S = 1.0
+"""the first seconds of each session's data left out of the second behind-schedule figure: all of a level's
+gloves start in the same moment, and a session's first frames carry its start (its calibration, its fingers'
+first ticks tick by tick: about 10 ms of a worker's CPU, so a worker's share of sessions queue behind each
+other then), which a venue, where visitors put their gloves on one after another, does not see at once"""
+
 GENERATOR_HANDS = 50
 """hands per load-generator process (gloves and subscribers); more hands: more processes. Each process
 wakes at every due time of its gloves' schedule (about 280 a second; its subscribers read then too)
@@ -184,7 +190,7 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
     received = {(n, k): _rows(frames_got[(n, k)], sent[gi]) for gi, n in enumerate(names) for k in range(subscribers)}
     # a frame's delay behind the source's schedule: its arrival minus the wall time at which the data
     # of its tick were due to be sent (the first message was sent at first_send, source time m[0][0])
-    delays, beyond, align, beyond_by = [], [], [], []
+    delays, beyond, align, beyond_by, later = [], [], [], [], []
     for n, m in zip(names, msgs):
         for k in range(subscribers):
             rows = received[(n, k)]
@@ -193,9 +199,11 @@ async def _generate(spec: dict, ready, start_at, stop=None) -> dict:
             beyond += b
             align += a
             beyond_by.append([n, k, b])
+            # the same without the session's first second of data (``FIRST_S``), whose frames carry its start
+            later += [x for x, r in zip(b, rows) if r[4] >= m[0][0] + FIRST_S]
     return {"received": [[n, k, rows] for (n, k), rows in received.items()], "beyond_by_subscriber": beyond_by,
             "hands_of": {n: c.hand for n, c in zip(names, configs)}, "accounts": accounts,
-            "delays": delays, "beyond_alignment": beyond, "alignment": align,
+            "delays": delays, "beyond_alignment": beyond, "alignment": align, "beyond_alignment_later": later,
             "subscriber_reconnects": reconnects, "glove_reconnects": glove_reconnects, "errors": errors,
             "malformed": sum(s.malformed_count for s in subs.values()),
             "malformed_examples": [repr(m) for s in subs.values() for m in s.malformed][:10],
@@ -346,6 +354,7 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
             "hands_of": {n: h for r in results for n, h in r["hands_of"].items()}, "received": received,
             "delays": [d for r in results for d in r["delays"]],
             "beyond_alignment": [d for r in results for d in r["beyond_alignment"]],
+            "beyond_alignment_later": [d for r in results for d in r["beyond_alignment_later"]],
             "beyond_by_subscriber": {(n, k): b for r in results for n, k, b in r["beyond_by_subscriber"]},
             "alignment": [d for r in results for d in r["alignment"]],
             "killed": killed, "probe": probed,
@@ -545,6 +554,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "schedule_delay_ms": ({"p50": float(np.percentile(delay, 50)), "p99": float(np.percentile(delay, 99)),
                                "max": float(delay.max())} if delay.size else None),
         "behind_schedule_beyond_alignment_ms": _quantiles(beyond), "alignment_wait_ms": _quantiles(align),
+        "behind_schedule_beyond_alignment_after_first_s_ms": _quantiles(np.array(lvl["beyond_alignment_later"]) * 1e3),
         "frames_unaccounted": int(sum(max(0, a["expected"] - a["delivered"] - a["dropped"]) for a in accounts.values())),
         # a frame that did not decode, or lacked its seq, hand or time, is a violation too
         "integrity_violations": _integrity(lvl["received"], lvl["hands_of"]) + lvl["malformed"],
@@ -671,8 +681,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
     front = "web process" if bus_workers is None else "gateways"
     lines += ["", f"| hands | workers' CPU, % of a core | {front}' CPU, % | service CPU until every frame was delivered, % "
               f"(workers') | {front}' CPU per second of data per hand, ms | hand worker restarts | worker killed | "
-              "sessions on it | kill -> first frame after it, max s | frames never produced | source messages resent / lost |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "sessions on it | kill -> first frame after it, max s | frames never produced | source messages resent / lost | "
+              f"behind schedule beyond the alignment wait after each session's first {FIRST_S:g} s p50 / p99 / max, ms |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for lv in levels:
         wc = "-" if lv["worker_cpu_share"] is None else f"{100 * lv['worker_cpu_share']:.0f}"
         svc, work = lv["service_cpu_share"], lv["worker_cpu_share"]
@@ -682,12 +693,14 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
         drained = ("-" if sd is None else f"{100 * sd:.0f}") + ("" if wd is None else f" ({100 * wd:.0f})")
         restarts = lv.get("hand_worker_restarts", "-")
         per_hand = "-" if lv.get("front_cpu_s_per_hand_s") is None else f"{1e3 * lv['front_cpu_s_per_hand_s']:.1f}"
+        d = lv.get("behind_schedule_beyond_alignment_after_first_s_ms")
+        later = "-" if d is None else f"{d['p50']:.1f} / {d['p99']:.1f} / {d['max']:.0f}"
         if fo is None:
-            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {per_hand} | {restarts} | - | - | - | - | - |")
+            lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {per_hand} | {restarts} | - | - | - | - | - | {later} |")
         else:
             rec = "-" if fo["recovery_s_max"] is None else f"{fo['recovery_s_max']:.2f}"
             lines.append(f"| {lv['hands']} | {wc} | {fc} | {drained} | {per_hand} | {restarts} | {fo['worker']} | {fo['sessions_moved']} | {rec} | "
-                         f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} |")
+                         f"{fo['frames_never_produced']} | {fo['messages_resent']} / {fo['messages_lost']} | {later} |")
     lines += ["", "Send -> receive: the time since the glove sent its latest message of that session (it cannot show "
               "a backlog: with one message every 5 ms it stays small even when frames are late). Behind schedule beyond "
               "the alignment wait: a frame's arrival after the moment the message that completed its tick (the reorder "
@@ -695,7 +708,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "source's schedule; it grows without bound when the service or the generator falls behind. A frame's "
               "arrival: while the gloves stream, the moment its bytes reached the generator's socket (the kernel's "
               "receive time of the last TCP segment read with it; the subscribers are read at the gloves' timer's "
-              "wakes), after that the moment it was read. Alignment "
+              "wakes), after that the moment it was read. The same after each session's first second: without the "
+              "frames of each session's first second of data, which carry its start (every glove of a level starts "
+              "at once). Alignment "
               "wait: the pipeline's deliberate wait, that message's due time minus the tick's (the optics' 20 ms latency "
               "and the 20 ms reorder window). Unaccounted: frames the service sent out that were neither delivered nor "
               "counted as dropped. /health and /metrics: response times measured during the stream by a probe "
