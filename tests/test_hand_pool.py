@@ -758,6 +758,18 @@ def _offline_session(**extra):
     return pool.settings, pool.metrics, ProcessSession("s", pool.settings, pool.metrics, pool.links[0], 1), sent
 
 
+def _offline_session_with_source() -> tuple:
+    """``_offline_session`` with a source attached to its session, and the list its error replies' codes go
+    into (where a test also notes the session's answers, in order)."""
+    settings, metrics, live, sent = _offline_session()
+    got = []
+
+    async def error(code, detail, *samples):
+        got.append(code)
+    live.attach_source(error)
+    return settings, metrics, live, sent, got
+
+
 def _source_types(sent: list) -> list[str]:
     """The types of the source messages a worker link was sent, in order."""
     import json
@@ -1438,12 +1450,7 @@ def test_an_answer_that_can_be_written_at_once_is_written_in_its_place_without_a
     (``routes.ingest.SyncAnswer.now``) are answered there, in order, with no task; one behind an error reply,
     one whose ``now`` cannot write (False) or fails, goes the awaited way, after what is before it."""
     async def run():
-        settings, metrics, live, sent = _offline_session()
-        got = []
-
-        async def error(code, detail, *samples):
-            got.append(code)
-        live.attach_source(error)
+        settings, metrics, live, sent, got = _offline_session_with_source()
 
         class Answer:
             def __init__(self, name, can):
@@ -1511,12 +1518,7 @@ def test_a_worker_s_reply_to_a_run_of_messages_releases_them_as_their_replies_on
     of answers), and an answer due after the run's last message is released, not one due after a later one; a
     session's ``lost`` errors go to its source with it."""
     async def run():
-        settings, metrics, live, sent = _offline_session()
-        got = []
-
-        async def error(code, detail, *samples):
-            got.append(code)
-        live.attach_source(error)
+        settings, metrics, live, sent, got = _offline_session_with_source()
         for _ in range(5):
             live._send_source("imu", ["chk", "{}", False], None)
         answers = []
