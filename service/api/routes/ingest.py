@@ -12,20 +12,17 @@ import time
 
 import orjson
 from fastapi import APIRouter, Security, WebSocket, WebSocketDisconnect
-from starlette.websockets import WebSocketState
 
 from ...protocol import PROTOCOL_VERSION, Hello, ProtocolError, Sync, decode
 from ...protocol.messages import SamplesRefused, dump_message
 from ...protocol.outgoing import SyncReplyDict
-from ...protocol.wire import encode
-from ..outgoing import ws_frame
 from ..config import ServiceSettings
 from ..deps import WS_POLICY_VIOLATION, WS_TRY_AGAIN_LATER, MetricsDep, Role, SessionsDep, SettingsDep
 from ..metrics import Metrics
 from ..backlog import DATA_TYPES, IngestBacklog
 from ..replies import drop_replies, failure_reply
 from ..sessions import LiveSession
-from .socket import close_reason, open_session, release, send, send_error, server_hello
+from .socket import close_reason, open_session, release, send, send_error, server_hello, write_reply_now
 
 router = APIRouter()
 
@@ -144,13 +141,7 @@ class SyncAnswer:
         say = self.say
         if say.gone:
             return True
-        ws = say.ws
-        wire = getattr(ws.state, "wire", None)
-        if wire is None or not wire.writable.is_set() or ws.application_state is not WebSocketState.CONNECTED:
-            return False
-        binary = ws.state.binary
-        data = encode(self.reply, binary)
-        return wire.write_frames(ws_frame(data if binary else data.encode(), binary))
+        return write_reply_now(say.ws, self.reply)
 
 
 async def _close_quietly(ws: WebSocket, code: int, reason: str) -> None:
@@ -267,11 +258,8 @@ class _Door:
             return _SYNC_HEAD.match(text) is not None and self.answer_sync(text, size)
         if not self.bucket.take():
             return False                     # (a failed take uses no token: ``read`` asks again)
-        try:                                 # (``forward``'s)
-            live.forward(msg)
-        except Exception as err:
-            if not self.refuse(failure_reply(self.session, msg, err)):
-                self.closing = asyncio.get_running_loop().create_task(self.close_overloaded())
+        if not self.forward(msg):
+            self.closing = asyncio.get_running_loop().create_task(self.close_overloaded())
         return True
 
     def answer_sync(self, text: str, size: int) -> bool:

@@ -90,7 +90,7 @@ async def send(ws: WebSocket, message: ServerHelloDict | SyncReplyDict | ErrorMe
         data = message.packed() if binary else message.text()
     else:
         data = encode(message, binary)
-        if await _write_frames(ws, ws_frame(data if binary else data.encode(), binary)):
+        if await _write_frames(ws, _frame_of(data, binary)):
             return
     sending = ws.app.state.sessions.sending
     sending[ws] = time.monotonic()
@@ -109,6 +109,25 @@ async def send_outputs(ws: WebSocket, messages: list[Outgoing]) -> None:
     if not await _write_frames(ws, joined_frames(messages, ws.state.binary)):
         for message in messages:
             await send(ws, message)
+
+
+def _frame_of(data: str | bytes, binary: bool) -> bytes:
+    return ws_frame(data if binary else data.encode(), binary)
+
+
+def reply_frame(message: SyncReplyDict | ErrorMessageDict, binary: bool) -> bytes:
+    """``message`` as the whole WebSocket frame ``send`` writes of it in the connection's encoding ``binary``."""
+    return _frame_of(encode(message, binary), binary)
+
+
+def write_reply_now(ws: WebSocket, message: SyncReplyDict | ErrorMessageDict) -> bool:
+    """``send``'s ready-made frame of ``message`` without waiting: written at once where the server takes such
+    frames, its buffers are not full and the connection is open; ``False``: nothing written, the caller sends it
+    the awaited way."""
+    wire = getattr(ws.state, "wire", None)
+    if wire is None or not wire.writable.is_set() or ws.application_state is not WebSocketState.CONNECTED:
+        return False
+    return wire.write_frames(reply_frame(message, ws.state.binary))
 
 
 async def _write_frames(ws: WebSocket, data: bytes) -> bool:
