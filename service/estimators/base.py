@@ -155,8 +155,8 @@ class FingerEstimator:
         self.n_sensors = len(geom.sensors)
         if self.n_sensors == 0:
             raise ValueError(f"finger {geom.name!r} has no sensors")
-        self.closure = ChainClosure(geom, extra_couplings=list(extra_couplings))
-        self.obs = FingerObservations(geom)          # the finger's observation constants, shared by every method
+        self.closure = ChainClosure.of(geom, tuple(extra_couplings))
+        self.obs = FingerObservations.of(geom)       # the finger's observation constants, shared by every method
         self.gravity_world = np.asarray(gravity_world, dtype=float)
         self._initial_theta = None if initial_theta is None else np.broadcast_to(
             np.asarray(initial_theta, dtype=float), self.batch_shape + (geom.n_phalanges,)).copy()
@@ -166,7 +166,7 @@ class FingerEstimator:
     def vector_closure(self) -> ChainClosure:
         """The finger's own chain closure, without fallback couplings: the one the vector observation
         (2.2.2) closes with inside the estimators that blend it in (``cf``, ``switching``)."""
-        return ChainClosure(self.geom)
+        return ChainClosure.of(self.geom)
 
     # -- state ------------------------------------------------------------------------------
     def reset(self, initial_theta: np.ndarray | None = None) -> None:

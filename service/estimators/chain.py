@@ -269,7 +269,7 @@ from .chain_kernel import GA_START, GS, N_STATE
 from . import kalman
 from .base import MODE_FAST, MODE_FUSED, EstimatorSettings, FingerEstimate, FingerEstimator, FingerSamples, FingerTrack, \
     lost_optics_variance
-from .observations import initial_sensor_theta
+from .observations import ChainClosure, FingerObservations, initial_sensor_theta
 
 
 TH, BG = 0, 1
@@ -427,6 +427,25 @@ class HoldLog:
         return r[-1] / span, g[-1] / span, moved
 
 
+_GEOMETRY: dict[tuple, tuple] = {}
+"""``chain_kernel.geometry_vector`` of shared finger constants (``FingerObservations.of``, ``ChainClosure.of``), by
+their ids and gravity's bits (each entry keeps its objects alive)."""
+
+
+def _geometry_vector(obs: FingerObservations, closure: ChainClosure, gravity_world: np.ndarray) -> np.ndarray:
+    """``chain_kernel.geometry_vector(obs, closure, gravity_world)``, a new array each call: concatenated once
+    per shared (read-only) ``obs`` and ``closure``."""
+    if obs.mount.flags.writeable or closure.matrix.flags.writeable:     # (not shared: they may change)
+        return K.geometry_vector(obs, closure, gravity_world)
+    key = (id(obs), id(closure), gravity_world.shape, gravity_world.tobytes())
+    hit = _GEOMETRY.get(key)
+    if hit is None or hit[0] is not obs or hit[1] is not closure:
+        if len(_GEOMETRY) >= 512:
+            _GEOMETRY.clear()
+        hit = _GEOMETRY[key] = (obs, closure, K.geometry_vector(obs, closure, gravity_world))
+    return hit[2].copy()
+
+
 class Chain(FingerEstimator):
     name = "chain"
     Settings = ChainSettings
@@ -445,7 +464,7 @@ class Chain(FingerEstimator):
         self._settings_vector = K.settings_vector(self.settings)
         # a finger on a fallback closure (a sensor silent) holds its gyro scale states (item 6)
         self._settings_vector[K.ST_GS_LEARN] = 0.0 if extra_couplings else 1.0
-        self._geometry_vector = K.geometry_vector(self.obs, self.closure, self.gravity_world)
+        self._geometry_vector = _geometry_vector(self.obs, self.closure, self.gravity_world)
         self._hand_untracked = False
         # the running integrals for a reference pose's hold (advanced here or by a ChainHand)
         self._hold = HoldLog(self.n_sensors) if not self.batch_shape else None

@@ -23,6 +23,34 @@ from ..model.hand import FingerGeometry, joint_limits, joint_to_phalanx_angles
 from ..model.kinematics import BaseMotion
 
 
+_KEPT: dict[tuple, tuple] = {}
+"""Constants made for a finger geometry object (``ChainClosure.of``, ``FingerObservations.of``), by the object's
+identity: the geometries of a shared calibration (``model.hand.default_calibration``,
+``HandCalibration.with_overrides``) are the same objects for every hand on it, so those hands share one set.
+Each entry keeps its geometry alive (no other object gets its id meanwhile)."""
+
+
+_PLAIN = (int, float, np.int64, np.float64)
+"""Number types whose ``repr`` tells apart any two values (a key's text)."""
+
+
+def _kept(kind: str, geom: FingerGeometry, detail: str, build):
+    """What ``build()`` makes for ``geom`` (and ``detail``), made once while kept: its arrays read-only, as
+    it is shared."""
+    key = (kind, id(geom), detail)
+    hit = _KEPT.get(key)
+    if hit is not None and hit[0] is geom:
+        return hit[1]
+    value = build()
+    for array in vars(value).values():
+        if isinstance(array, np.ndarray):
+            array.flags.writeable = False
+    if len(_KEPT) >= 512:
+        _KEPT.clear()
+    _KEPT[key] = (geom, value)
+    return value
+
+
 class ChainClosure:
     """Joint angles from the measured phalanx angles plus the coupling (DESIGN.md, paper section 2.2).
 
@@ -52,6 +80,15 @@ class ChainClosure:
                 f"determine its {n} joint angles; add a sensor")
         self.matrix = np.linalg.pinv(a)[:, : len(phalanges)]
         self.phalanges = phalanges
+
+    @classmethod
+    def of(cls, geom: FingerGeometry, extra_couplings: tuple[tuple[int, float], ...] = ()) -> "ChainClosure":
+        """The closure of ``geom``'s own sensors with ``extra_couplings``, shared (read-only) by every
+        estimator of that geometry object and couplings (its pseudo-inverse computed once)."""
+        if not all(type(v) in _PLAIN for pair in extra_couplings for v in pair):
+            return cls(geom, extra_couplings=list(extra_couplings))     # (its own: no exact text to key it by)
+        return _kept("closure", geom, repr(tuple(extra_couplings)),
+                     lambda: cls(geom, extra_couplings=list(extra_couplings)))
 
     def joint_angles(self, theta_sensors: np.ndarray) -> np.ndarray:
         """``θ`` per sensor (..., S) to joint angles ``φ`` (..., n)."""
@@ -94,6 +131,11 @@ class FingerObservations:
         lo = np.array([limits[: i + 1, 0].sum() for i in self.phalanx])
         hi = np.array([limits[: i + 1, 1].sum() for i in self.phalanx])
         self.branch_low = 0.5 * (lo + hi) - np.pi
+
+    @classmethod
+    def of(cls, geom: FingerGeometry) -> "FingerObservations":
+        """``geom``'s observation constants, shared (read-only) by every estimator of that geometry object."""
+        return _kept("observations", geom, "", lambda: cls(geom))
 
     def to_branch(self, theta: np.ndarray) -> np.ndarray:
         """Per-sensor angles (..., S) onto the anatomical 2π branch."""
@@ -251,4 +293,4 @@ def initial_sensor_theta(obs: FingerObservations, acc: np.ndarray, hand: BaseMot
     sample's vector observation (closed by the finger's own coupling only)."""
     if theta0 is not None:
         return np.array(theta0[..., obs.phalanx], dtype=float)
-    return vector_observation(obs, ChainClosure(obs.geom), acc, hand, gravity_world)[0]
+    return vector_observation(obs, ChainClosure.of(obs.geom), acc, hand, gravity_world)[0]

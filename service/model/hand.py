@@ -21,6 +21,7 @@ convention (``x = y × z``) is the same for both hands, so flexion stays positiv
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field, replace
 from typing import Literal, Mapping
 
@@ -71,6 +72,40 @@ JOINT_NAMES_LONG = ("mcp", "pip", "dip")
 JOINT_NAMES_THUMB = ("mcp", "ip")
 
 
+_MATRICES: dict[bytes, np.ndarray] = {}
+"""``rotation_matrix``'s matrices by their quaternion's bits."""
+
+
+def rotation_matrix(q_xyzw) -> np.ndarray:
+    """``quat_to_matrix`` of one ``[x, y, z, w]`` placement (a mounting, a base orientation): computed once per
+    exact value (its four numbers' bits, so ``-0.0`` is not ``0.0``) and handed out as a new array each call."""
+    try:
+        key = struct.pack("4d", *q_xyzw)
+    except (struct.error, TypeError):
+        return quat_to_matrix(np.asarray(q_xyzw))
+    kept = _MATRICES.get(key)
+    if kept is None:
+        if len(_MATRICES) >= 1024:
+            _MATRICES.clear()
+        kept = _MATRICES[key] = quat_to_matrix(np.asarray(q_xyzw))
+    return kept.copy()
+
+
+class FrozenFingers(dict):
+    """The fingers of a shared calibration (``default_calibration``, ``HandCalibration.with_overrides``): every
+    hand on that calibration holds the same object, so it refuses to be changed in place (a changed
+    calibration is a new one: ``with_overrides``, ``dataclasses.replace``)."""
+
+    def _refuse(self, *args, **kwargs):
+        raise TypeError("a shared calibration's fingers are not changed in place; make a new calibration "
+                        "(HandCalibration.with_overrides)")
+
+    __setitem__ = __delitem__ = clear = pop = popitem = setdefault = update = __ior__ = _refuse
+
+    def __reduce__(self):
+        return FrozenFingers, (dict(self),)
+
+
 @dataclass(frozen=True)
 class SensorPlacement:
     """One IMU on a phalanx.
@@ -89,7 +124,7 @@ class SensorPlacement:
     mounting: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
 
     def mounting_matrix(self) -> np.ndarray:
-        return quat_to_matrix(np.asarray(self.mounting))
+        return rotation_matrix(self.mounting)
 
 
 METACARPUS_SENSOR_ID = "metacarpus"
@@ -110,7 +145,7 @@ class MetacarpusImu:
     mounting: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)
 
     def mounting_matrix(self) -> np.ndarray:
-        return quat_to_matrix(np.asarray(self.mounting))
+        return rotation_matrix(self.mounting)
 
 
 @dataclass(frozen=True)
@@ -143,7 +178,7 @@ class FingerGeometry:
         return JOINT_NAMES_THUMB if self.n_phalanges == 2 else JOINT_NAMES_LONG
 
     def base_matrix(self) -> np.ndarray:
-        return quat_to_matrix(np.asarray(self.base_orientation))
+        return rotation_matrix(self.base_orientation)
 
     def sensor(self, sensor_id: str) -> SensorPlacement:
         for s in self.sensors:
@@ -173,7 +208,24 @@ class HandCalibration:
         """Apply a protocol-v1 ``calibration`` message's ``fingers`` object; every field optional.
 
         Raises ``ValueError`` naming the finger and field when a value is inconsistent.
+
+        Applied to a shared calibration (``default_calibration``, or one this returned), overrides of plain
+        values (a parsed message's: dicts, lists, strings, numbers) give a shared calibration too: the same
+        object for the same calibration and overrides, whose fingers' constants are then built once for all
+        the hands on it (``estimators.observations``, ``pipeline.mounting``).
         """
+        key = (id(self), _exact_text(fingers)) if _SHARED.get(id(self)) is self else None
+        if key is not None and key[1] is not None:
+            kept = _OVERRIDDEN.get(key)
+            if kept is not None:
+                return kept
+            if len(_OVERRIDDEN) >= 256:
+                _OVERRIDDEN.clear()
+            _OVERRIDDEN[key] = out = _shared(self._overridden(fingers))
+            return out
+        return self._overridden(fingers)
+
+    def _overridden(self, fingers: Mapping[str, Mapping]) -> "HandCalibration":
         new = dict(self.fingers)
         for name, over in fingers.items():
             if name not in FINGERS:
@@ -247,12 +299,60 @@ def _default_finger(name: str, hand: Hand, hand_length_m: float) -> FingerGeomet
     return FingerGeometry(name, lengths, base_pos, base_q, 1.0, sensors)  # type: ignore[arg-type]
 
 
+_SHARED: dict[int, HandCalibration] = {}
+"""The shared calibrations by id (each kept alive here, so no other object has its id)."""
+_OVERRIDDEN: dict[tuple[int, str], HandCalibration] = {}
+"""``with_overrides`` of a shared calibration, by its id and the overrides' exact text."""
+
+
+def _shared(calib: HandCalibration) -> HandCalibration:
+    """``calib`` with its fingers frozen (``FrozenFingers``), noted as shared."""
+    out = replace(calib, fingers=FrozenFingers(calib.fingers))
+    if len(_SHARED) >= 512:         # (the calibrations dropped here are rebuilt when next asked for)
+        _SHARED.clear()
+        _OVERRIDDEN.clear()
+    _SHARED[id(out)] = out
+    return out
+
+
+def _exact_text(value) -> str | None:
+    """The text of a plain value (dicts, lists and tuples of strings, numbers, booleans and ``None``) that
+    tells apart any two different values (``repr``: floats to the bit, ``-0.0`` and ``0.0`` too); ``None``
+    for anything else, whose ``repr`` may leave out part of its value (e.g. a numpy array's)."""
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        kind = type(v)
+        if kind is dict:
+            stack.extend(v.keys())
+            stack.extend(v.values())
+        elif kind is list or kind is tuple:
+            stack.extend(v)
+        elif kind not in (str, float, int, bool, type(None)):
+            return None
+    return repr(value)
+
+
+_DEFAULTS: dict[tuple[str, bytes], HandCalibration] = {}
+"""The shared default calibrations, by hand and the hand length's bits."""
+
+
 def default_calibration(hand: Hand = "right", hand_length_m: float = HAND_LENGTH_M) -> HandCalibration:
     """Average adult hand (see module docstring), sensors at mid-phalanx on phalanges 1 and 2 of each
-    long finger and on both thumb phalanges: ten IMUs."""
+    long finger and on both thumb phalanges: ten IMUs. For a hand length given as a ``float`` (as by
+    default), the one shared calibration of that hand and length (``FrozenFingers``)."""
     if hand not in ("right", "left"):
         raise ValueError(f"hand must be 'right' or 'left', got {hand!r}")
-    return HandCalibration(hand, {f: _default_finger(f, hand, hand_length_m) for f in FINGERS})
+    if type(hand_length_m) is not float:
+        return HandCalibration(hand, {f: _default_finger(f, hand, hand_length_m) for f in FINGERS})
+    key = (hand, struct.pack("d", hand_length_m))
+    kept = _DEFAULTS.get(key)
+    if kept is None or _SHARED.get(id(kept)) is not kept:
+        if len(_DEFAULTS) >= 64:
+            _DEFAULTS.clear()
+        kept = _DEFAULTS[key] = _shared(HandCalibration(hand, {f: _default_finger(f, hand, hand_length_m)
+                                                                 for f in FINGERS}))
+    return kept
 
 
 def calibration_message(calib: HandCalibration) -> dict:

@@ -79,6 +79,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model.hand import FrozenFingers
 from ..model.units import DEG, MPU9250_GYRO_OFFSET_STD_RAD_S, MPU9250_GYRO_ZRO_TOLERANCE_RAD_S
 from . import mounting_kernel as K
 
@@ -368,41 +369,14 @@ class HandMountings:
     def __init__(self, calibration, settings: MountingFitSettings = MountingFitSettings(),
                  previous: "HandMountings | None" = None):
         self.settings = settings
-        self._st = np.array([settings.min_rate_rad_s, settings.max_tilt_rad,
-                             settings.quiet_rate_rad_s if settings.cross_axis_std > 0 else 0.0,
-                             settings.clip_range_rad_s, float(settings.clip_max_samples),
-                             0.0 if settings.fit_clipped else settings.clip_range_rad_s,
-                             settings.residual_std_rad_s ** 2, settings.still_rate_rad_s, 0.0, 1.0])
-        if settings.still_gyro_margin_rad_s > 0 and settings.still_rate_rad_s > 0:
-            self._st[K.ST_STILL_GYRO] = settings.still_rate_rad_s + settings.still_gyro_margin_rad_s
-        s = settings
-        lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
-        lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
-        lam_k = (s.residual_std_rad_s / s.cross_axis_std) ** 2 if s.cross_axis_std > 0 else 0.0
-        rows, meta, self.places = [], [], {}
-        offset = 0
-        for f, (name, geom) in enumerate(calibration.fingers.items()):
-            base = geom.base_matrix()
-            for sp in geom.sensors:
-                mount = np.asarray(sp.mounting_matrix(), dtype=float)
-                row = np.zeros(K.WIDTH)
-                row[K.M0:K.M0 + 9] = mount.ravel()
-                row[K.B0:K.B0 + 9] = base.ravel()
-                row[K.C0:K.C0 + 9] = np.eye(3).ravel()
-                row[K.A00], row[K.A11] = lam_e, lam_b
-                row[K.O00], row[K.O11] = lam_e, lam_b
-                row[K.Q00], row[K.Q11], row[K.Q22] = lam_b, lam_k, lam_k
-                row[K.STRAIGHT] = float(np.array_equal(mount, np.eye(3)))
-                kept = previous.places.get(sp.id) if previous is not None else None
-                if kept is not None and kept[1:] == (name, sp.phalanx) and \
-                        np.array_equal(previous.state[kept[0], K.M0:K.M0 + 9], row[K.M0:K.M0 + 9]):
-                    row[K.C0:] = previous.state[kept[0], K.C0:]
-                self.places[sp.id] = (len(rows), name, sp.phalanx)
-                rows.append(row)
-                meta.append((f, sp.phalanx, offset))
-            offset += geom.n_phalanges
-        self.state = np.ascontiguousarray(np.array(rows, dtype=float).reshape(len(rows), K.WIDTH))
-        self._meta = np.array(meta, dtype=np.int64).reshape(len(meta), 3)
+        st, state, meta, places, row_ids = _fresh_fits(calibration, settings)
+        self._st, self.state, self._meta, self.places = st.copy(), state.copy(), meta.copy(), dict(places)
+        if previous is not None:
+            for j, (sid, name, phalanx) in enumerate(row_ids):
+                kept = previous.places.get(sid)
+                if kept is not None and kept[1:] == (name, phalanx) and \
+                        np.array_equal(previous.state[kept[0], K.M0:K.M0 + 9], state[j, K.M0:K.M0 + 9]):
+                    self.state[j, K.C0:] = previous.state[kept[0], K.C0:]
         self._rows: dict[tuple, np.ndarray] = {}
 
     compiled = True
@@ -473,6 +447,61 @@ class HandMountings:
             out = np.empty((len(idx), 2))
         K.cross_offsets(self.state, idx, out, self._st)
         return out
+
+
+_FRESH: dict[tuple[int, int], tuple] = {}
+"""``_fresh_fits`` of a shared calibration and settings object, by their ids (each entry keeps both alive)."""
+
+
+def _fresh_fits(calibration, settings: MountingFitSettings) -> tuple:
+    """``HandMountings``' arrays before any sample: ``(settings vector, state, meta, places, each row's sensor
+    id, finger and phalanx)``, never changed (each hand copies them). Made once per shared calibration
+    (``model.hand.FrozenFingers``: the same object for every hand on it, its fingers never changed) and
+    settings object, else each time."""
+    shared = type(calibration.fingers) is FrozenFingers
+    key = (id(calibration), id(settings))
+    hit = _FRESH.get(key) if shared else None
+    if hit is not None and hit[0] is calibration and hit[1] is settings:
+        return hit[2]
+    st = np.array([settings.min_rate_rad_s, settings.max_tilt_rad,
+                   settings.quiet_rate_rad_s if settings.cross_axis_std > 0 else 0.0,
+                   settings.clip_range_rad_s, float(settings.clip_max_samples),
+                   0.0 if settings.fit_clipped else settings.clip_range_rad_s,
+                   settings.residual_std_rad_s ** 2, settings.still_rate_rad_s, 0.0, 1.0])
+    if settings.still_gyro_margin_rad_s > 0 and settings.still_rate_rad_s > 0:
+        st[K.ST_STILL_GYRO] = settings.still_rate_rad_s + settings.still_gyro_margin_rad_s
+    s = settings
+    lam_e = (s.residual_std_rad_s / s.prior_std_rad) ** 2
+    lam_b = (s.residual_std_rad_s / s.offset_std_rad_s) ** 2
+    lam_k = (s.residual_std_rad_s / s.cross_axis_std) ** 2 if s.cross_axis_std > 0 else 0.0
+    rows, meta, places, row_ids = [], [], {}, []
+    offset = 0
+    for f, (name, geom) in enumerate(calibration.fingers.items()):
+        base = geom.base_matrix()
+        for sp in geom.sensors:
+            mount = np.asarray(sp.mounting_matrix(), dtype=float)
+            row = np.zeros(K.WIDTH)
+            row[K.M0:K.M0 + 9] = mount.ravel()
+            row[K.B0:K.B0 + 9] = base.ravel()
+            row[K.C0:K.C0 + 9] = np.eye(3).ravel()
+            row[K.A00], row[K.A11] = lam_e, lam_b
+            row[K.O00], row[K.O11] = lam_e, lam_b
+            row[K.Q00], row[K.Q11], row[K.Q22] = lam_b, lam_k, lam_k
+            row[K.STRAIGHT] = float(np.array_equal(mount, np.eye(3)))
+            places[sp.id] = (len(rows), name, sp.phalanx)
+            row_ids.append((sp.id, name, sp.phalanx))
+            rows.append(row)
+            meta.append((f, sp.phalanx, offset))
+        offset += geom.n_phalanges
+    fresh = (st, np.ascontiguousarray(np.array(rows, dtype=float).reshape(len(rows), K.WIDTH)),
+             np.array(meta, dtype=np.int64).reshape(len(meta), 3), places, row_ids)
+    if shared:
+        for array in fresh[:3]:
+            array.flags.writeable = False
+        if len(_FRESH) >= 64:
+            _FRESH.clear()
+        _FRESH[key] = (calibration, settings, fresh)
+    return fresh
 
 
 class HandMountingsReference(HandMountings):
