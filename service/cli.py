@@ -251,7 +251,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 def _cmd_serve(args: argparse.Namespace) -> int:
     from .api.app import create_app
-    from .api.config import ServiceSettings
+    from .api.config import ServiceSettings, event_loop_name
     from .api.server import FingertrackServer, listen_socket, serving_gc, uvicorn_config
     from .api.stacks import stacks_on_signal
 
@@ -269,7 +269,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     else:
         print(f"admin token (generated, shown once; set FINGERTRACK_ADMIN_TOKEN to choose one): {settings.admin_token}",
               flush=True)
-    print(f"listening on http://{settings.host}:{sock.getsockname()[1]} (viewer at /viewer/, docs at /docs)", flush=True)
+    print(f"listening on http://{settings.host}:{sock.getsockname()[1]} (viewer at /viewer/, docs at /docs; "
+          f"event loop {event_loop_name(settings)})", flush=True)
     app = create_app(settings)
     with serving_gc():
         FingertrackServer(uvicorn_config(settings, app)).run(sockets=[sock])

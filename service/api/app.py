@@ -55,6 +55,7 @@ def create_app(settings: ServiceSettings) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        app.state.loop = asyncio.get_running_loop()     # the event loop serving it (``settings.event_loop``)
         async def housekeeping():
             """Flush recordings, remove idle sessions, drop connections stuck in a send
             (``routes.socket.drop_stuck``)."""

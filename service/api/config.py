@@ -128,6 +128,11 @@ class ServiceSettings(BaseSettings):
                                      "this long while it owes answers, does not work either (stopped or blocked: neither runnable nor "
                                      "using CPU) and the other workers go on answering theirs (the machine is not "
                                      "stalled as a whole) is killed and its sessions move, s")
+    event_loop: Literal["asyncio", "uvloop", "auto"] = Field(
+        "asyncio", description="the web process's event loop: asyncio (Python's own), uvloop (the optional extra "
+                               "'uvloop'; an error where it is not installed: less of the web process's CPU per "
+                               "message, but /health answered later under full load, README 'The event loop') or "
+                               "auto (uvloop where it is installed, else asyncio)")
     bus: str | None = Field(None, pattern=r"^(nats|tls)://\S+$", description="NATS URL (nats://HOST:PORT): run as a gateway whose sessions run in "
                             "'fingertrack worker' processes; None: everything in this process")
 
@@ -209,12 +214,30 @@ class ServiceSettings(BaseSettings):
                                 "(FINGERTRACK_OPEN_ACCESS=true) to listen there")
         if settings.record_dir is not None and (problem := _unusable_folder(Path(settings.record_dir))):
             raise SettingsError(f"setting 'record_dir': {settings.record_dir!r} {problem}")
+        if settings.event_loop == "uvloop" and not uvloop_installed():
+            raise SettingsError("setting 'event_loop': 'uvloop' is not installed here; choose auto or asyncio")
         from ..estimators.registry import estimator_class
         try:
             estimator_class(settings.estimator)
         except ValueError as err:
             raise SettingsError(f"setting 'estimator': {err}") from None
         return settings
+
+
+def uvloop_installed() -> bool:
+    """Whether uvloop can be imported here (it has no build for every platform)."""
+    try:
+        import uvloop  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def event_loop_name(settings: ServiceSettings) -> str:
+    """The event loop the web process runs on with ``settings``: ``"uvloop"`` or ``"asyncio"``."""
+    if settings.event_loop == "auto":
+        return "uvloop" if uvloop_installed() else "asyncio"
+    return settings.event_loop
 
 
 def _unusable_folder(path: Path) -> str | None:

@@ -19,7 +19,7 @@ except ImportError:                                 # (websockets without its C 
 
 from .app import create_app
 from .buffers import read_buffer
-from .config import ServiceSettings
+from .config import ServiceSettings, event_loop_name
 from .outgoing import WIRE_EXTENSION
 from ..pipeline.gc_policy import serving_gc  # noqa: F401  (re-exported: the CLI and the tests take it from here)
 
@@ -289,9 +289,12 @@ else:
 
 
 def uvicorn_config(settings: ServiceSettings, app=None) -> uvicorn.Config:
+    """uvicorn's configuration of the service: its HTTP and WebSocket protocols (above) on the event loop
+    ``settings.event_loop`` names (``config.event_loop_name``)."""
     # messages above max_message_bytes get an error reply and the connection stays; only frames four
     # times larger are cut off at the WebSocket layer (close 1009)
     return uvicorn.Config(app or create_app(settings), host=settings.host, port=settings.port, log_level="warning",
+                          loop=event_loop_name(settings),
                           http=BoundedHttpTools or "h11", ws=DrainingWebSocket,
                           ws_max_size=4 * settings.max_message_bytes, ws_ping_interval=settings.ping_interval_s,
                           ws_ping_timeout=settings.ping_timeout_s, ws_per_message_deflate=settings.websocket_compression,

@@ -195,8 +195,10 @@ class WorkerLink:
             self.proc = await asyncio.create_subprocess_exec(
                 sys.executable, "-m", "service.api.hands.worker", str(child.fileno()), json.dumps(self.given),
                 str(os.getpid()), pass_fds=(child.fileno(),),
-                process_group=0)    # a group of its own: a terminal's Ctrl-C to the service's group does not reach it
-                                    # while it imports (it ignores SIGINT only from main(); the web process closes it)
+                # a session (and process group) of its own: a terminal's Ctrl-C to the service's group does not reach
+                # it while it imports (it ignores SIGINT only from main(); the web process closes it). Not
+                # ``process_group=0``: uvloop's subprocesses do not take it
+                start_new_session=True)
         finally:
             child.close()
         self.pid = self.proc.pid
