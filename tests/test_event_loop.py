@@ -3,6 +3,7 @@ told so (or with ``auto`` where it is installed), and a service on either one th
 its hand workers to a subscriber and answers ``/health``."""
 import asyncio
 import json
+import os
 
 import pytest
 
@@ -57,6 +58,15 @@ def test_a_glove_streams_to_a_subscriber_through_the_hand_workers(name):
     with ServerThread(_settings(event_loop=name, hand_workers=1)) as srv:
         assert type(srv.app.state.loop).__module__.split(".")[0] == name
         _serves_frames(srv)
+        _in_a_group_of_its_own_in_this_session(srv.app.state.sessions.pool.links[0].pid)
+
+
+def _in_a_group_of_its_own_in_this_session(pid: int) -> None:
+    """A hand worker leads a process group of its own (a terminal's Ctrl-C to the service's group does not reach
+    it) in the web process's session: on Linux with ``sched_autogroup`` a session of its own would be a scheduling
+    group of its own, where its nice value no longer yields to the web process."""
+    assert os.getpgid(pid) == pid
+    assert os.getsid(pid) == os.getsid(0)
 
 
 def test_uvloop_named_where_it_is_missing_is_a_settings_error(monkeypatch):
