@@ -358,23 +358,39 @@ class _Peer:
         self._buffer = bytearray()
 
     def send(self, messages: list) -> None:
-        self.ours.sendall(self.mod.frame(messages))
+        """Write ``messages`` as one frame, reading the worker's outputs meanwhile, as the web process does: the
+        worker writes them with a blocking send, so a peer that only wrote while those outputs filled the socket
+        would wait for the worker while the worker waited for it."""
+        import select
+
+        data = memoryview(self.mod.frame(messages))
+        while data:
+            readable, writable, _ = select.select([self.ours], [self.ours], [], 120.0)     # a bound for a failure only
+            assert readable or writable, "the worker neither read nor wrote for 120 s"
+            if readable:
+                self._read("the end of a send")
+            if writable:
+                data = data[self.ours.send(data):]
 
     def until(self, condition, what: str) -> None:
+        while not condition():
+            self._read(what)
+
+    def _read(self, what: str) -> None:
+        """One read of the worker's outputs (waiting for them up to 120 s), its whole messages taken."""
         import msgpack
 
         self.ours.settimeout(120.0)                 # a bound for a failure only
-        while not condition():
-            try:
-                chunk = self.ours.recv(1 << 20)
-            except TimeoutError:
-                raise AssertionError(f"nothing from the worker for 120 s waiting for {what}") from None
-            assert chunk, f"the worker ended before {what}"
-            self._buffer.extend(chunk)
-            while len(self._buffer) >= 4 and len(self._buffer) >= 4 + (size := self.mod.HEADER.unpack_from(self._buffer)[0]):
-                self.writes.append(msgpack.unpackb(bytes(self._buffer[4:4 + size])))
-                self.received.extend(self.writes[-1])
-                del self._buffer[:4 + size]
+        try:
+            chunk = self.ours.recv(1 << 20)
+        except TimeoutError:
+            raise AssertionError(f"nothing from the worker for 120 s waiting for {what}") from None
+        assert chunk, f"the worker ended before {what}"
+        self._buffer.extend(chunk)
+        while len(self._buffer) >= 4 and len(self._buffer) >= 4 + (size := self.mod.HEADER.unpack_from(self._buffer)[0]):
+            self.writes.append(msgpack.unpackb(bytes(self._buffer[4:4 + size])))
+            self.received.extend(self.writes[-1])
+            del self._buffer[:4 + size]
 
     def replies(self, sid: int) -> list:
         """The session's replies in order, a ``reps`` run as the ``rep`` of each of its messages."""
