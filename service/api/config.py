@@ -130,8 +130,8 @@ class ServiceSettings(BaseSettings):
                                      "stalled as a whole) is killed and its sessions move, s")
     event_loop: Literal["asyncio", "uvloop", "auto"] = Field(
         "asyncio", description="the web process's event loop: asyncio (Python's own), uvloop (the optional extra "
-                               "'uvloop'; an error where it is not installed: less of the web process's CPU per "
-                               "message, but /health answered later under full load, README 'The event loop') or "
+                               "'uvloop'; an error where it is not installed; no gain measured over asyncio, README "
+                               "'The event loop') or "
                                "auto (uvloop where it is installed, else asyncio)")
     bus: str | None = Field(None, pattern=r"^(nats|tls)://\S+$", description="NATS URL (nats://HOST:PORT): run as a gateway whose sessions run in "
                             "'fingertrack worker' processes; None: everything in this process")
