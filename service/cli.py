@@ -498,7 +498,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         except ValidationError as err:
             raise ValueError(describe_validation_error(err, f"estimator {args.estimator!r} setting")) from None
         print(cpu.run(args.out, seconds=args.seconds, repeats=args.repeats, estimator=args.estimator,
-                      params=params, profile=args.profile, batched=args.batch, worker=args.worker))
+                      params=params, profile=args.profile, batched=args.batch, worker=args.worker,
+                      hands=args.hands or (), starts=args.starts or 0))
         print(f"wrote {args.out}/results.json, summary.md" + (", profile.txt" if args.profile else ""))
         return 0
     if args.which == "gestures":
@@ -716,6 +717,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--worker", action="store_true",
                    help="also run each pass through a hand worker's handling of its session's messages (validation, "
                         "pipeline, encoding and framing of its outputs, as the web process sends them), its total apart")
+    b.add_argument("--hands", type=_count_list, default=None, metavar="N,...",
+                   help="also run N sessions in one hand worker per pass, for each N given (e.g. 1,4,12): their glove "
+                        "streams (one seed each) interleaved in order of arrival and written to the worker as the web "
+                        "process writes them; each session's first second not timed; CPU ms per hand and second of data")
+    b.add_argument("--starts", type=_positive_int, default=None, metavar="SESSIONS",
+                   help="also start SESSIONS sessions one after another, each alone in a hand worker: CPU of its "
+                        "hand's construction (as on open), its first second of data and a steady second (its third)")
 
     b = benchmark("load", "service load: several hands at once, subscribers per hand",
                   "Hands streamed at once into a fresh service process per load level, with subscribers per hand: "
