@@ -326,7 +326,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
     if hands:                                       # the worker's batch paths run once before any timing
         _pass_hands([timed_recording(FIRST_S + 0.5, seed=99)] * min(4, max(hands)), settings)
     clock_us = [clock_read_cpu_us()]
-    for _ in range(repeats):                        # the kinds of pass interleaved: the same conditions
+    for repeat in range(repeats):                   # the kinds of pass interleaved: the same conditions
         total, frames = _pass_total(lines, settings)
         totals.append(total)
         cpu, staged_frames = _pass(lines, settings)
@@ -338,7 +338,7 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
             workers.append(total)
             if worker_frames != frames:
                 raise RuntimeError(f"the passes disagree: {frames} and {worker_frames} frames (hand worker)")
-        for n in hands:
+        for n in hands if repeat % 2 == 0 else hands[::-1]:       # (no level always first or last)
             total, per_session = _pass_hands(recordings[:n], settings)
             hand_cpu[n].append(total)
             for seed, count in enumerate(per_session):
@@ -374,9 +374,11 @@ def run(out_dir: str | Path, seconds: float = 20.0, repeats: int = 3, estimator:
                                            "median": 1e3 * statistics.median(hand_cpu[n]) / (n * timed_s)}}
             result["hands"].append(level)
         one = next((level for level in result["hands"] if level["hands"] == 1), None)
-        for level in result["hands"]:
-            level["to_one_hand"] = (None if one is None else
-                                    {k: level["cpu_ms_per_hand_s"][k] / one["cpu_ms_per_hand_s"][k] for k in ("best", "median")})
+        for level in result["hands"]:               # (the pairs' ratios: each pass against one hand's of its repeat)
+            level["to_one_hand"] = None if one is None else {
+                "best": level["cpu_ms_per_hand_s"]["best"] / one["cpu_ms_per_hand_s"]["best"],
+                "median_of_repeats": statistics.median(a / level["hand_seconds_timed"] / (b / one["hand_seconds_timed"])
+                                                       for a, b in zip(level["cpu_s"], one["cpu_s"]))}
     if starts:
         result["starts"] = _starts_result(_pass_starts([timed_recording(STEADY_S[1], seed) for seed in range(starts)],
                                                        settings))
@@ -451,10 +453,11 @@ def _summary(r: dict) -> str:
         lines += ["", f"N sessions in one hand worker (`Worker.handle_batch` as the web process writes to it; recordings of "
                   f"seeds 0 to N - 1, each session's first {FIRST_S:g} s not timed), CPU per hand and second of data, "
                   f"best and median of {r['repeats']} passes:", "",
-                  "| hands | frames | CPU ms per hand-second (best) | median | to one hand (best) |", "|---|---|---|---|---|"]
+                  "| hands | frames | CPU ms per hand-second (best) | median | to one hand: best / median of the repeats' ratios |",
+                  "|---|---|---|---|---|"]
         for level in r["hands"]:
             c, ratio = level["cpu_ms_per_hand_s"], level["to_one_hand"]
-            to_one = "" if ratio is None else f"{ratio['best']:.2f}x"
+            to_one = "" if ratio is None else f"{ratio['best']:.2f}x / {ratio['median_of_repeats']:.2f}x"
             lines.append(f"| {level['hands']} | {level['frames']} | **{c['best']:.2f}** | {c['median']:.2f} | {to_one} |")
     if "starts" in r:
         s = r["starts"]
