@@ -172,3 +172,31 @@ def test_each_hand_keeps_its_own_layouts():
     assert frame_text._layouts == before
     assert all(tracked._layouts for tracked in hands)
     assert not set(hands[0]._layouts) & set(hands[1]._layouts)
+
+
+def _same_layout(a, b) -> bool:
+    if a.fixed is None or b.fixed is None:
+        return a.fixed is None and b.fixed is None
+    return a.fixed.tobytes() == b.fixed.tobytes() and a.ends.tolist() == b.ends.tolist() \
+        and a.holes.tolist() == b.holes.tolist() and a.size == b.size and a.n_angles == b.n_angles
+
+
+@pytest.mark.parametrize("tracked_all", [True, False])
+def test_a_layout_of_new_modes_from_the_layout_without_modes_is_the_one_written_whole(tracked_all):
+    """``Layouts.laid_out`` (the modes put into the hand's parts without modes, ``_Modeless``) gives the
+    layout ``_layout_of`` writes from the whole message, for every combination of the pipeline's modes and for
+    modes it cannot put in (not a plain str, a stand-in's or a hole's text, beyond ASCII, ``null``, quotes)."""
+    out = _one_output()
+    frame = out.frame
+    names = frame.joint_angles.layout.names
+    tracked = frame.tracked if tracked_all else {n: i % 3 != 0 for i, n in enumerate(frame_text.JOINT_NAMES)}
+    rng = np.random.default_rng(5)
+    odd = ["fast", "fused", "", 'say "hi"', "\x01", "\x02", "\\u0002", "null", "an\u00e9", 3, None, "\ud800",
+           "nul", "l"]
+    layouts = frame_text.Layouts()
+    for k in range(60):
+        pool = ["fast", "fused", "slow", "held"] if k < 30 else odd
+        modes = {f: pool[int(rng.integers(len(pool)))] for f in names}
+        key = (out.calibration, frame.joint_angles.layout, modes, tracked)
+        assert _same_layout(layouts.laid_out(*key), frame_text._layout_of(*key)), modes
+    assert all(m.pieces is not None for m in layouts.modeless.values())

@@ -19,12 +19,17 @@ def _merged(numbers: bytes, small: bytes, n_head: int, n_status: int, fixed: byt
     they share numbers); the bytes beyond ``room`` are checked untouched."""
     if room is None:
         room = len(numbers) * len(holes) + len(small) + len(fixed)
-    whole = np.full(room + 64, 7, dtype=np.uint8)
-    out = whole[:room]
-    size = merge(np.frombuffer(numbers, np.uint8), np.frombuffer(small, np.uint8), n_head, n_status,
-                 np.frombuffer(fixed, np.uint8), np.asarray(ends, dtype=np.int64), np.asarray(holes, dtype=np.int64), out)
-    assert (whole[room:] == 7).all()
-    return None if size < 0 else out[:size].tobytes()
+    texts = []
+    # the numbers and small parts as ``FrameOutput`` passes them (bytes) and as uint8 arrays: the same text
+    for numbers_in, small_in in ((numbers, small), (np.frombuffer(numbers, np.uint8), np.frombuffer(small, np.uint8))):
+        whole = np.full(room + 64, 7, dtype=np.uint8)
+        out = whole[:room]
+        size = merge(numbers_in, small_in, n_head, n_status, np.frombuffer(fixed, np.uint8),
+                     np.asarray(ends, dtype=np.int64), np.asarray(holes, dtype=np.int64), out)
+        assert (whole[room:] == 7).all()
+        texts.append(None if size < 0 else out[:size].tobytes())
+    assert texts[0] == texts[1]
+    return texts[0]
 
 
 def _both(*args) -> bytes | None:

@@ -143,8 +143,8 @@ def _warm_pipeline() -> None:
     from ..model.openxr_frame_kernel import frame_poses
     numbers = np.zeros(flat.layout.n + 7 * len(JOINT_NAMES))
     frame_poses(_packed_calibration(calib), numbers[:flat.layout.n], flat.layout.padded, np.eye(3), np.zeros(3), numbers)
-    # a frame's text (``frame_text``: the numbers, small parts and fixed parts read-only, as bytes are)
-    frame_text_kernel.merge(np.frombuffer(b"[1.0]", np.uint8), np.frombuffer(b"{}{}{}", np.uint8), 2, 2,
+    # a frame's text (``frame_text``: the numbers and small parts as bytes, the fixed parts read-only)
+    frame_text_kernel.merge(b"[1.0]", b"{}{}{}", 2, 2,
                             np.frombuffer(b",,,,,", np.uint8), np.arange(1, 6, dtype=np.int64),
                             np.array([0, 1, 1], dtype=np.int64), np.empty(32, dtype=np.uint8))
 

@@ -7,8 +7,10 @@ list per number pair) and then encoded (``orjson``, then ``encode``'s scan for `
 worker about as much as its compiled tick. Here the numbers are written by ``orjson`` (the encoder
 ``encode`` uses, each number written as it writes it anywhere: the same bytes) from one list per kind
 (the joint angles, the positions, the orientations), cut at their separators, and put between the fixed
-parts, which ``orjson`` wrote once per calibration, finger layout, modes and tracked flags (``_Layout``);
-the frame's head, status and gesture annotation are small dicts, written by ``orjson`` as they are.
+parts, which ``orjson`` wrote once per calibration, finger layout and tracked flags, each finger's mode put
+in once per combination of modes (``_Modeless``, ``_Layout``); the frame's head, status and gesture
+annotation are small dicts, written by ``orjson`` as they are. The parts are put together in one compiled call
+(``frame_text_kernel.merge``: the texts as ``orjson`` gave them, into a buffer kept per hand).
 
 The text is ``encode``'s only where ``encode`` itself writes ``orjson``'s text: every part is ASCII and every
 ``null`` in it is one ``encode`` knows holds no number (``_nulls_all_known``: the fixed parts have none,
@@ -17,6 +19,8 @@ non-finite number, a sensor never sampled, a frame not built by the pipeline) is
 by ``encode`` (``FrameOutput.text``'s fallback). ``tests/test_frame_text.py`` checks the two equal.
 """
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 import orjson
@@ -53,21 +57,34 @@ class _Layout:
             parts = [*parts, b',"status":', b',"gesture":', b"}"]
             self.fixed = np.frombuffer(b"".join(parts), dtype=np.uint8)
             self.ends = np.cumsum([len(p) for p in parts], dtype=np.int64)
-            n, joints = n_angles, len(JOINT_NAMES)
-            holes = [(k, 1) for k in range(n)]
-            for j in range(joints):
-                holes += ((n + 3 * j, 3), (n + 3 * joints + 4 * j, 4))
-            self.holes = np.array([x for h in holes for x in h] + [n + 7 * joints], dtype=np.int64)
+            self.holes = _holes(n_angles)
             self.size = len(self.fixed)
+
+
+@lru_cache(maxsize=16)
+def _holes(n_angles: int) -> np.ndarray:
+    """``_Layout.holes`` of a frame with ``n_angles`` joint angles (shared by its layouts: ``merge`` only
+    reads it)."""
+    n, joints = n_angles, len(JOINT_NAMES)
+    holes = [(k, 1) for k in range(n)]
+    for j in range(joints):
+        holes += ((n + 3 * j, 3), (n + 3 * joints + 4 * j, 4))
+    return np.array([x for h in holes for x in h] + [n + 7 * joints], dtype=np.int64)
 
 
 def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
     """The frame's fixed parts (``_Layout``); ``fixed`` is ``None`` where they cannot be laid out so (a finger
     whose angle count differs from its joint names, a joint without a radius: ``to_message``'s message then)."""
-    key = (calib, layout, modes, tracked)
+    pieces = _pieces(calib, layout, modes, tracked)
+    return _Layout((calib, layout, modes, tracked), pieces, layout.n if pieces is not None else 0)
+
+
+def _pieces(calib, layout, modes: dict, tracked: dict) -> list[bytes] | None:
+    """The fixed parts between the holes of a frame's ``fingers`` and ``joints``, or ``None`` where they cannot
+    be laid out so (``_layout_of``)."""
     names_of = {f: g.joint_names for f, g in calib.fingers.items()}
     if any(len(names_of.get(f) or calib.finger(f).joint_names) != c for f, c in zip(layout.names, layout.counts)):
-        return _Layout(key, None, 0)
+        return None
     fingers = {}
     for f in layout.names:
         angles = dict.fromkeys(names_of.get(f) or calib.finger(f).joint_names, _HOLE)
@@ -79,22 +96,99 @@ def _layout_of(calib, layout, modes: dict, tracked: dict) -> _Layout:
     try:
         text = orjson.dumps({"fingers": fingers, "joints": joints}, option=_ORJSON_STRICT)
     except (orjson.JSONEncodeError, TypeError):      # (e.g. a mode or radius that is no plain str or float)
-        return _Layout(key, None, 0)
+        return None
     pieces = (b"," + text[1:-1]).split(_HOLE_TEXT)
     if not all(p.isascii() and b"null" not in p for p in pieces) or len(pieces) != layout.n + 2 * len(JOINT_NAMES) + 1:
-        return _Layout(key, None, 0)
-    return _Layout(key, pieces, layout.n)
+        return None
+    return pieces
+
+
+_MODE = "\x02"
+"""Where a finger's mode goes in a ``_Modeless`` layout's parts while they are written (a string no key or value
+of a frame holds)."""
+_MODE_TEXT = orjson.dumps(_MODE)
+
+
+class _Modeless:
+    """The fixed parts of a frame's ``fingers`` and ``joints`` for one calibration, finger layout and tracked
+    flags, with each finger's mode still to be put in (``laid_out``): a hand's fingers change modes often (a
+    hand has some 30 combinations of them), and each combination's parts are then these with five strings
+    put in, not the whole message written again. ``pieces`` is ``None`` where the parts cannot be made so
+    (``_layout_of`` then lays out each combination)."""
+
+    __slots__ = ("key", "pieces", "moded")
+
+    def __init__(self, key: tuple):
+        self.key = key          # (the objects themselves: while kept, no other object has their ids)
+        calib, layout, tracked = key
+        self.pieces = self.moded = None
+        pieces = _pieces(calib, layout, dict.fromkeys(layout.names, _MODE), tracked)
+        if pieces is None:
+            return
+        # the parts with modes: (its index, its text around each mode, the fingers whose modes go there)
+        moded, finger = [], 0
+        for k, p in enumerate(pieces):
+            count = p.count(_MODE_TEXT)
+            if count:
+                moded.append((k, p.split(_MODE_TEXT), range(finger, finger + count)))
+                finger += count
+        if finger != len(layout.names):       # (a key that is the mode's stand-in too)
+            return
+        self.pieces, self.moded = pieces, moded
+
+    def laid_out(self, modes: dict) -> _Layout:
+        """``_layout_of(*key, modes)``: the parts with the fingers' modes put in."""
+        calib, layout, tracked = self.key
+        key = (calib, layout, modes, tracked)
+        texts = []
+        for f in layout.names:
+            mode = modes[f]
+            if type(mode) is not str:
+                return _layout_of(*key)
+            try:
+                text = orjson.dumps(mode)
+            except orjson.JSONEncodeError:      # (e.g. a lone surrogate)
+                return _layout_of(*key)
+            if _HOLE_TEXT in text or not text.isascii() or b"null" in text:
+                return _layout_of(*key)
+            texts.append(text)
+        pieces = self.pieces.copy()
+        for k, around, fingers in self.moded:
+            parts = [around[0]]
+            for f, after in zip(fingers, around[1:]):
+                parts += (texts[f], after)
+            pieces[k] = b"".join(parts)       # (no ``null`` across a mode's ends: its quotes are)
+        return _Layout(key, pieces, layout.n)
 
 
 class Layouts(dict):
     """Frame layouts (``_Layout``) by the ids of what they depend on, and the last one used with those objects
-    (``last``: most frames have the same as the frame before, found then by four identity checks)."""
+    (``last``: most frames have the same as the frame before, found then by four identity checks); the
+    layouts without their modes (``modeless``: ``_Modeless`` by the ids of calibration, finger layout and
+    tracked flags), each new combination of modes laid out from one of them; and where a frame's text is
+    written before it becomes a ``str`` (``buffer``: one hand's frames are written one at a time, by one
+    thread)."""
 
-    __slots__ = ("last",)
+    __slots__ = ("last", "modeless", "buffer")
 
     def __init__(self):
         super().__init__()
         self.last: tuple | None = None
+        self.modeless: dict = {}
+        self.buffer = np.empty(0, dtype=np.uint8)
+
+    def laid_out(self, calib, layout, modes: dict, tracked: dict) -> _Layout:
+        """``_layout_of``, from the layout without modes of ``calib``, ``layout`` and ``tracked``."""
+        kept = self.modeless
+        ids = (id(calib), id(layout), id(tracked))
+        modeless = kept.get(ids)
+        if modeless is None:
+            if len(kept) > 16:                  # bounded: a hand has few
+                kept.clear()
+            modeless = kept[ids] = _Modeless((calib, layout, tracked))
+        if modeless.pieces is None:
+            return _layout_of(calib, layout, modes, tracked)
+        return modeless.laid_out(modes)
 
 
 _layouts = Layouts()
@@ -165,7 +259,7 @@ class FrameOutput:
             if layout is None:
                 if len(layouts) > 64:           # bounded: a hand has few combinations
                     layouts.clear()
-                layout = layouts[ids] = _layout_of(*key)
+                layout = layouts[ids] = layouts.laid_out(*key) if type(layouts) is Layouts else _layout_of(*key)
             if type(layouts) is Layouts:
                 layouts.last = (*key, layout)   # (its objects held there: no other object takes their ids meanwhile)
         if layout.fixed is None:
@@ -191,9 +285,14 @@ class FrameOutput:
         # ``orjson`` writes a non-finite number as ``null``: a list of numbers without an ``n`` has none
         if b"n" in numbers:
             return None
-        out = np.empty(layout.size + len(small) + len(numbers), dtype=np.uint8)
-        size = merge(np.frombuffer(numbers, dtype=np.uint8), np.frombuffer(small, dtype=np.uint8), len(head),
-                     len(status), layout.fixed, layout.ends, layout.holes, out)
+        need = layout.size + len(small) + len(numbers)
+        if type(layouts) is Layouts and layouts is not _layouts:    # (a hand's own: written by one thread)
+            out = layouts.buffer
+            if len(out) < need:
+                out = layouts.buffer = np.empty(need + 1024, dtype=np.uint8)
+        else:
+            out = np.empty(need, dtype=np.uint8)
+        size = merge(numbers, small, len(head), len(status), layout.fixed, layout.ends, layout.holes, out)
         if size < 0:                            # (numbers not of the layout's count)
             return None
         return str(out[:size], "ascii")

@@ -36,7 +36,7 @@ def merge(numbers, small, n_head, n_status, fixed, ends, holes, out):  # pragma:
     """Write the frame's text into ``out`` and return its length; -1 if ``numbers`` is not a list of
     ``holes``' count of numbers (``holes[-1]``: their count) or ``out`` is too short.
 
-    ``numbers``: ``orjson``'s text of one list of numbers (``[a,b,...]``, bytes as uint8); ``small``: the
+    ``numbers``: ``orjson``'s text of one list of numbers (``[a,b,...]``, bytes, or as uint8); ``small``: the
     frame's head object, its status object and its gesture object, one after the other (``n_head`` and
     ``n_status`` bytes the first two); ``fixed``: the fixed parts one after the other, part ``k`` up to
     ``ends[k]`` (from ``ends[k - 1]``, the first from 0); ``holes[2k]``, ``holes[2k + 1]``: the first number
@@ -51,7 +51,7 @@ def merge(numbers, small, n_head, n_status, fixed, ends, holes, out):  # pragma:
         if ends[k] < (ends[k - 1] if k else 0):
             return -1
     count = holes[2 * k_holes]
-    size = numbers.shape[0]
+    size = len(numbers)
     if count < 0 or size < 2 or numbers[0] != OPEN or numbers[size - 1] != CLOSE:
         return -1
     # where each number's text starts (``starts[i]``) and ends (``starts[i + 1] - 1``, at its comma)
@@ -67,13 +67,13 @@ def merge(numbers, small, n_head, n_status, fixed, ends, holes, out):  # pragma:
         starts[i] = p + 1                        # (overwritten until the comma: the last write is a number's)
         i += numbers[p] == COMMA
     starts[count] = size
-    need = n_head - 1 + small.shape[0] - n_head + fixed.shape[0]     # (every byte written counted first)
+    need = n_head - 1 + len(small) - n_head + fixed.shape[0]     # (every byte written counted first)
     for k in range(k_holes):
         first, n = holes[2 * k], holes[2 * k + 1]
         if first < 0 or n < 1 or first + n > count:
             return -1
         need += starts[first + n] - 1 - starts[first]
-    if out.shape[0] < need or n_head < 1 or n_status < 0 or n_head + n_status > small.shape[0] \
+    if out.shape[0] < need or n_head < 1 or n_status < 0 or n_head + n_status > len(small) \
             or ends[ends.shape[0] - 1] > fixed.shape[0]:
         return -1
     w = _copy(out, 0, small, 0, n_head - 1)     # the head without its "}"
@@ -87,7 +87,7 @@ def merge(numbers, small, n_head, n_status, fixed, ends, holes, out):  # pragma:
     w = _copy(out, w, fixed, begin, ends[k_holes + 1])
     w = _copy(out, w, small, n_head, n_head + n_status)
     w = _copy(out, w, fixed, ends[k_holes + 1], ends[k_holes + 2])
-    w = _copy(out, w, small, n_head + n_status, small.shape[0])
+    w = _copy(out, w, small, n_head + n_status, len(small))
     return _copy(out, w, fixed, ends[k_holes + 2], ends[k_holes + 3])
 
 
