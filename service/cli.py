@@ -466,7 +466,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(load.run(args.out, hands=args.hands, subscribers=args.subscribers, seconds=args.seconds,
                        binary=args.binary, bus_workers=args.workers if args.bus else None,
                        kill_at_s=args.kill_worker_at, hand_workers=None if args.bus else args.workers,
-                       gateways=args.gateways, generators=args.generators))
+                       gateways=args.gateways, generators=args.generators,
+                       **({} if args.metrics_every is None else {"metrics_every_s": args.metrics_every})))
         print(f"wrote {args.out}/results.json, summary.md")
         return 0
     if args.which == "switch":
@@ -746,6 +747,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="kill (SIGKILL) the hand worker owning most sessions S seconds into the stream (default: none)")
     b.add_argument("--generators", type=_positive_int, default=None, metavar="N",
                    help="load-generator processes for the gloves and subscribers (default: one per 50 hands, bench.load.GENERATOR_HANDS)")
+    b.add_argument("--metrics-every", type=_positive_float, default=None, metavar="S",
+                   help="the probe's time between two GET /metrics, s (default 1; GET /health every 0.05 s; "
+                        "0.05 asks for both in every round, as before)")
 
     b = benchmark("switch", "estimator switch: how long a live session's switch stalls the other sessions",
                   "Sessions stream in real time into a fresh service process, one subscriber each; one session is "

@@ -64,6 +64,14 @@ whatever its number of hands, and a wake costs about 50-70 us of CPU here: 50 ha
 did (at 50 hands one process used about a quarter of a core, 5.0-5.3 ms per hand-second, where two of 25
 used 5.4-6.4 together: far from being the bottleneck)"""
 
+PROBE_HEALTH_EVERY_S = 0.05
+"""the probe's time between two ``/health`` requests (a load balancer's health check, often)"""
+PROBE_METRICS_EVERY_S = 1.0
+"""the probe's time between two ``/metrics`` requests by default (``--metrics-every``). The exposition holds some
+2 kB per session (52.7 kB at 25 sessions): asked for every 50 ms, as ``/health``, its rendering and reading took
+about 8 % of the web process's busy time at 25 hands and the probe process 7 % of a core, a load no monitoring
+system puts on a service (a Prometheus server scrapes every 15 s to 1 min)"""
+
 
 def generator_processes(hands: int) -> int:
     """How many load-generator processes stream ``hands`` hands (``GENERATOR_HANDS`` each)."""
@@ -268,20 +276,22 @@ def _generator_main() -> int:
 
 
 async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: int, subscribers: int, seconds: float,
-                 binary: bool, service_cpu, kill=None, processes: int | None = None, end_with_kill: bool = False) -> dict:
+                 binary: bool, service_cpu, kill=None, processes: int | None = None, end_with_kill: bool = False,
+                 metrics_every_s: float = PROBE_METRICS_EVERY_S) -> dict:
     """``urls``: the service's, or its gateways' (session i's glove streams to gateway i, its subscriber
     k listens at gateway i + k, modulo their number, so that frames must reach every gateway).
     ``service_cpu()``: the service processes' CPU seconds so far (None where it cannot be read).
     ``kill``: ``(seconds, coroutine function)`` run that long into the stream (a worker killed);
     ``end_with_kill``: the stream ends when that function returns (at the latest after ``seconds``).
-    The gloves and subscribers run in ``processes`` load-generator processes (``generator_processes``)."""
+    The gloves and subscribers run in ``processes`` load-generator processes (``generator_processes``); the probe
+    (``bench.probe``) asks for ``/metrics`` every ``metrics_every_s``."""
     count = processes or generator_processes(hands)
     parts = [list(range(hands))[j::count] for j in range(count)]
     parts = [p for p in parts if p]
     procs: list = []
     try:
         return await _stream_level(procs, parts, urls, source, viewer, admin, subscribers, seconds, binary,
-                                   service_cpu, kill, hands, end_with_kill)
+                                   service_cpu, kill, hands, end_with_kill, metrics_every_s)
     finally:                                        # interrupted (Ctrl-C, SIGTERM): no generator or probe left behind
         for proc in procs:
             if proc.returncode is None:
@@ -291,7 +301,7 @@ async def _level(urls: list[str], source: str, viewer: str, admin: str, hands: i
 
 async def _stream_level(procs: list, parts: list, urls: list[str], source: str, viewer: str, admin: str,
                         subscribers: int, seconds: float, binary: bool, service_cpu, kill, hands: int,
-                        end_with_kill: bool = False) -> dict:
+                        end_with_kill: bool = False, metrics_every_s: float = PROBE_METRICS_EVERY_S) -> dict:
     """``_level``'s run; every process it starts goes into ``procs`` at once."""
     url = urls[0]
     for part in parts:
@@ -323,7 +333,7 @@ async def _stream_level(procs: list, parts: list, urls: list[str], source: str, 
         killed["t"] = time.perf_counter()
 
     killer = asyncio.create_task(kill_later()) if kill is not None else None
-    probe = await _start_probe(url, admin, seconds)
+    probe = await _start_probe(url, admin, seconds, metrics_every_s)
     procs.append(probe)
     if end_with_kill and killer is not None:
         await asyncio.wait([killer], timeout=max(0.0, seconds - (time.perf_counter() - wall0)))
@@ -420,10 +430,12 @@ async def _until_delivered(urls: list[str], names: list[str], received: dict, su
         await asyncio.sleep(0.05)
 
 
-async def _start_probe(url: str, token: str, seconds: float):
-    """The health and metrics probe (``bench.probe``) in its own process, for the streaming window."""
+async def _start_probe(url: str, token: str, seconds: float, metrics_every_s: float = PROBE_METRICS_EVERY_S):
+    """The health and metrics probe (``bench.probe``) in its own process, for the streaming window: ``/health``
+    every ``PROBE_HEALTH_EVERY_S``, ``/metrics`` every ``metrics_every_s``."""
     env = {**os.environ, "FINGERTRACK_PROBE_TOKEN": token}
     return await asyncio.create_subprocess_exec(sys.executable, "-m", "service.bench.probe", url, f"{seconds:g}",
+                                                repr(PROBE_HEALTH_EVERY_S), repr(metrics_every_s),
                                                 stdout=asyncio.subprocess.PIPE, env=env, preexec_fn=bound_to_this_process())
 
 
@@ -472,12 +484,12 @@ def _recovery(received: dict, killed: dict, subscribers: int) -> dict | None:
 
 def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: bool = False,
               bus_workers: int | None = None, kill_at_s: float | None = None, hand_workers: int | None = None,
-              gateways: int = 1, generators: int | None = None) -> dict:
+              gateways: int = 1, generators: int | None = None, metrics_every_s: float = PROBE_METRICS_EVERY_S) -> dict:
     """One load level in a fresh service process (with ``hand_workers`` hand worker processes; None: the
     service's default), or with ``bus_workers`` a fresh NATS cluster (``gateways`` gateways and that
     many workers). ``kill_at_s``: the worker owning most sessions is killed (SIGKILL) that long into the
-    stream. ``generators``: load-generator processes (None: ``generator_processes``). Returns the level's
-    measured figures."""
+    stream. ``generators``: load-generator processes (None: ``generator_processes``). ``metrics_every_s``: the
+    probe's time between two ``/metrics`` requests. Returns the level's measured figures."""
     from clients.client import rest
 
     # one source token streams every glove and one viewer token serves every subscriber
@@ -523,7 +535,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
                 return {"worker": victim, "sessions": [s for s, o in owners.items() if o == victim]}
         kill = (kill_at_s, kill_busiest) if kill_at_s is not None else None
         lvl = asyncio.run(_level(urls, svc.source, svc.viewer, svc.admin, hands, subscribers, seconds, binary,
-                                 service_cpu, kill, generators))
+                                 service_cpu, kill, generators, metrics_every_s=metrics_every_s))
         w0, w1 = (readings[0], readings[1]) if len(readings) >= 2 else (None, None)
         summaries = [rest(url, "GET", "/v1/sessions", svc.admin)[1] for url in urls]
     every = [x for sessions in summaries for x in sessions if x["session"] in lvl["names"]]   # all gateways
@@ -568,7 +580,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
         "hand_workers": hand_workers,
         "worker_cpu_share": worker_share,
         "web_cpu_share": None if service_share is None or worker_share is None else service_share - worker_share,
-        "probe": lvl["probe"],
+        "probe": lvl["probe"], "probe_metrics_every_s": metrics_every_s,
         "failover": _recovery(lvl["received"], lvl["killed"], subscribers),
         "generator_cpu_share": lvl["generator_cpu_share"],
         "service_cpu_share_until_drained": (None if lvl["service_cpu_until_drained_s"] is None
@@ -604,7 +616,7 @@ def run_level(hands: int, subscribers: int = 2, seconds: float = 15.0, binary: b
 def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: int = 2, seconds: float = 15.0,
         binary: bool = False, progress: bool = True, bus_workers: int | None = None,
         kill_at_s: float | None = None, hand_workers: int | None = None, gateways: int = 1,
-        generators: int | None = None) -> str:
+        generators: int | None = None, metrics_every_s: float = PROBE_METRICS_EVERY_S) -> str:
     from tqdm import tqdm
 
     if not hands or any(h < 1 for h in hands):
@@ -624,7 +636,8 @@ def run(out_dir: str | Path, hands: tuple[int, ...] = (1, 2, 4), subscribers: in
     if kill_at_s is not None and not 0 < kill_at_s < seconds:
         raise ValueError(f"--kill-worker-at must lie inside the stream (0 < S < {seconds:g} s), got {kill_at_s:g}")
     with torn_down_on_signal():                     # SIGTERM stops the service and generators as Ctrl-C does
-        levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways, generators)
+        levels = [run_level(h, subscribers, seconds, binary, bus_workers, kill_at_s, hand_workers, gateways, generators,
+                            metrics_every_s)
                   for h in tqdm(hands, desc="bench load", unit="level", disable=not progress)]
     (out / "results.json").write_text(json.dumps(levels, indent=2))
     return summary(levels, out)
@@ -644,6 +657,7 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
     """The levels as Markdown tables (written to ``out/summary.md`` when given)."""
     first = levels[0]
     subscribers, seconds, bus_workers = first["subscribers_per_hand"], first["seconds"], first["bus_workers"]
+    metrics_every = first.get("probe_metrics_every_s", PROBE_HEALTH_EVERY_S)     # (earlier results: with /health)
     enc = "MessagePack" if first["binary"] else "JSON"
     if bus_workers is None:
         workers = first.get("hand_workers")
@@ -714,7 +728,9 @@ def summary(levels: list[dict], out: Path | None = None) -> str:
               "wait: the pipeline's deliberate wait, that message's due time minus the tick's (the optics' 20 ms latency "
               "and the 20 ms reorder window). Unaccounted: frames the service sent out that were neither delivered nor "
               "counted as dropped. /health and /metrics: response times measured during the stream by a probe "
-              "in its own process (one request each every 50 ms, admin token). CPU per second of data per hand: the "
+              f"in its own process (admin token): /health every {PROBE_HEALTH_EVERY_S * 1e3:g} ms, as a load balancer's health "
+              f"check, /metrics every {metrics_every:g} s (`--metrics-every`; a Prometheus server scrapes every 15 s "
+              "to 1 min). CPU per second of data per hand: the "
               "web process's (or gateways') user + system CPU time from the stream's start until every frame was "
               "delivered, over hands x seconds streamed (it holds on a loaded machine, where shares of a core "
               "do not). Reconnects: a subscriber whose connection "
