@@ -200,3 +200,55 @@ def test_a_layout_of_new_modes_from_the_layout_without_modes_is_the_one_written_
         key = (out.calibration, frame.joint_angles.layout, modes, tracked)
         assert _same_layout(layouts.laid_out(*key), frame_text._layout_of(*key)), modes
     assert all(m.pieces is not None for m in layouts.modeless.values())
+
+
+def _faulty_session():
+    """A session whose status changes now and then: occlusions, a sensor falling silent, a clock step."""
+    msgs = list(simulate(SimConfig(motion="random", t_m_s=3.0, noise="white", hand_motion="slow-rotation", seed=2,
+                                   optical=OpticalModel(occlusions_s=((0.8, 1.1), (2.0, 2.4))))).messages())
+    half, quarter = len(msgs) // 2, 3 * len(msgs) // 4
+    edited = []
+    for i, m in enumerate(msgs):
+        if i > half and m.get("id") == "index.1":
+            continue
+        if i > quarter and "t" in m:
+            m = {**m, "t": m["t"] + 10.0}
+        edited.append(m)
+    return edited
+
+
+def test_a_frames_status_is_the_one_made_for_it_though_shared_until_what_it_holds_changes(monkeypatch):
+    """``HandSession._frame_status`` hands the frames one status dict while what it holds stays the same: every
+    frame's status equals the one ``_status`` makes for it alone, and most frames share the one before's."""
+    msgs = _faulty_session()
+    outputs = list(_outputs(msgs))
+    statuses = [out.frame.status for out, _ in outputs]
+    assert sum(a is b for a, b in zip(statuses, statuses[1:])) > len(statuses) / 2
+    monkeypatch.setattr(hand_module.HandSession, "_frame_status", lambda self, now, live: self._status(now, live))
+    reference = [out.frame.status for out, _ in _outputs(msgs)]
+    assert len(reference) == len(statuses) and len({s["optics"] for s in reference}) >= 2
+    assert statuses == reference
+
+
+def test_the_drop_counts_go_into_a_copy_of_the_shared_status_and_each_message_has_its_own():
+    """A worker's drop counts (the same for many frames, then others) put into frames sharing a status: the text is
+    ``encode``'s, the shared status is left as it was, and a message's status is its own."""
+    import copy
+
+    outputs = list(_outputs(_faulty_session()))
+    shared = [out.frame.status for out, _ in outputs]
+    before = copy.deepcopy(shared)
+    fast = 0
+    for k, (out, _) in enumerate(outputs):
+        out.set_drops(k // 100, 0 if k < 200 else 3)
+        written = out._text()
+        expected = encode(out.message(), binary=False)
+        assert out.text() == expected and (written is None or written == expected)
+        fast += written is not None
+        assert out.message()["status"] == out.frame.status and out.message()["status"] is not out.frame.status
+        out.message()["status"]["dropped"]["late"] = -1        # (a session's own edits of its message)
+    assert fast >= 0.75 * len(outputs)
+    assert shared == before
+    with_drops = [out.frame.status for out, _ in outputs]
+    assert sum(a is b for a, b in zip(with_drops, with_drops[1:])) > len(with_drops) / 2
+    assert all(s["dropped"]["late"] != -1 for s in with_drops)

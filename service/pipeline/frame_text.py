@@ -165,17 +165,22 @@ class Layouts(dict):
     """Frame layouts (``_Layout``) by the ids of what they depend on, and the last one used with those objects
     (``last``: most frames have the same as the frame before, found then by four identity checks); the
     layouts without their modes (``modeless``: ``_Modeless`` by the ids of calibration, finger layout and
-    tracked flags), each new combination of modes laid out from one of them; and where a frame's text is
+    tracked flags), each new combination of modes laid out from one of them; where a frame's text is
     written before it becomes a ``str`` (``buffer``: one hand's frames are written one at a time, by one
-    thread)."""
+    thread); and the last status the hand's frames had, with its text (``status``: ``(status, its text or
+    None)``, ``None`` where ``encode`` would not write it so), and with the session's drop counts put in
+    (``drops``: ``(status, subscriber frames, overloaded, the status with them)``): a hand's frames share one
+    status dict until what it holds changes (``HandSession._frame_status``), written once."""
 
-    __slots__ = ("last", "modeless", "buffer")
+    __slots__ = ("last", "modeless", "buffer", "status", "drops")
 
     def __init__(self):
         super().__init__()
         self.last: tuple | None = None
         self.modeless: dict = {}
         self.buffer = np.empty(0, dtype=np.uint8)
+        self.status: tuple | None = None
+        self.drops: tuple | None = None
 
     def laid_out(self, calib, layout, modes: dict, tracked: dict) -> _Layout:
         """``_layout_of``, from the layout without modes of ``calib``, ``layout`` and ``tracked``."""
@@ -221,8 +226,8 @@ class FrameOutput:
 
     def message(self) -> dict:
         """The ``frame`` message (``HandFrame.to_message`` with the annotation as its ``gesture``), with
-        ``seq``; built once (the same dict at every call: its status is the frame's, which ``text`` may have
-        added the session's drop counts to)."""
+        ``seq``; built once (the same dict at every call: its status a copy of the frame's, with the session's
+        drop counts where ``set_drops`` put them in)."""
         msg = self._message
         if msg is None:
             msg = self._message = self.frame.to_message(self.calibration)
@@ -232,9 +237,23 @@ class FrameOutput:
 
     def set_drops(self, subscriber_frames: int, overloaded: int) -> None:
         """The session's counts for ``status.dropped`` (frames dropped for slow subscribers, source messages
-        refused as overload: the live service's)."""
-        dropped = self.frame.status["dropped"]
-        dropped["subscriber_frames"], dropped["overloaded"] = subscriber_frames, overloaded
+        refused as overload: the live service's), put into a copy of the frame's status (the pipeline's is
+        shared by the hand's frames that have it: ``HandSession._frame_status``), one per status and counts
+        while they stay the same (``Layouts.drops``)."""
+        frame, layouts = self.frame, self._layouts
+        status = frame.status
+        own = type(layouts) is Layouts and layouts is not _layouts      # (a hand's own: written by one thread)
+        kept = layouts.drops if own else None
+        if kept is not None and kept[0] is status and kept[1] == subscriber_frames and kept[2] == overloaded \
+                and type(subscriber_frames) is int and type(overloaded) is int:
+            frame.status = kept[3]
+        else:
+            frame.status = {**status, "dropped": {**status["dropped"], "subscriber_frames": subscriber_frames,
+                                                  "overloaded": overloaded}}
+            if own:
+                layouts.drops = (status, subscriber_frames, overloaded, frame.status)
+        if self._message is not None:
+            self._message["status"]["dropped"].update(frame.status["dropped"])
 
     def text(self) -> str:
         """``encode(self.message(), binary=False)``, written from the frame's arrays where it can be."""
@@ -266,13 +285,28 @@ class FrameOutput:
             return None
         try:
             # the small parts first: one that ``encode`` would write otherwise (e.g. a sensor's age ``null``)
-            # sends the frame to ``encode`` before the arrays are written
-            head = orjson.dumps({"type": "frame", "t": frame.t, "seq": self.seq, "hand": frame.hand}, option=_ORJSON_STRICT)
-            status = orjson.dumps(frame.status, option=_ORJSON_STRICT)
-            # (asked of the three at once: no ``null`` can span two of them, each a whole object)
-            small = head + status + orjson.dumps(self.annotation, option=_ORJSON_STRICT)
-            if not (small.isascii() and _nulls_all_known(small)):
+            # sends the frame to ``encode`` before the arrays are written; the status written once for the hand's
+            # frames that share it (``Layouts.status``)
+            status = frame.status
+            own = type(layouts) is Layouts and layouts is not _layouts      # (a hand's own)
+            kept = layouts.status if own else None
+            if kept is not None and kept[0] is status:
+                status = kept[1]
+            else:
+                text = orjson.dumps(status, option=_ORJSON_STRICT)
+                if not (text.isascii() and _nulls_all_known(text)):
+                    text = None
+                if own:
+                    layouts.status = (status, text)     # (its object held there: no other object takes its id)
+                status = text
+            if status is None:
                 return None
+            head = orjson.dumps({"type": "frame", "t": frame.t, "seq": self.seq, "hand": frame.hand}, option=_ORJSON_STRICT)
+            gesture = orjson.dumps(self.annotation, option=_ORJSON_STRICT)
+            # (the head and annotation asked at once: no ``null`` can span two of the small parts, each a whole object)
+            if not ((rest := head + gesture).isascii() and _nulls_all_known(rest)):
+                return None
+            small = head + status + gesture
             numbers = joints.numbers
             if numbers is None or joints.angles is not angles.flat:     # (not one array: made one)
                 positions, quats = joints.positions, joints.quats

@@ -276,9 +276,14 @@ class HandFrame:
             radii = joint_radii(calib)
             joints = {n: {"position": p.tolist(), "orientation": q.tolist(), "radius": radii[n],
                           "tracked": tracked.get(n, True)} for n, (p, q) in self.joints.items()}
+        # the message's own status (its ``dropped`` too, where a session puts its drop counts): the pipeline's is
+        # shared by the frames that have it (``HandSession._frame_status``)
+        status = dict(self.status)
+        if type(status.get("dropped")) is dict:
+            status["dropped"] = dict(status["dropped"])
         return {
             "type": "frame", "t": self.t, "seq": self.seq, "hand": self.hand, "fingers": fingers,
-            "joints": joints, "status": self.status,
+            "joints": joints, "status": status,
         }
 
 
@@ -1246,19 +1251,39 @@ class HandSession:
             joint_pose_arrays(self.calibration, angles, rotation, position, positions, quats)
         self._seq += 1
         return HandFrame(t, self._seq, self.hand, angles, modes_of, rotation.copy(), position.copy(),
-                         JointPoses(positions, quats, numbers, flat), self._status(t, live), tracked)
+                         JointPoses(positions, quats, numbers, flat), self._frame_status(t, live), tracked)
+
+    _status_kept: tuple | None = None
+    """The last frame's status and what it holds (``_frame_status``)."""
+
+    def _frame_status(self, now: float, live: tuple) -> FrameStatusDict:
+        """``_status(now, live)`` for a frame: one dict per change of what it holds (the optics' state, the
+        estimator, the sensors' dict, the counters; most frames hold what the frame before held), shared by the
+        frames that have it and never modified (a session's drop counts go into a copy: ``FrameOutput.set_drops``,
+        ``HandFrame.to_message``), whose text a hand's frames write once (``frame_text``)."""
+        sensors = self._sensor_status(now, live)
+        c = self.counters
+        key = (self._tracking, self.optics.latest_t is None, self._estimator.name, sensors, c.duplicate, c.late,
+               c.overflow, c.unknown_sensor, c.clock_steps, c.references_applied, c.references_stale, c.filter_resets)
+        kept = self._status_kept
+        if kept is not None and kept[0] == key:     # (item by item: the sensors' dict by identity first)
+            return kept[1]
+        status = self._status(now, live, sensors)
+        self._status_kept = (key, status)
+        return status
 
     def status(self, t: float | None = None) -> FrameStatusDict:
         """The frame's ``status`` (``protocol.outgoing.FrameStatus``) at source time ``t``."""
         self.flush()
         return self._status(t if t is not None else (self._processed_t or 0.0))
 
-    def _status(self, now: float, live: tuple | None = None) -> FrameStatusDict:
-        """``status`` at source time ``now``; ``live``: every finger's live sensors, if known."""
+    def _status(self, now: float, live: tuple | None = None, sensors: dict | None = None) -> FrameStatusDict:
+        """``status`` at source time ``now``; ``live``: every finger's live sensors, if known; ``sensors``: their
+        ``_sensor_status(now, live)``, if known."""
         return {
             "optics": "tracking" if self._tracking else ("occluded" if self.optics.latest_t is not None else "waiting"),
             "estimator": self.estimator_name,
-            "sensors": self._sensor_status(now, live),
+            "sensors": self._sensor_status(now, live) if sensors is None else sensors,
             "dropped": {"duplicate": self.counters.duplicate, "late": self.counters.late,
                         "overflow": self.counters.overflow, "unknown_sensor": self.counters.unknown_sensor},
             "clock_steps": self.counters.clock_steps,
