@@ -62,6 +62,7 @@ from .values import (_FLOAT64, _POSITIONS_SHAPE, _RAY_ROWS, STEP_LOOKAHEAD_S, ST
 from .values import _layout as _values_layout
 
 GESTURES = ("grasp", "point", "pinch", "open")   # priority order
+_RANK = {g: k for k, g in enumerate(GESTURES)}
 FINGER_ORDER = ("thumb", "index", "middle", "ring", "little")
 LONG = ("index", "middle", "ring", "little")
 OTHERS = ("middle", "ring", "little")
@@ -364,14 +365,19 @@ class GestureRecognizer:
         distance = v[n]
         self._previous = (t, others, v[fingers[1]], distance)
         self.history.append((t, curls_of(v), distance, rate, index_rate))
-        candidates, pinch_enters, stays = [], False, True
         active = self.active
-        for k, g in enumerate(GESTURES):
-            if v[b + 4 + 3 * k] == 1.0:
-                candidates.append((g, v[b + 5 + 3 * k]))
-                pinch_enters = pinch_enters or g == HANDOVER[1]
-            if g == active:
-                stays = v[b + 6 + 3 * k] == 1.0
+        # per gesture in priority order: whether its enter condition holds, its score, whether its stay condition holds
+        rules = v[b + 4:b + 4 + 3 * len(GESTURES)]
+        rank = _RANK.get(active, len(GESTURES))
+        steady = (active is None or rules[3 * rank + 2] == 1.0) and 1.0 not in rules[:3 * rank:3]
+        candidates, pinch_enters, stays = [], False, True
+        if not steady:              # (else ``_advance_steady``, which needs none of them)
+            for k, g in enumerate(GESTURES):
+                if rules[3 * k] == 1.0:
+                    candidates.append((g, rules[3 * k + 1]))
+                    pinch_enters = pinch_enters or g == HANDOVER[1]
+                if g == active:
+                    stays = rules[3 * k + 2] == 1.0
         curl = dict(zip(names, v[:n]))
         ray = {"origin": v[n + 3:n + 6], "direction": v[n + 6:n + 9]} if v[n + 2] == 1.0 else None
         if v[2 * n + 12] == 1.0:
@@ -381,7 +387,27 @@ class GestureRecognizer:
             self._frame_values = (frame, Values(curl, distance, v[n + 1], ray))
             rounded = ({f: round(c, 4) for f, c in curl.items()}, round(v[n + 1], 4),
                        round(_band(distance, s.pinch_full_m, s.pinch_zero_m), 4))
+        if steady:
+            return self._advance_steady(frame, rounded)
         return self._advance(frame, t, candidates, pinch_enters, stays, rounded)
+
+    def _advance_steady(self, frame, rounded: tuple) -> tuple[GestureStateDict, list[GestureDict]]:
+        """``_advance`` on a frame that changes no gesture (most frames): none is active and none enters, or the
+        active one stays and none of a higher priority enters. Its candidate is let go, its stay condition's
+        and handover's clocks stopped (the active one's), and no event is made; the annotation is ``_advance``'s."""
+        active = self.active
+        self._candidate = self._candidate_since = None
+        if active is not None:
+            self._failing_since = self._handover_since = None
+        annotation: GestureStateDict = {
+            "active": active,
+            "curl": rounded[0],
+            "grab_strength": rounded[1],
+            "pinch_strength": 0.0 if active == "grasp" else rounded[2],
+        }
+        if active == "point":
+            annotation["ray"] = self._ray(frame)
+        return annotation, []
 
     def _step_layout(self, angles, s: "GestureSettings") -> tuple:
         """What ``_step`` needs of a finger layout and settings, kept in ``_steps`` (only the settings where
