@@ -177,8 +177,8 @@ def _counted_runs(monkeypatch) -> list:
     runs = []
     advance_run = ChainHand.advance_run
 
-    def counted(self, kernel, head, ts, estimators, rows):
-        out = advance_run(self, kernel, head, ts, estimators, rows)
+    def counted(self, kernel, head, ts, estimators, rows, *scratch):
+        out = advance_run(self, kernel, head, ts, estimators, rows, *scratch)
         runs.append((list(ts), None if out is None else out[0]))
         return out
 

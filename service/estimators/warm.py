@@ -232,18 +232,20 @@ def _warm_steady_tick(together, estimator, hand) -> None:
 
 
 def _warm_steady_run(together, estimator, fits, rows, raw, phi, started, gather) -> None:
-    """The pipeline's run of steady ticks (``pipeline.tick_kernel.steady_run``) with the argument types the
-    pipeline passes (``HandSession._steady_run``), on a track without poses: compiled (or loaded), nothing
-    done (no tick is steady without the optics)."""
+    """The pipeline's run of steady ticks (``pipeline.tick_kernel.steady_run_in``, its work arrays kept) with the
+    argument types the pipeline passes (``HandSession._steady_run``), on a track without poses: compiled (or
+    loaded), nothing done (no tick is steady without the optics)."""
     from ..pipeline.optical import OpticalTrack
-    from ..pipeline.tick_kernel import steady_run
+    from ..pipeline.tick_kernel import steady_run_in
 
     ts = [0.025]
-    together.advance_run(steady_run, (np.array(ts), *OpticalTrack().kernel_args(), -np.inf, 0.15, False,
+    track = OpticalTrack()
+    together.advance_run(steady_run_in, (np.array(ts), *track.kernel_args(), -np.inf, 0.15, False,
                                       np.empty((1, 24)), np.empty((1, 18)), np.empty(1), 0, np.zeros(0, dtype=np.int64),
                                       fits.state, fits._meta, rows,
                                       fits._st, raw[None], np.empty_like(raw[None]), np.tile(phi, (2, 1)), started,
-                                      rows, 2 * gather, 2 * gather + 1), ts, [estimator], len(rows))
+                                      rows, 2 * gather, 2 * gather + 1), ts, [estimator], len(rows),
+                         track.run_scratch())
 
 
 def cached_not_warm() -> list[str]:

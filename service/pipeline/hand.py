@@ -58,7 +58,7 @@ from .hand_imu import HandImu
 from .mounting import HandMountings
 from . import optical_kernel
 from .optical import OpticalTrack, motion_of
-from .tick_kernel import steady_run, steady_tick
+from .tick_kernel import steady_run_in, steady_tick
 
 DEAD_RECKONING_PRIOR = 1e-2
 """Weight of the pull of the hand's angular velocity toward zero in ``_dead_reckoned_hand`` (against 1
@@ -318,6 +318,7 @@ class HandSession:
         self._together_phi: tuple[np.ndarray, list[FingerState]] | None = None   # their last angles, all in one array
         self._phi_slices: tuple[list, list[slice]] | None = None   # (phalanx_start, each finger's slice of the angles)
         self._tick_ids: tuple[str, ...] | None = None          # the sensor ids of the tick being processed
+        self._run_phis = self._run_totals = np.empty((0, 0))    # a steady run's angles and their sums (``_steady_run``)
         self._tick_readings: np.ndarray | None = None          # and their corrected readings (k, 2, 3)
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
@@ -789,9 +790,15 @@ class HandSession:
         self._tick_ids = ids
         layout, off_rows = self._steady_layout(fits, fingers)
         readings = np.empty_like(raw)           # the kernel writes them: the sensors' last samples only then
-        phis = np.empty((n + 1, together[0].shape[0]))
+        # the angles tick after tick and the sums of them, read only here (copied out): kept per hand and grown as a
+        # run needs (the kernel uses the first n + 1 angles and n sums); the optics' motions stay the run's own (the
+        # last tick's become the hand's motion, ``motion_of``'s views of them, read after the run)
+        phis, totals = self._run_phis, self._run_totals
+        if phis.shape[0] <= n or phis.shape[1] != together[0].shape[0]:
+            phis = self._run_phis = np.empty((max(n, _MAX_DEFERRED) + 1, together[0].shape[0]))
+            totals = self._run_totals = np.empty(phis.shape[0] - 1)
         phis[0] = together[0]
-        motions, hands, totals = np.empty((n, 24)), np.empty((n, 18)), np.empty(n)
+        motions, hands = np.empty((n, 24)), np.empty((n, 18))
         known = self._hand_known                # every tick's window full is this (the kernel checks it)
         done, given_status = 0, _NO_STATUS
         if given is not None and given[3] is self.optics:
@@ -801,11 +808,13 @@ class HandSession:
                     break
                 done += 1
             motions[:done] = rows[:done]
+        optics = self.optics
         run = self._together.advance_run(
-            steady_run, (np.array(ts), *self.optics.kernel_args(), self._optics_back_t, self.settings.pose_window_s,
-                         known, motions, hands, totals, done, given_status, fits.state, fits._meta, fits.rows(ids), fits._st, raw,
-                         readings, phis, self._all_started(len(fingers)), off_rows, layout.rows_gyr, layout.rows_acc),
-            ts, [fs.estimator for fs in fingers], len(layout.sensors))
+            steady_run_in, (np.array(ts), *optics.kernel_args(), self._optics_back_t, self.settings.pose_window_s,
+                            known, motions, hands, totals, done, given_status, fits.state, fits._meta, fits.rows(ids),
+                            fits._st, raw, readings, phis, self._all_started(len(fingers)), off_rows, layout.rows_gyr,
+                            layout.rows_acc),
+            ts, [fs.estimator for fs in fingers], len(layout.sensors), optics.run_scratch())
         if run is None:
             return None
         done, modes, phalanx_start, sensor_start = run

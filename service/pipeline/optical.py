@@ -126,6 +126,7 @@ class OpticalTrack:
         self._held_t = math.nan                           # the newest pruned valid pose
         self._held_position = np.zeros(3)
         self._held_orientation = np.array([0.0, 0.0, 0.0, 1.0])
+        self._scratch: tuple | None = None                # ``run_scratch``'s work arrays, made at its first call
 
     def add(self, t: float, position, orientation_xyzw, valid: bool) -> None:
         if self.latest_t is not None and t <= self.latest_t:
@@ -206,6 +207,17 @@ class OpticalTrack:
         pipeline's run of steady ticks calls the kernel itself, ``tick_kernel.steady_run``)."""
         return (self._t, self._valid, self._position, self._orientation, self._lo, self._hi, self._held_t,
                 self._held_position, self._held_orientation, float(self.window_s), float(self.timeout_s))
+
+    def run_scratch(self) -> tuple:
+        """``optical_kernel.at_in``'s work arrays for this track's capacity (``optical_kernel.at_scratch``), one set
+        kept per track and handed to one compiled run after another (``tick_kernel.steady_run_in``), each time with
+        no fit window kept from the run before (its key cleared): the run computes what it would with arrays of
+        its own, without allocating them (some 180 kB)."""
+        ws = self._scratch
+        if ws is None:
+            ws = self._scratch = optical_kernel.at_scratch(self._t.shape[0])
+        ws[5][0] = -1
+        return ws
 
     def at_reference(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``at`` in numpy and scipy (the reference of the compiled kernel), for a track made with
