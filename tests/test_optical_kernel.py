@@ -254,3 +254,48 @@ def test_pose_keeps_is_keeps_then_usable_in_one_call():
             assert np.array_equal(outs, want_outs, equal_nan=True) and np.array_equal(st, want_st)
             seen["changes" if want < 0 else "all" if want == len(times) else "fewer"] += 1
     assert all(n > 5 for n in seen.values()), seen
+
+
+def test_a_tracks_kept_work_arrays_give_the_bits_of_fresh_ones_from_call_to_call():
+    """``OpticalTrack.run_scratch`` (one set of ``at_in``'s work arrays per track, handed to ``at``, ``pose_keeps_in``
+    and ``usable_in`` call after call, as the pipeline does) gives each call the bits of a call with arrays of its own
+    (``optical_kernel.at``, ``pose_keeps``, ``usable``): two tracks of the same pose times (the same window indices)
+    and other poses, called in turn, on small tracks whose arrays are moved to their start every few poses, with
+    occlusions and gaps past the timeout."""
+    from service.pipeline import optical_kernel as OK
+
+    rng = np.random.default_rng(17)
+    tracks = [OpticalTrack(window_s=0.15, timeout_s=0.1, max_poses=4) for _ in range(2)]
+    rots = [Rotation.random(random_state=rng) for _ in tracks]
+    t, compared = 0.0, 0
+    for k in range(400):
+        t += rng.choice([1 / 90, 1 / 90, 1 / 90, 0.12]) + rng.uniform(-0.002, 0.002)
+        valid = bool(rng.random() > 0.15)
+        for j, track in enumerate(tracks):
+            rots[j] = Rotation.from_rotvec(rng.normal(0.0, 0.3, 3)) * rots[j]
+            track.add(t, rng.normal(0.0, 0.3, 3), rots[j].as_quat(), valid)
+        queries = np.sort(rng.uniform(t - 0.2, t + 0.05, 3))
+        times = np.sort(rng.uniform(t - 0.1, t, 3))
+        for query in queries:
+            for track in tracks:
+                want = np.zeros(24)
+                status = OK.at(query, *track.kernel_args(), want)
+                got, tracking = track.at(query)
+                assert (got is None) == (status == OK.NONE) and tracking == (status == OK.TRACKING)
+                assert got is None or np.array_equal(np.concatenate([got.rotation.ravel(), got.position, got.velocity,
+                                                                     got.acceleration, got.angular_velocity,
+                                                                     got.angular_acceleration]), want), (k, query)
+                compared += got is not None
+        for track in tracks:
+            args = track.kernel_args()
+            outs, statuses = np.zeros((3, 24)), np.zeros(3, dtype=np.int64)
+            outs_k, statuses_k = np.zeros((3, 24)), np.zeros(3, dtype=np.int64)
+            assert OK.usable_in(times, *args, outs_k, statuses_k, track.run_scratch()) == \
+                OK.usable(times, *args, outs, statuses)
+            assert np.array_equal(outs_k, outs) and np.array_equal(statuses_k, statuses)
+            t_new = t + 1 / 90
+            assert OK.pose_keeps_in(t_new, times[0], times, *args, track._max_poses, outs_k, statuses_k,
+                                    track.run_scratch()) == \
+                OK.pose_keeps(t_new, times[0], times, *args, track._max_poses, outs, statuses)
+            assert np.array_equal(outs_k, outs) and np.array_equal(statuses_k, statuses)
+    assert compared > 1200

@@ -514,7 +514,7 @@ def test_the_fingers_stacked_together_keep_their_own_angles_when_a_finger_s_sens
 
 
 def test_a_pose_goes_in_before_the_held_back_ticks_only_if_every_unchecked_fit_of_them_is_usable(monkeypatch):
-    """``HandSession._pose_keeps`` asks ``optical_kernel.pose_keeps`` (``add_keeps`` and ``usable`` in one call)
+    """``HandSession._pose_keeps`` asks ``optical_kernel.pose_keeps_in`` (``add_keeps`` and ``usable`` in one call)
     about every held-back tick not checked yet (each once) and follows its answer: one failing fit, the last
     tick's included, and the pose waits for the held-back ticks (they are processed first)."""
     from service.pipeline import hand as hand_module
@@ -522,7 +522,7 @@ def test_a_pose_goes_in_before_the_held_back_ticks_only_if_every_unchecked_fit_o
     from service.bench.cpu import recording_lines
 
     msgs = [parse_message(json.loads(line)) for line in recording_lines(2.0, seed=3, batched=True)]
-    real = hand_module.optical_kernel.pose_keeps
+    real = hand_module.optical_kernel.pose_keeps_in
     asked, refuse_last = [], [False]
 
     def spy(t_new, t0, times, *args):
@@ -530,7 +530,7 @@ def test_a_pose_goes_in_before_the_held_back_ticks_only_if_every_unchecked_fit_o
         done = real(t_new, t0, times, *args)
         return min(done, len(times) - 1) if refuse_last[0] else done
 
-    monkeypatch.setattr(hand_module.optical_kernel, "pose_keeps", spy)
+    monkeypatch.setattr(hand_module.optical_kernel, "pose_keeps_in", spy)
     for refuse in (False, True):
         refuse_last[0] = refuse
         session, checked, flushed = HandSession(), 0, 0

@@ -77,8 +77,8 @@ def _pipeline_kernels() -> tuple:
     from gestures import values
     from ..model import openxr_frame_kernel, openxr_kernel
     from ..pipeline import frame_text_kernel, mounting_kernel, optical_kernel
-    return (openxr_kernel.joint_poses, optical_kernel.at, optical_kernel.usable, optical_kernel.keeps,
-            optical_kernel.pose_keeps, values.values_kernel, mounting_kernel.correct, mounting_kernel.fit,
+    return (openxr_kernel.joint_poses, optical_kernel.at_in, optical_kernel.usable_in, optical_kernel.keeps,
+            optical_kernel.pose_keeps_in, values.values_kernel, mounting_kernel.correct, mounting_kernel.fit,
             frame_text_kernel.merge, values.step_kernel, openxr_frame_kernel.frame_poses)
 
 
@@ -117,11 +117,11 @@ def _warm_pipeline() -> None:
     for k in range(3):
         track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)
     track.at(0.015)
-    optical_kernel.usable(np.array([0.005, 0.015]), *track.kernel_args(), np.empty((2, 24)),
-                          np.empty(2, dtype=np.int64))      # (``HandSession._pose_keeps``)
+    optical_kernel.usable_in(np.array([0.005, 0.015]), *track.kernel_args(), np.empty((2, 24)),
+                             np.empty(2, dtype=np.int64), track.run_scratch())
     track.add_keeps(0.03, 0.015)
-    optical_kernel.pose_keeps(0.03, 0.015, np.array([0.015]), *track.kernel_args(), track._max_poses, np.empty((1, 24)),
-                              np.empty(1, dtype=np.int64))
+    optical_kernel.pose_keeps_in(0.03, 0.015, np.array([0.015]), *track.kernel_args(), track._max_poses,
+                                 np.empty((1, 24)), np.empty(1, dtype=np.int64), track.run_scratch())   # (``HandSession._pose_keeps``)
     mountings = HandMountings(calib)
     rows = mountings.rows(tuple(calib.sensor_ids))
     raw = np.zeros((len(rows), 2, 3))

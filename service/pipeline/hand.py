@@ -661,10 +661,11 @@ class HandSession:
         times = list(deferred)[done:]
         # ``add_keeps``, then ``optics.at`` of each tick not checked yet and ``_finite_motion`` of what it gives, in
         # one compiled call (``optical_kernel.pose_keeps``), their outputs kept for the run that processes them
-        # (``_given_fits``: by ``add_keeps``, the same as they are then)
+        # (``_given_fits``: by ``add_keeps``, the same as they are then), with the track's work arrays
         try:
-            if optical_kernel.pose_keeps(float(t_new), float(next(iter(deferred))), np.array(times), *optics.kernel_args(),
-                                         optics._max_poses, self._fit_rows[done:], self._fit_status[done:]) < len(times):
+            if optical_kernel.pose_keeps_in(float(t_new), float(next(iter(deferred))), np.array(times), *optics.kernel_args(),
+                                            optics._max_poses, self._fit_rows[done:], self._fit_status[done:],
+                                            optics.run_scratch()) < len(times):
                 return False
         except (ValueError, np.linalg.LinAlgError):
             return False

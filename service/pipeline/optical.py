@@ -195,9 +195,9 @@ class OpticalTrack:
 
     def at(self, t: float) -> tuple[BaseMotion | None, bool]:
         """``(kinematics, tracking)``; ``None`` before the first valid pose. One compiled call
-        (``optical_kernel.at``), equal to ``at_reference``."""
+        (``optical_kernel.at``, as ``at_in`` with the track's work arrays, ``run_scratch``), equal to ``at_reference``."""
         out = np.empty(24)
-        status = optical_kernel.at(float(t), *self.kernel_args(), out)
+        status = optical_kernel.at_in(float(t), *self.kernel_args(), out, self.run_scratch())
         if status == optical_kernel.NONE:
             return None, False
         return motion_of(out, out[_FLAT]), status == optical_kernel.TRACKING
@@ -210,9 +210,9 @@ class OpticalTrack:
 
     def run_scratch(self) -> tuple:
         """``optical_kernel.at_in``'s work arrays for this track's capacity (``optical_kernel.at_scratch``), one set
-        kept per track and handed to one compiled run after another (``tick_kernel.steady_run_in``), each time with
-        no fit window kept from the run before (its key cleared): the run computes what it would with arrays of
-        its own, without allocating them (some 180 kB)."""
+        kept per track and handed to one compiled call after another (``at``, ``optical_kernel.pose_keeps_in``,
+        ``tick_kernel.steady_run_in``), each time with no fit window kept from the call before (its key cleared):
+        the call computes what it would with arrays of its own, without allocating them (some 180 kB)."""
         ws = self._scratch
         if ws is None:
             ws = self._scratch = optical_kernel.at_scratch(self._t.shape[0])

@@ -302,7 +302,14 @@ def usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held
     (``motion_sum``): the optical fits of the ticks a pipeline holds back (``HandSession._pose_keeps``), in one
     call. Each time's ``at`` output goes to ``outs[i]`` (24) and its result to ``statuses[i]``, up to the
     first that is not usable (included)."""
-    ws = at_scratch(ts.shape[0])
+    return usable_in(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs,
+                     statuses, at_scratch(ts.shape[0]))
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def usable_in(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs,
+              statuses, ws):
+    """``usable`` with ``at_in``'s work arrays ``ws`` given (``at_scratch``; ``OpticalTrack.run_scratch``)."""
     for i in range(times.shape[0]):
         status = at_in(times[i], ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s,
                        outs[i], ws)
@@ -337,7 +344,16 @@ def pose_keeps(t_new, t0, times, ts, valid, position, orientation, lo, hi, held_
     """``keeps`` (a pose at ``t_new`` leaves ``at`` the same from ``t0`` on) and, if it does, ``usable`` of ``times``
     (with ``outs`` and ``statuses``): the checks ``HandSession._pose_keeps`` makes of a pose in one call. Returns -1
     where ``keeps`` says no, else ``usable``'s count."""
+    return pose_keeps_in(t_new, t0, times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s,
+                         timeout_s, max_poses, outs, statuses, at_scratch(ts.shape[0]))
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def pose_keeps_in(t_new, t0, times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s,
+                  timeout_s, max_poses, outs, statuses, ws):
+    """``pose_keeps`` with ``at_in``'s work arrays ``ws`` given (``at_scratch``; ``OpticalTrack.run_scratch``: the
+    pipeline's call allocates none)."""
     if not keeps(t_new, t0, ts, valid, lo, hi, max_poses, window_s, timeout_s):
         return -1
-    return usable(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs,
-                  statuses)
+    return usable_in(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs,
+                     statuses, ws)
