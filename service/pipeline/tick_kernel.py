@@ -105,9 +105,10 @@ def steady_run_in(ts, pose_t, pose_valid, pose_position, pose_orientation, pose_
                   m_state, m_meta, m_idx, m_st, raw, readings, phis, started, off_idx, rows_gyr, rows_acc, gap0,
                   x, p, rates, hand_acc, dts, gyr, acc, st, geo, untracked, sensor_start, phalanx_start, geo_start,
                   out_theta, out_phal, out_mode, cx, dl, pd, jp, log_t, log_r, log_g, log_n, ga_off, ws, at_ws):
-    """``steady_run`` with ``run_hand``'s work arrays ``ws`` and the optics' ``at_ws`` given
-    (``optical_kernel.at_scratch``), allocated once for the run's ticks, compiled without reference counts
-    (``chain_kernel.run_hand_in``)."""
+    """``steady_run`` with ``run_hand``'s work arrays ``ws`` (``chain_kernel.hand_scratch``) and the optics' ``at_ws``
+    (``optical_kernel.at_scratch``) given, compiled without reference counts (``chain_kernel.run_hand_in``): the
+    pipeline keeps both from one run to the next (``ChainHand.advance_run``, ``OpticalTrack.run_scratch``), where
+    ``steady_run`` allocates them per call."""
     n = ts.shape[0]
     for i in range(n):
         t = ts[i]
