@@ -58,6 +58,12 @@ from ..sim.session import SimConfig, simulate
 STAGES = ("parse", "pipeline", "encode")
 
 
+def _realistic(seconds: float, seed: int) -> SimConfig:
+    """The realistic one-hand recording's configuration (``fingertrack simulate --motion random --hand-motion
+    random --noise realistic``)."""
+    return SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=seconds)
+
+
 def recording_lines(seconds: float, seed: int = 0, batched: bool = False) -> list[str]:
     """The JSON Lines of a realistic one-hand recording (``fingertrack simulate --motion random
     --hand-motion random --noise realistic``), without its ``truth`` messages: one ``imu`` message per
@@ -65,8 +71,7 @@ def recording_lines(seconds: float, seed: int = 0, batched: bool = False) -> lis
     order of arrival, as the simulated glove streams them (``timed_recording``)."""
     if batched:
         return [line for _, line in timed_recording(seconds, seed)]
-    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=seconds)
-    return [json.dumps(m, separators=(",", ":")) for m in simulate(config).messages(include_truth=False)]
+    return [json.dumps(m, separators=(",", ":")) for m in simulate(_realistic(seconds, seed)).messages(include_truth=False)]
 
 
 def timed_recording(seconds: float, seed: int = 0) -> list[tuple[float, str]]:
@@ -74,8 +79,8 @@ def timed_recording(seconds: float, seed: int = 0) -> list[tuple[float, str]]:
     (``clients.glove.source_messages``: each tick's samples in one ``imu_batch``), in order of arrival."""
     from clients.glove import source_messages
 
-    config = SimConfig(motion="random", hand_motion="random", noise="realistic", seed=seed, duration_s=seconds)
-    return [(t, json.dumps(m, separators=(",", ":"))) for t, m in sorted(source_messages(config), key=lambda pair: pair[0])]
+    return [(t, json.dumps(m, separators=(",", ":")))
+            for t, m in sorted(source_messages(_realistic(seconds, seed)), key=lambda pair: pair[0])]
 
 
 def _pass_total(lines: list[str], settings: PipelineSettings) -> tuple[float, int]:
