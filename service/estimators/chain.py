@@ -1066,14 +1066,13 @@ class ChainHand:
                      self._log_t, self._log_r, self._log_g, self._log_n, offsets)
         return (*self._end(t, estimators, phi), out)
 
-    def advance_run(self, kernel, head: tuple, ts: list, estimators: list[Chain], rows: int, at_ws: tuple | None = None):
+    def advance_run(self, kernel, head: tuple, ts: list, estimators: list[Chain], rows: int, at_ws: tuple):
         """``advance_in`` over the ticks ``ts`` (in order) in one call of ``kernel``
-        (``pipeline.tick_kernel.steady_run``) as ``kernel(*head, δ's step to ts[0], run_hand's arguments without
-        the hand, the angles and the time)``, which advances the estimators tick after tick and returns how
-        many ticks it did (it may leave the rest undone, with no state moved). With ``at_ws`` (the optics' work
-        arrays, ``OpticalTrack.run_scratch``) the kernel is ``steady_run_in`` and gets, after those arguments,
-        ``run_hand``'s work arrays (``chain_kernel.hand_scratch``, kept here per stack: ``run_hand_in`` clears
-        them first) and ``at_ws``. The estimators must be
+        (``pipeline.tick_kernel.steady_run_in``) as ``kernel(*head, δ's step to ts[0], run_hand's arguments without
+        the hand, the angles and the time, run_hand's work arrays, at_ws)``, which advances the estimators tick after
+        tick and returns how many ticks it did (it may leave the rest undone, with no state moved). ``at_ws``: the
+        optics' work arrays (``OpticalTrack.run_scratch``); ``run_hand``'s (``chain_kernel.hand_scratch``) are kept
+        here per stack (``run_hand_in`` clears them first). The estimators must be
         stacked already (their hand acceleration is not known here). Returns that count and, when it is not
         0, the last tick's mode codes and the finger boundaries (as ``advance``); None, with no state moved,
         when the estimators are not stacked or δ's clock steps back at ``ts[0]`` (the tick by tick path
@@ -1095,19 +1094,13 @@ class ChainHand:
         if kept is None or kept[0] != flags:    # (the kernels only read it: one array while the flags stay, ``_begin``)
             kept = self._untracked = (flags, np.array(flags))
         untracked = kept[1]
-        if at_ws is None:
-            done = kernel(*head, gap, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st,
-                          self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start, self._theta,
-                          self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, self._log_t, self._log_r,
-                          self._log_g, self._log_n, offsets)
-        else:
-            ws = self._run_ws
-            if ws is None or ws[0] is not self._sensor_start:
-                ws = self._run_ws = (self._sensor_start, K.hand_scratch(self._sensor_start, self._phalanx_start))
-            done = kernel(*head, gap, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st,
-                          self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start, self._theta,
-                          self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, self._log_t, self._log_r,
-                          self._log_g, self._log_n, offsets, ws[1], at_ws)
+        ws = self._run_ws
+        if ws is None or ws[0] is not self._sensor_start:
+            ws = self._run_ws = (self._sensor_start, K.hand_scratch(self._sensor_start, self._phalanx_start))
+        done = kernel(*head, gap, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st,
+                      self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start, self._theta,
+                      self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, self._log_t, self._log_r,
+                      self._log_g, self._log_n, offsets, ws[1], at_ws)
         if not done:
             return 0, None, None, None
         last = ts[done - 1]
