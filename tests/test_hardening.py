@@ -5,6 +5,8 @@ line's errors."""
 import asyncio
 import json
 import math
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -870,24 +872,59 @@ def test_switching_to_a_compiled_estimator_warms_it_off_the_loop(server):
 
 
 def test_kernels_compile_in_a_process_at_a_lower_priority_and_load_with_the_interpreter_shared():
-    """The separate process that compiles kernels beside a serving process runs at niceness
-    ``COMPILE_NICE`` (5); while
+    """The separate process that compiles kernels beside a serving process runs at the idle scheduling
+    priority (``--idle``, Linux's ``SCHED_IDLE``) or at niceness ``COMPILE_NICE`` (5); while
     kernels load in a thread of a serving process, the interpreter's lock changes hands every 0.5 ms
     (nested loads too), and the interval before is restored after the last."""
     from service.estimators import warm
 
     command = warm.compile_command("inertial", {"a": 1})
     assert command[1:5] == ["-m", "service.estimators.warm", "--background", "inertial"] and json.loads(command[5]) == {"a": 1}
-    done = subprocess.run([sys.executable, "-c", "import os; from service.estimators.warm import main; "
-                           "code = main(['--background']); print(code, os.nice(0))"],
-                          capture_output=True, text=True, timeout=300)
-    assert done.stdout.splitlines()[-1] == f"2 {warm.COMPILE_NICE}", done
+    assert warm.compile_command("inertial", idle=True)[3:6] == ["--background", "--idle", "inertial"]
+    show = "import os; from service.estimators.warm import main; code = main({}); print(code, os.nice(0), os.sched_getscheduler(0))"
+    done = subprocess.run([sys.executable, "-c", show.format("['--background']")], capture_output=True, text=True, timeout=300)
+    assert done.stdout.splitlines()[-1] == f"2 {warm.COMPILE_NICE} {os.SCHED_OTHER}", done
+    done = subprocess.run([sys.executable, "-c", show.format("['--background', '--idle']")], capture_output=True, text=True,
+                          timeout=300)
+    assert done.stdout.splitlines()[-1].split()[::2] == ["2", str(os.SCHED_IDLE)], done
     before = sys.getswitchinterval()
     with warm.sharing_the_interpreter():
         with warm.sharing_the_interpreter():
             assert sys.getswitchinterval() == pytest.approx(warm.LOAD_SWITCH_INTERVAL_S)
         assert sys.getswitchinterval() == pytest.approx(warm.LOAD_SWITCH_INTERVAL_S)
     assert sys.getswitchinterval() == before
+
+
+def test_a_compile_at_the_idle_priority_not_done_in_time_goes_on_at_a_nicer_one_and_one_done_in_time_does_not(monkeypatch):
+    """``warm.Compile``: its process starts at the idle priority; one still running after ``COMPILE_IDLE_S``
+    (here a process that would sleep a minute) is killed and the compile started again at niceness
+    ``COMPILE_NICE``, whether the caller waits (``wait``) or looks now and then (``poll``); one that ends
+    in time is the only one."""
+    from service.estimators import warm
+    started = []
+
+    def command(name, params=None, idle=False):
+        started.append((name, params, idle))
+        return [sys.executable, "-c", "import time; time.sleep(60)" if idle else ""]
+    monkeypatch.setattr(warm, "compile_command", command)
+    monkeypatch.setattr(warm, "COMPILE_IDLE_S", 0.05)
+    compiling = warm.Compile("inertial", {"a": 1})
+    first = compiling.process
+    assert compiling.wait() == 0
+    assert first.returncode == -signal.SIGKILL and compiling.process is not first and not compiling.idle
+    assert started == [("inertial", {"a": 1}, True), ("inertial", {"a": 1}, False)]
+    started.clear()
+    compiling = warm.Compile("inertial")
+    first = compiling.process
+    while (code := compiling.poll()) is None:
+        time.sleep(0.01)
+    assert code == 0 and first.returncode == -signal.SIGKILL
+    assert started == [("inertial", None, True), ("inertial", None, False)]
+    started.clear()
+    monkeypatch.setattr(warm, "compile_command", lambda name, params=None, idle=False:
+                        started.append(idle) or [sys.executable, "-c", ""])
+    monkeypatch.setattr(warm, "COMPILE_IDLE_S", 300.0)
+    assert warm.Compile("inertial").wait() == 0 and started == [True]
 
 
 def test_without_a_kernel_cache_no_separate_process_compiles_what_this_one_compiles_again(monkeypatch):
@@ -898,7 +935,8 @@ def test_without_a_kernel_cache_no_separate_process_compiles_what_this_one_compi
     import service
     from service.estimators import warm
     started = []
-    monkeypatch.setattr(warm, "compile_command", lambda name, params=None: started.append(name) or [sys.executable, "-c", ""])
+    monkeypatch.setattr(warm, "compile_command", lambda name, params=None, idle=False:
+                        started.append(name) or [sys.executable, "-c", ""])
     monkeypatch.setattr(warm, "warm", lambda name, params=None: None)     # this process's own part: not the subject
     monkeypatch.setattr(warm, "_on_disk", lambda kernels: False)          # nothing in the cache
     monkeypatch.setattr(warm, "_WARM", set())

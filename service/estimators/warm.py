@@ -14,11 +14,19 @@ loading cached code takes a fraction of a second, where starting that process co
 start-up. Without an on-disk cache (no writable folder: ``service.JIT_CACHE`` false) it is skipped too: its compile
 would be lost, and this process compiles the kernels anyway.
 
-Beside live sessions two things must not take their time: the separate process runs at a lower
-priority than the web process (``--background``, niceness ``COMPILE_NICE``, the hand workers' default:
-a compile takes tens of seconds of a core; at the lowest priority, 19, it got almost no CPU on a machine
-whose cores other work kept busy, and a switch to an estimator not in the cache did not complete within
-300 s), and the samples that load the
+Beside live sessions two things must not take their time. The separate process runs at the idle
+scheduling priority (``--background --idle``: Linux's ``SCHED_IDLE``): it gets a core only while no other
+process wants it, and gives it up at once to one that wakes. At any niceness a process that wakes (a hand
+worker with a batch, the web process with a frame) waits for the compile's time slice to end, up to a
+scheduler tick: measured on this 2-core machine, a process at niceness 5 that sleeps 2 ms and works 0.3 ms,
+two at once, woke p99 0.6-0.9 ms late on an idle machine, 3.9-4.1 ms beside two busy processes at niceness
+10 or 19 (max 7-12 ms), 0.49 ms beside two at ``SCHED_IDLE`` (max 7.6-8.3); a frame passes such a wake three
+times (web process, worker, web process), and a first switch to ``inertial`` compiled at niceness 5-10
+stalled the other sessions up to 20.4 ms. A process at the idle priority gets almost no CPU on a machine
+whose cores other work keeps busy (at niceness 19 a switch to an estimator not in the cache did not complete
+within 300 s), so a compile not done after ``COMPILE_IDLE_S`` is stopped and started again at niceness
+``COMPILE_NICE`` (``Compile``): numba keeps each kernel in the on-disk cache as it is compiled, so the
+second process goes on from where the first stopped. The samples that load the
 cached code into a serving process run in a thread with the interpreter's lock handed over every
 ``LOAD_SWITCH_INTERVAL_S`` (``sharing_the_interpreter``; loading ``inertial`` held it for 130 ms, the
 default interval lets a thread keep it 5 ms at a time)."""
@@ -28,8 +36,10 @@ import asyncio
 import contextlib
 import json
 import os
+import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 
@@ -40,7 +50,11 @@ PIPELINE = "pipeline"
 """The name under which the hand pipeline's own kernels are warmed."""
 
 COMPILE_NICE = 5
-"""niceness of the separate process that compiles kernels (``--background``): the hand workers' default"""
+"""niceness of the separate process that compiles kernels (``--background`` without ``--idle``, and ``Compile``'s
+second process): the hand workers' default"""
+COMPILE_IDLE_S = 30.0
+"""how long ``Compile``'s process runs at the idle priority before it is started again at ``COMPILE_NICE``, s
+(compiling ``inertial`` and the pipeline's kernels takes 10-12 s of a core on this machine)"""
 LOAD_SWITCH_INTERVAL_S = 0.0005
 """the interpreter's switch interval while kernels load in a thread of a serving process, s (default 0.005)"""
 _sharing = [0, None]                         # threads loading now, the switch interval before the first
@@ -67,10 +81,64 @@ def sharing_the_interpreter():
                 sys.setswitchinterval(_sharing[1])
 
 
-def compile_command(name: str, params: dict | None = None) -> list[str]:
+def compile_command(name: str, params: dict | None = None, idle: bool = False) -> list[str]:
     """The separate process that compiles the kernels of ``name`` (and the pipeline's) into the on-disk
-    cache, at a lower priority (``COMPILE_NICE``)."""
-    return [sys.executable, "-m", "service.estimators.warm", "--background", name, json.dumps(params or {})]
+    cache, at a lower priority (``COMPILE_NICE``; with ``idle``, the idle scheduling priority)."""
+    return [sys.executable, "-m", "service.estimators.warm", "--background", *(["--idle"] if idle else []), name,
+            json.dumps(params or {})]
+
+
+def lower_priority(idle: bool) -> bool:
+    """This process's priority for compiling beside a serving one: with ``idle`` the idle scheduling
+    priority (``SCHED_IDLE``, where the system has it), else (or where it has not) niceness ``COMPILE_NICE``
+    (at least: a process already nicer stays so). Returns whether the idle priority was taken."""
+    if idle and hasattr(os, "SCHED_IDLE"):
+        try:
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            return True
+        except OSError:
+            pass
+    with contextlib.suppress(OSError):
+        os.nice(COMPILE_NICE - os.nice(0))
+    return False
+
+
+class Compile:
+    """The separate process compiling the kernels of ``name`` (``compile_command``), first at the idle
+    priority and, if it has not finished after ``COMPILE_IDLE_S``, stopped and started again at
+    ``COMPILE_NICE`` (module docstring; what the first compiled is in the cache). ``poll`` as
+    ``subprocess.Popen``'s (for a caller that looks now and then), ``wait`` for one that blocks. Raises
+    ``OSError`` when no process can be started."""
+
+    def __init__(self, name: str, params: dict | None = None):
+        self.name, self.params = name, params
+        self.idle = hasattr(os, "SCHED_IDLE")
+        self.started = time.monotonic()
+        self.process = self._start()
+
+    def _start(self) -> subprocess.Popen:
+        return subprocess.Popen(compile_command(self.name, self.params, idle=self.idle), stdout=subprocess.DEVNULL,
+                                stderr=subprocess.DEVNULL)
+
+    def _at_nice(self) -> None:
+        self.process.kill()
+        self.process.wait()
+        self.idle = False
+        self.process = self._start()
+
+    def poll(self) -> int | None:
+        code = self.process.poll()
+        if code is None and self.idle and time.monotonic() - self.started >= COMPILE_IDLE_S:
+            self._at_nice()
+        return code
+
+    def wait(self) -> int:
+        if self.idle:
+            try:
+                return self.process.wait(max(0.0, self.started + COMPILE_IDLE_S - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                self._at_nice()
+        return self.process.wait()
 
 
 def _pipeline_kernels() -> tuple:
@@ -276,12 +344,11 @@ async def warm_off_loop(name: str, params: dict | None = None) -> None:
         return
     if _compile_apart(names):
         try:
-            proc = await asyncio.create_subprocess_exec(*compile_command(names[-1], params),
-                                                        stdout=asyncio.subprocess.DEVNULL,
-                                                        stderr=asyncio.subprocess.DEVNULL)
-            await proc.wait()
+            compiling = Compile(names[-1], params)
         except OSError:
             pass                            # no separate process here: the thread compiles instead
+        else:
+            await asyncio.to_thread(compiling.wait)
     for n in names:
         try:
             await asyncio.to_thread(warm, n, params if n == name else None)
@@ -293,15 +360,12 @@ async def warm_off_loop(name: str, params: dict | None = None) -> None:
 def warm_ahead(name: str, params: dict | None = None) -> None:
     """``warm_off_loop`` for a caller already off the event loop (a thread of the API's pool): the
     separate process, then the samples here. A no-op where ``warm_off_loop`` is one."""
-    import subprocess
-
     names = _to_warm(name)
     if not names:
         return
     if _compile_apart(names):
         try:
-            subprocess.run(compile_command(names[-1], params), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                           check=False)
+            Compile(names[-1], params).wait()
         except OSError:
             pass
     for n in names:
@@ -314,12 +378,13 @@ def warm_ahead(name: str, params: dict | None = None) -> None:
 
 def main(argv: list[str]) -> int:
     if argv[:1] == ["--background"]:               # beside a serving process: a lower priority
-        argv = argv[1:]
-        with contextlib.suppress(OSError):
-            os.nice(COMPILE_NICE - os.nice(0))
+        idle = argv[1:2] == ["--idle"]
+        argv = argv[1 + idle:]
+        lower_priority(idle)
     if not argv:
-        print("usage: python -m service.estimators.warm [--background] NAME [PARAMS_JSON] (NAME: all for every "
-              "estimator; the pipeline's kernels are always warmed; --background: at a lower priority)")
+        print("usage: python -m service.estimators.warm [--background [--idle]] NAME [PARAMS_JSON] (NAME: all for "
+              "every estimator; the pipeline's kernels are always warmed; --background: at a lower priority, "
+              "--idle: the idle scheduling priority)")
         return 2
     from .registry import REGISTRY
     names = [PIPELINE] + ([n for n, c in REGISTRY.items() if c.jit_kernels] if argv[0] == "all" else [argv[0]])

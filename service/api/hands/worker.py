@@ -78,7 +78,6 @@ import select
 import signal
 import socket
 import struct
-import subprocess
 import sys
 import threading
 import time
@@ -93,7 +92,7 @@ from ...protocol.messages import SamplesRefused, dump_message
 from ...pipeline.frame_text import FrameOutput
 from ...pipeline.hand import NOTHING_DROPPED
 from ...protocol.wire import encode
-from ...estimators.warm import (cached_not_warm, compile_command, is_warm, needs_compiling, sharing_the_interpreter, warm,
+from ...estimators.warm import (Compile, cached_not_warm, is_warm, needs_compiling, sharing_the_interpreter, warm,
                                 warm_ahead)
 from ..config import ServiceSettings
 from ..metrics import Metrics
@@ -338,7 +337,7 @@ class Worker:
         self.active = ActiveSessions()
         """the sessions that sent source messages lately (``handle_batch``'s grouping)"""
         self.out: list = []
-        self.warming: dict[str, subprocess.Popen | threading.Thread] = {}
+        self.warming: dict[str, Compile | threading.Thread] = {}
         """estimator name -> its compiling process, then the thread that loads its kernels here"""
         self.waiting: list[list] = []                         # cfg/enrol messages in order, until warm
         self.opening: dict[int, tuple[threading.Thread, list, list]] = {}
@@ -489,9 +488,7 @@ class Worker:
         elif kind in ("cfg", "enrol"):
             name = self.estimator_of(message)
             if name is not None and not is_warm(name) and name not in self.warming:
-                self.warming[name] = (subprocess.Popen(compile_command(name), stdout=subprocess.DEVNULL,
-                                                       stderr=subprocess.DEVNULL)
-                                      if needs_compiling(name) else self.load(name))
+                self.warming[name] = Compile(name) if needs_compiling(name) else self.load(name)
             self.waiting.append(message)
             self.apply_waiting()
 
