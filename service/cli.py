@@ -768,9 +768,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--seconds", type=_positive_float, default=None,
                    help="longest streaming time per service (default: enough for the plan, 240 s more with a cold "
                         "cache); the stream ends with the last switch")
-    b.add_argument("--lead", type=_positive_float, default=3.0, metavar="S",
-                   help="streaming before the first switch, its baseline, s (default 3; a compile's window lasts tens "
-                        "of seconds)")
+    b.add_argument("--lead", type=_positive_float, default=None, metavar="S",
+                   help="streaming before the first switch, its baseline, s (default 3 with the cache warm, 30 cold: "
+                        "a compile's window lasts 10-20 s and is compared with as long a stretch before it)")
     b.add_argument("--inject-stop-ms", type=_positive_float, default=None, metavar="MS",
                    help="also stop the service's web process (SIGSTOP) this long with every switch: a known stall "
                         "the figures must show")

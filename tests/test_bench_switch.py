@@ -117,6 +117,39 @@ def test_a_real_run_reports_every_switch_and_every_frame_while_the_service_is_st
     assert "goal (no other session stalled more than 10 ms): " in text
 
 
+def _condition(cache: str, switches: list[dict], frames: dict) -> dict:
+    rows = account(switches, frames, "load-0", PERIOD)
+    return {"cache": cache, "sessions": len(frames), "hand_workers": 2, "inject_stop_ms": None, "cache_files_removed": 1,
+            "planned": len(rows), "switches": rows, "frames_delivered": 1, "frames_dropped": 0, "frames_unaccounted": 0,
+            "source_errors": 0, "service_cpu_share": 0.3, "generator_cpu_share": 0.1, "load_average_1min": [1.0, 1.0],
+            "probe": None}
+
+
+def test_a_compile_s_window_longer_than_its_baseline_is_flagged_and_a_cold_run_leads_long_enough_for_it(tmp_path,
+                                                                                                         monkeypatch):
+    """A first switch that compiles for 8 s after 3 s of streaming has 2 s of baseline (the stream's first second
+    is none): the summary says so, with each switch's window and baseline; 30 s of lead gives it as long a
+    baseline as its window, and no such remark. ``run`` leads a cold cache's stream ``COLD_LEAD_S`` and a warm
+    one's ``LEAD_S`` unless told otherwise."""
+    from service.bench import switch
+    compiled = {"estimator": "inertial", "kernels": "compiled (not in the cache)", "applied": True, "reply": None}
+    short = _condition("cold", [{**compiled, "sent": 3.0, "returned": 11.0}],
+                       {"load-0": _frames(0.0, 13.0, 0.004), "load-1": _frames(0.0, 13.0, 0.003)})
+    assert short["switches"][0]["baseline_s"] == pytest.approx(2.0) and short["switches"][0]["window_s"] == pytest.approx(8.5)
+    text = summary([short])
+    assert "| 1 | inertial | compiled (not in the cache) | 8.00 (8.5 / 2.0) |" in text
+    assert "1 switch(es) against a baseline shorter than their window" in text
+    fair = _condition("cold", [{**compiled, "sent": 30.0, "returned": 38.0}],
+                      {"load-0": _frames(0.0, 40.0, 0.004), "load-1": _frames(0.0, 40.0, 0.003)})
+    assert fair["switches"][0]["baseline_s"] == pytest.approx(8.5)
+    assert "| 8.00 (8.5 / 8.5) |" in summary([fair]) and "shorter than their window" not in summary([fair])
+    leads = []
+    monkeypatch.setattr(switch, "run_condition", lambda cache, *args, lead_s, **kw: leads.append((cache, lead_s)) or fair)
+    switch.run(tmp_path / "a")
+    switch.run(tmp_path / "b", cache="cold", lead_s=5.0)
+    assert leads == [("warm", switch.LEAD_S), ("cold", switch.COLD_LEAD_S), ("cold", 5.0)]
+
+
 def test_bad_switch_arguments_are_refused(tmp_path, capsys):
     assert main(["bench", "switch", "--sessions", "1", "--out", str(tmp_path)]) == 2
     assert "--sessions must be at least 2" in capsys.readouterr().err

@@ -10,7 +10,8 @@ offers, those with compiled kernels first, then back to the default, ``passes`` 
 time with ``gap_s`` of undisturbed streaming before each. The first switch to an estimator with kernels
 in a service finds them either absent from the on-disk kernel cache (``cold``: the service starts with a
 copy of the cache from which those kernels' modules were removed, so they are compiled, the worst case)
-or in it (``warm``: loaded); later switches find them loaded in the process already.
+or in it (``warm``: loaded); later switches find them loaded in the process already. A cold run streams ``COLD_LEAD_S`` before its first
+switch (a warm one ``LEAD_S``), so that the compile's window has a baseline as long (below).
 
 Per switch, for every *other* session: each frame's delay behind the source's schedule beyond the
 pipeline's alignment wait (``bench.load._timing``), over the switch window (from the request to
@@ -46,7 +47,12 @@ SWITCHED = "load-0"
 SETTLE_S = 0.5
 """the switch window goes on this long after the reply, s (the new estimator's first ticks)"""
 LEAD_S = 3.0
-"""streaming before the first switch, s (the first baseline)"""
+"""streaming before the first switch with the kernel cache warm, s (the first baseline)"""
+COLD_LEAD_S = 30.0
+"""streaming before the first switch with the kernel cache cold, s: that switch compiles for 10-20 s, and its
+window's largest delay is compared with the largest in as long just before it, as far as the lead reaches (with
+3 s, 2 s after the stream's first second: the largest delay of eight times as many frames against it read as a
+stall of 6-22 ms in runs where 30 s read 0)"""
 MARGIN_S = 1.0
 """no switch starts later than this before the stream's planned end (plus its window), s"""
 WARMUP_S = 1.0
@@ -321,7 +327,7 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
                   f"messages that did not decode or lacked a frame's seq, hand or t {c.get('malformed', 0)}; "
                   f"service CPU {_f(None if c['service_cpu_share'] is None else 100 * c['service_cpu_share'], '{:.0f}')} % "
                   f"of a core, generator {100 * c['generator_cpu_share']:.0f} %.", "",
-                  "| # | estimator | its kernels | request, s | applied | other sessions' stall, max ms (same worker) | "
+                  "| # | estimator | its kernels | request, s (window / baseline, s) | applied | other sessions' stall, max ms (same worker) | "
                   "until the reply / after it, ms | "
                   "their largest delay in the window / before it, ms | their largest gap minus the frame period, ms "
                   "(before it) | switched session: largest delay in the window, ms; next frame after the reply, ms |",
@@ -336,7 +342,8 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
             gb = max((s["baseline_largest_gap_minus_period_ms"] for s in others
                       if s["baseline_largest_gap_minus_period_ms"] is not None), default=None)
             sw = row.get("switched", {})
-            lines.append(f"| {i} | {row['estimator']} | {row['kernels']} | {row['request_s']:.2f} | "
+            lines.append(f"| {i} | {row['estimator']} | {row['kernels']} | {row['request_s']:.2f} "
+                         f"({row['window_s']:.1f} / {row['baseline_s']:.1f}) | "
                          f"{'yes' if row['applied'] else 'NO: ' + str(row['reply'])} | {_f(row['stall_ms'])}"
                          f" ({_f(max(same) if same else None)}) | {_f(row['stall_until_reply_ms'])} / "
                          f"{_f(row['stall_after_reply_ms'])} | {_f(wmax)} / {_f(bmax)} | {_f(gmax)} ({_f(gb)}) | "
@@ -356,8 +363,11 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
             verdict = goal + "NOT SHOWN"
         else:
             verdict = goal + "met"
+        short = sum(row["baseline_s"] < row["window_s"] - 1e-9 for row in c["switches"])
         verdict += (f"; {unmeasured} session-switch(es) without a stall figure (no frame in the window or its "
-                    f"baseline)" if unmeasured else "") + (f"; {failed} switch(es) not applied" if failed else "")
+                    f"baseline)" if unmeasured else "") + \
+            (f"; {short} switch(es) against a baseline shorter than their window (its largest delay of more frames "
+             f"against the baseline's: reads high; a longer --lead for the first)" if short else "") + (f"; {failed} switch(es) not applied" if failed else "")
         probe = c.get("probe") or {}
         health = probe.get("health") or {}
         lines += ["", verdict + (f"; /health p50 / p99 during the run {health['p50_ms']:.1f} / {health['p99_ms']:.1f} ms"
@@ -373,14 +383,15 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
 
 def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None, cache: str = "both",
         passes: int = 2, gap_s: float = 2.0, seconds: float | None = None, inject_stop_ms: float | None = None,
-        lead_s: float = LEAD_S) -> str:
-    """``lead_s``: streaming before the first switch, the baseline of the first (a compile's window lasts
-    tens of seconds: a lead as long compares it with as long a stretch of undisturbed streaming)."""
+        lead_s: float | None = None) -> str:
+    """``lead_s``: streaming before the first switch, the baseline of the first (default ``LEAD_S`` with the
+    kernel cache warm, ``COLD_LEAD_S`` cold: a compile's window lasts tens of seconds, and a lead as long
+    compares it with as long a stretch of undisturbed streaming)."""
     from .process import torn_down_on_signal
 
     if sessions < 2:
         raise ValueError(f"--sessions must be at least 2 (the switched one and another), got {sessions}")
-    if lead_s < 1.0:
+    if lead_s is not None and lead_s < 1.0:
         raise ValueError(f"--lead must be at least 1 s (the first switch's baseline), got {lead_s:g}")
     if passes < 1:
         raise ValueError(f"--passes must be at least 1, got {passes}")
@@ -388,7 +399,7 @@ def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None,
         raise ValueError(f"--gap must be at least 1 s (the baseline before each switch), got {gap_s:g}")
     if inject_stop_ms is not None and not 0 < inject_stop_ms < 1e3 * gap_s:
         raise ValueError(f"--inject-stop-ms must be positive and shorter than the gap, got {inject_stop_ms:g}")
-    if seconds is not None and seconds < lead_s + SETTLE_S + MARGIN_S:
+    if seconds is not None and seconds < (lead_s or LEAD_S) + SETTLE_S + MARGIN_S:
         raise ValueError(f"--seconds must be at least the lead plus {SETTLE_S + MARGIN_S:g} s for one switch, "
                          f"got {seconds:g}")
     caches = CACHE_STATES if cache == "both" else (cache,)
@@ -398,8 +409,8 @@ def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None,
     out.mkdir(parents=True, exist_ok=True)
     with torn_down_on_signal():                 # SIGTERM stops the service and the generator as Ctrl-C does
         try:
-            conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms, lead_s=lead_s)
-                          for c in caches]
+            conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms,
+                                        lead_s=lead_s or (COLD_LEAD_S if c == "cold" else LEAD_S)) for c in caches]
         except RuntimeError as err:             # the service or a load generator did not start or failed
             if type(err) is not RuntimeError:   # RecursionError, NotImplementedError: a defect, with its traceback
                 raise
