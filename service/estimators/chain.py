@@ -947,7 +947,7 @@ class ChainHand:
         another shape): none taken off."""
         self._no_offsets = np.zeros((0, 2))
         self._untracked: tuple[list, np.ndarray] | None = None   # the estimators' untracked flags, as a list and an array
-        self._run_ws: tuple | None = None   # (sensor_start, ``run_hand_in``'s work arrays for that stack): ``advance_run``
+        self._run_ws: tuple | None = None   # ``advance_run``'s arrays for the stack as it is (``_run_arrays``)
 
     @staticmethod
     def takes(estimator, t: float) -> bool:
@@ -1085,22 +1085,26 @@ class ChainHand:
             raise RuntimeError(f"the kernel would write {rows} sensors' rows: {self._gyr.shape[0]} are stacked "
                                f"(cross_offsets {shape})")
         t = ts[0]
-        dts = np.array([t - e._t_last for e in estimators])
+        kept = self._run_ws
+        if kept is None or kept[0] is not self._sensor_start:
+            kept = self._run_ws = self._run_arrays()
+        # the fingers' steps to ``t`` (``_begin``'s) into the stack's array (the kernel only reads them before it
+        # writes its own): most often every finger was last advanced at the same time, one step for all
+        dts, t_last = kept[1], estimators[0]._t_last
+        for e in estimators:
+            if e._t_last != t_last:
+                dts[:] = [t - e._t_last for e in estimators]
+                break
+        else:
+            dts.fill(t - t_last)
         gap = float(dts.max()) if self._t_dl is None else t - self._t_dl     # ``_delta_step``
         if gap < 0.0:
             return None
         flags = [e._hand_untracked for e in estimators]
-        kept = self._untracked
-        if kept is None or kept[0] != flags:    # (the kernels only read it: one array while the flags stay, ``_begin``)
-            kept = self._untracked = (flags, np.array(flags))
-        untracked = kept[1]
-        ws = self._run_ws
-        if ws is None or ws[0] is not self._sensor_start:
-            ws = self._run_ws = (self._sensor_start, K.hand_scratch(self._sensor_start, self._phalanx_start))
-        done = kernel(*head, gap, self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st,
-                      self._geo, untracked, self._sensor_start, self._phalanx_start, self._geo_start, self._theta,
-                      self._phal, self._mode, self._cx, self._dl, self._pd, self._jp, self._log_t, self._log_r,
-                      self._log_g, self._log_n, offsets, ws[1], at_ws)
+        untracked = self._untracked
+        if untracked is None or untracked[0] != flags:    # (the kernels only read it: one array while the flags stay, ``_begin``)
+            untracked = self._untracked = (flags, np.array(flags))
+        done = kernel(*head, gap, *kept[2], untracked[1], *kept[3], offsets, kept[4], at_ws)
         if not done:
             return 0, None, None, None
         last = ts[done - 1]
@@ -1108,6 +1112,18 @@ class ChainHand:
         for e in estimators:
             e._t_last = last
         return done, self._mode.tolist(), *self._starts
+
+    def _run_arrays(self) -> tuple:
+        """What ``advance_run`` hands its kernel for the stack as it is, kept from one call to the next while
+        the same estimators are stacked (``_stack`` makes new arrays): the stack's ``sensor_start`` (the key), the
+        fingers' steps' array, ``run_hand``'s arguments before and after the untracked flags (without the hand,
+        the angles and the time; the steps' array among them) and its work arrays (``chain_kernel.hand_scratch``)."""
+        dts = np.empty(len(self._estimators))
+        return (self._sensor_start, dts,
+                (self._x, self._p, self._rate, self._hand_acc, dts, self._gyr, self._acc, self._st, self._geo),
+                (self._sensor_start, self._phalanx_start, self._geo_start, self._theta, self._phal, self._mode, self._cx,
+                 self._dl, self._pd, self._jp, self._log_t, self._log_r, self._log_g, self._log_n),
+                K.hand_scratch(self._sensor_start, self._phalanx_start))
 
     def _stack_if_new(self, estimators: list[Chain], hand) -> None:
         """The estimators' states stacked here, unless they are already (``advance``'s first step)."""

@@ -319,6 +319,7 @@ class HandSession:
         self._phi_slices: tuple[list, list[slice]] | None = None   # (phalanx_start, each finger's slice of the angles)
         self._tick_ids: tuple[str, ...] | None = None          # the sensor ids of the tick being processed
         self._run_phis = self._run_totals = np.empty((0, 0))    # a steady run's angles and their sums (``_steady_run``)
+        self._run_kept: tuple | None = None     # its kernel's arguments that stay the same run after run (``_run_fixed``)
         self._tick_readings: np.ndarray | None = None          # and their corrected readings (k, 2, 3)
         self._references: list[ReferencePose] = []
         self._tick_t: float | None = None
@@ -766,31 +767,37 @@ class HandSession:
         fits, together, tick = self._mount_fits, self._together_phi, pending[t]
         frame_t, ref_t = self._next_frame_t, self._references[0].t1 if self._references else math.inf
         # then a second tick ready (at 200 Hz a message releases one tick: nothing more to check)
-        later = sorted(pending)[1:]
-        if not self._ready(later[0]):
+        order = sorted(pending)
+        if not self._ready(order[1]):
             return None
         fingers = together[1]
         if not (self._advanced_together_again() and tick.keys() >= self._finger_sensor_ids and _all_live(fingers)):
             return None
-        # the ticks of the run: ready, with the same sensors, until a frame or a reference pose is due
+        # the ticks of the run: ready, with the same sensors, until a frame or a reference pose is due; their
+        # readings gathered into one list of numbers on the way (numpy reads a list several times faster than
+        # an iterator over the ticks' lists)
         ids = tuple(tick)
-        ts, ticks = [t], [tick]
-        for u in later:
+        ts, flat = [t], []
+        for v in tick.values():
+            flat += v
+        ready = self._ready
+        for u in order[1:]:
             nxt = pending[u]
-            if not self._ready(u) or tuple(nxt) != ids:
+            if not ready(u) or tuple(nxt) != ids:
                 break
             ts.append(u)
-            ticks.append(nxt)
+            for v in nxt.values():
+                flat += v
             if u + 1e-9 >= frame_t or u + 1e-9 >= ref_t:
                 break
-        if len(ts) < 2:
+        n = len(ts)
+        if n < 2:
             return None
-        n, k = len(ts), len(ids)
-        raw = np.fromiter(chained.from_iterable(chained.from_iterable(tk.values() for tk in ticks)), float,
-                          6 * k * n).reshape(n, k, 2, 3)
+        shape = (n, len(ids), 2, 3)
+        raw = np.fromiter(flat, float, len(flat)).reshape(shape)
         self._tick_ids = ids
         layout, off_rows = self._steady_layout(fits, fingers)
-        readings = np.empty_like(raw)           # the kernel writes them: the sensors' last samples only then
+        readings = np.empty(shape)              # the kernel writes them: the sensors' last samples only then
         # the angles tick after tick and the sums of them, read only here (copied out): kept per hand and grown as a
         # run needs (the kernel uses the first n + 1 angles and n sums); the optics' motions stay the run's own (the
         # last tick's become the hand's motion, ``motion_of``'s views of them, read after the run)
@@ -800,7 +807,6 @@ class HandSession:
             totals = self._run_totals = np.empty(phis.shape[0] - 1)
         phis[0] = together[0]
         motions, hands = np.empty((n, 24)), np.empty((n, 18))
-        known = self._hand_known                # every tick's window full is this (the kernel checks it)
         done, given_status = 0, _NO_STATUS
         if given is not None and given[3] is self.optics:
             times, rows, given_status = given[:3]
@@ -810,11 +816,12 @@ class HandSession:
                 done += 1
             motions[:done] = rows[:done]
         optics = self.optics
+        fixed = self._run_fixed(fits, fingers, ids, layout, off_rows, phis)
+        # every tick's window full is ``_hand_known`` (the kernel checks it)
         run = self._together.advance_run(
-            steady_run_in, (np.array(ts), *optics.kernel_args(), self._optics_back_t, self.settings.pose_window_s,
-                            known, motions, hands, totals, done, given_status, fits.state, fits._meta, fits.rows(ids),
-                            fits._st, raw, readings, phis, self._all_started(len(fingers)), off_rows, layout.rows_gyr,
-                            layout.rows_acc),
+            steady_run_in, (np.array(ts), *optics.kernel_args(), self._optics_back_t,
+                            self.settings.pose_window_s, self._hand_known, motions, hands, totals, done, given_status,
+                            *fixed[1], raw, readings, *fixed[2]),
             ts, [fs.estimator for fs in fingers], len(layout.sensors), optics.run_scratch())
         if run is None:
             return None
@@ -1123,6 +1130,19 @@ class HandSession:
             off_rows, self._together.cross_offsets = _NO_ROWS, None
         self._steady_kept = (fits, fingers, chain, self._tick_ids, layout, off_rows, self._together.cross_offsets)
         return layout, off_rows
+
+    def _run_fixed(self, fits: HandMountings, fingers: list[FingerState], ids: tuple, layout: "_TogetherLayout",
+                   off_rows: np.ndarray, phis: np.ndarray) -> tuple:
+        """The arguments of a steady run's kernel that stay the same run after run (``_steady_run``): the fits'
+        arrays and the tick's rows in them, then the angles' array, the fingers' ``started`` and the layout's rows;
+        kept with the last steady layout (``_steady_layout``'s, the same fits, fingers and tick order) and angles'
+        array they were made for."""
+        kept_layout = self._steady_kept
+        fixed = self._run_kept
+        if fixed is None or fixed[0] is not kept_layout or fixed[2][0] is not phis:
+            fixed = self._run_kept = (kept_layout, (fits.state, fits._meta, fits.rows(ids), fits._st),
+                                      (phis, self._all_started(len(fingers)), off_rows, layout.rows_gyr, layout.rows_acc))
+        return fixed
 
     def _take_together(self, fingers: list[FingerState], layout: "_TogetherLayout", phi: np.ndarray, modes: list,
                        phalanx_start: list, sensor_start: list, finite: bool) -> None:
