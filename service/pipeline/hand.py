@@ -432,7 +432,13 @@ class HandSession:
         """Take one source message in (the first half of ``handle``); returns what it dropped. The
         frames it completes come from ``ready_frames``."""
         self._dropped = None
-        self._accept(msg)
+        kind = type(msg)                    # (a sample or a pose, read by the compiled parser: no call of ``_accept``)
+        if kind is FastImuBatch:
+            self._add_imu(msg.samples)
+        elif kind is FastPose:
+            self._add_pose(msg)
+        else:
+            self._accept(msg)
         return NOTHING_DROPPED if self._dropped is None else Dropped(**self._dropped)
 
     def ready_frames(self) -> Iterator[HandFrame]:
@@ -476,13 +482,8 @@ class HandSession:
         self._dropped[reason] += count
 
     def _accept(self, msg) -> None:
-        kind = type(msg)                    # (the compiled parser's types first: no check of an ABC's registry)
-        if kind is FastImuBatch:
-            self._add_imu(msg.samples)
-            return
-        if kind is FastPose:
-            self._add_pose(msg)
-            return
+        """``accept`` of any message but the compiled parser's ``imu_batch`` and ``pose`` (taken first there, by
+        their exact types: no check of an ABC's registry)."""
         if isinstance(msg, IMU_BATCH):
             self._add_imu(msg.samples)
             return

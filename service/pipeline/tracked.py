@@ -25,6 +25,9 @@ class TrackedHand:
         self._session = HandSession(hand, settings)
         self.recognizer = GestureRecognizer(gesture_settings or GestureSettings())
         self._layouts = Layouts()           # the fixed parts of this hand's frames' text (``FrameOutput``)
+        # the session's own methods for the two called per message (no call of this class's around them)
+        self.accept = self._session.accept
+        self.tick_ready = self._session.tick_ready
 
     @property
     def hand(self) -> str:
@@ -58,12 +61,12 @@ class TrackedHand:
 
     def accept(self, message) -> Dropped:
         """Take one source message in; returns what it dropped and why. Its outputs follow from
-        ``outputs``."""
+        ``outputs``. (Each instance has ``HandSession.accept`` itself in its place.)"""
         return self._session.accept(message)
 
     def tick_ready(self) -> bool:
         """Whether ``outputs`` would process another tick now (then the outputs so far have later work
-        behind them)."""
+        behind them). (Each instance has ``HandSession.tick_ready`` itself in its place.)"""
         return self._session.tick_ready()
 
     def ticks_ready(self, count: int) -> bool:

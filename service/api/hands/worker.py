@@ -456,20 +456,21 @@ class Worker:
         if sid in self.opening:                     # its hand is being built: after it, in order
             self.opening[sid][2].append(message)
             return
-        if kind == "src":
-            owned = self.hands.get(sid)
-            if owned is None:
-                return
-            n, raw = message[2], message[3]
-            errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw, self.emitter(owned, sid, n, at_once))
-            self.replied(owned, sid, n, ["rep", sid, n, errors], at_once)
-        elif kind == "chk":
+        if kind == "chk":                           # (most messages: a sample or a pose)
             owned = self.hands.get(sid)
             if owned is None:
                 return
             n = message[2]
-            errors, accepted = owned.check(message[3], message[4], self.emitter(owned, sid, n, at_once))
+            errors, accepted = owned.check(message[3], message[4], self.emitter(owned, sid, n) if at_once else None)
             self.replied(owned, sid, n, None if accepted and not errors else ["rep", sid, n, errors, accepted], at_once)
+        elif kind == "src":
+            owned = self.hands.get(sid)
+            if owned is None:
+                return
+            n, raw = message[2], message[3]
+            errors = owned.handle(msgpack.unpackb(raw) if isinstance(raw, bytes) else raw,
+                                  self.emitter(owned, sid, n) if at_once else None)
+            self.replied(owned, sid, n, ["rep", sid, n, errors], at_once)
         elif kind == "fmt":
             if (owned := self.hands.get(sid)) is not None:
                 owned.binary = bool(message[2])
@@ -497,7 +498,7 @@ class Worker:
         error replies, in the session's ``reps`` run: extended while nothing else of the session follows it in
         ``out``, else begun); with ``at_once``, sent now if it has outputs (the frame of its last tick: one write with its
         reply, ``OwnedHand.handle_valid``)."""
-        outs = owned.encoded(sid, n)
+        outs = owned.encoded(sid, n) if owned.sink.pending else None    # (most messages: no output)
         out, runs = self.out, self.runs
         if outs:
             out.extend(outs)
@@ -518,12 +519,9 @@ class Worker:
             with contextlib.suppress(OSError):      # the web process is gone: the run loop finds it out
                 self.send()
 
-    def emitter(self, owned: OwnedHand, sid: int, n: int, at_once: bool):
-        """What sends source message ``n``'s outputs made so far, with everything queued before them
-        (``None`` unless ``at_once``)."""
-        if not at_once:
-            return None
-
+    def emitter(self, owned: OwnedHand, sid: int, n: int):
+        """What sends source message ``n``'s outputs made so far, with everything queued before them (for a
+        message whose frames go back at once, ``dispatch``)."""
         def emit() -> None:
             self.out.extend(owned.encoded(sid, n))
             self.runs.pop(sid, None)                # (a run after them is another)
