@@ -146,8 +146,8 @@ def _pipeline_kernels() -> tuple:
     from ..model import openxr_frame_kernel, openxr_kernel
     from ..pipeline import frame_text_kernel, mounting_kernel, optical_kernel
     return (openxr_kernel.joint_poses, optical_kernel.at_in, optical_kernel.usable_in, optical_kernel.keeps,
-            optical_kernel.pose_keeps_in, values.values_kernel, mounting_kernel.correct, mounting_kernel.fit,
-            frame_text_kernel.merge, values.step_kernel, openxr_frame_kernel.frame_poses)
+            optical_kernel.pose_keeps_in, optical_kernel.add, values.values_kernel, mounting_kernel.correct,
+            mounting_kernel.fit, frame_text_kernel.merge, values.step_kernel, openxr_frame_kernel.frame_poses)
 
 
 def _kernels(name: str) -> tuple:
@@ -183,7 +183,7 @@ def _warm_pipeline() -> None:
     frame_values(angles, joint_poses_compiled(calib, angles, np.eye(3), np.zeros(3)), 1.0, 1.0)
     track = OpticalTrack()
     for k in range(3):
-        track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)
+        track.add(0.01 * k, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), True)     # (``optical_kernel.add``)
     track.at(0.015)
     optical_kernel.usable_in(np.array([0.005, 0.015]), *track.kernel_args(), np.empty((2, 24)),
                              np.empty(2, dtype=np.int64), track.run_scratch())

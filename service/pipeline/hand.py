@@ -512,12 +512,13 @@ class HandSession:
             return
 
     def _add_pose(self, msg) -> None:
-        if self.optics.latest_t is not None and msg.t <= self.optics.latest_t:
+        t, latest = msg.t, self.optics.latest_t
+        if latest is not None and t <= latest:
             self._drop("late")
-        else:
-            if self._deferred and not self._pose_keeps(msg.t):
-                self.flush()
-            self.optics.add(msg.t, msg.position, msg.orientation, msg.valid)
+            return
+        if self._deferred and not self._pose_keeps(t):
+            self.flush()                    # (which may start the optics again: read after it)
+        self.optics.add(t, msg.position, msg.orientation, msg.valid)
 
     def _add_reference(self, msg: ReferencePose) -> None:
         """Keep a ``reference_pose`` until the tick at or after its ``t1`` is processed (it may arrive
@@ -660,14 +661,16 @@ class HandSession:
         done = self._deferred_fits
         if done == len(deferred):
             return optics.add_keeps(t_new, next(iter(deferred)))
-        times = list(deferred)[done:]
+        times, rows, status = np.fromiter(deferred, float), self._fit_rows, self._fit_status
+        if done:
+            times, rows, status = times[done:], rows[done:], status[done:]
         # ``add_keeps``, then ``optics.at`` of each tick not checked yet and ``_finite_motion`` of what it gives, in
         # one compiled call (``optical_kernel.pose_keeps``), their outputs kept for the run that processes them
-        # (``_given_fits``: by ``add_keeps``, the same as they are then), with the track's work arrays
+        # (``_given_fits``: by ``add_keeps``, the same as they are then; the rows after the last tick's untouched),
+        # with the track's work arrays
         try:
-            if optical_kernel.pose_keeps_in(float(t_new), float(next(iter(deferred))), np.array(times), *optics.kernel_args(),
-                                            optics._max_poses, self._fit_rows[done:], self._fit_status[done:],
-                                            optics.run_scratch()) < len(times):
+            if optical_kernel.pose_keeps_in(float(t_new), float(next(iter(deferred))), times, *optics.kernel_args(),
+                                            optics._max_poses, rows, status, optics.run_scratch()) < len(times):
                 return False
         except (ValueError, np.linalg.LinAlgError):
             return False

@@ -87,6 +87,15 @@ def motion_of(out: np.ndarray, flat: np.ndarray) -> BaseMotion:
     return motion
 
 
+def _pose_numbers(position, orientation_xyzw) -> list:
+    """A pose's position and orientation as seven floats, as numpy stores them in a row of the track's arrays
+    (``OpticalTrack._add_array``: converted and broadcast, or refused with its error)."""
+    row = np.empty(7)
+    row[:3] = position
+    row[3:] = orientation_xyzw
+    return row.tolist()
+
+
 class OpticalTrack:
     """Causal metacarpus kinematics from a live pose stream (the hand pipeline's view of the optics).
 
@@ -123,19 +132,32 @@ class OpticalTrack:
         self._position = np.zeros((cap, 3))
         self._orientation = np.zeros((cap, 4))
         self._lo = self._hi = 0
-        self._held_t = math.nan                           # the newest pruned valid pose
-        self._held_position = np.zeros(3)
+        self._held_t = math.nan                           # the newest pruned valid pose (``optical_kernel.add``
+        self._held_position = np.zeros(3)                 # writes it into these two arrays)
         self._held_orientation = np.array([0.0, 0.0, 0.0, 1.0])
         self._scratch: tuple | None = None                # ``run_scratch``'s work arrays, made at its first call
 
     def add(self, t: float, position, orientation_xyzw, valid: bool) -> None:
+        """The pose at ``t`` (after the one before) into the track, in one compiled call (``optical_kernel.add``,
+        ``_add_array``'s steps) with its seven numbers: a message's lists unpacked as they are, anything else as
+        numpy stores it in a row (converted and broadcast, or refused with its error before anything is stored)."""
         if self.latest_t is not None and t <= self.latest_t:
             raise ValueError(f"pose time must increase: {t} after {self.latest_t}")
         self.latest_t = t
         horizon = t - max(4 * self.window_s, 2 * self.timeout_s)
         if self.reference:
             self._add_reference(t, position, orientation_xyzw, valid, horizon)
-        self._add_array(t, position, orientation_xyzw, valid, horizon)
+        if not valid:
+            px = py = pz = qx = qy = qz = qw = 0.0
+        elif type(position) is list and type(orientation_xyzw) is list and len(position) == 3 and len(orientation_xyzw) == 4:
+            px, py, pz = position                   # (a message's: lists of floats)
+            qx, qy, qz, qw = orientation_xyzw
+        else:
+            px, py, pz, qx, qy, qz, qw = _pose_numbers(position, orientation_xyzw)
+        self._lo, self._hi, self._held_t = optical_kernel.add(
+            float(t), bool(valid), px, py, pz, qx, qy, qz, qw, horizon, self._t, self._valid, self._position,
+            self._orientation, self._lo, self._hi, self._max_poses, self._held_position, self._held_orientation,
+            self._held_t)
         if valid:
             self.latest_valid_t = t          # once the pose is stored (a position that is no vector is not)
 
@@ -151,7 +173,8 @@ class OpticalTrack:
                 self._pruned_valid = old       # still the held pose during a long occlusion
 
     def _add_array(self, t: float, position, orientation_xyzw, valid: bool, horizon: float) -> None:
-        """``add`` on the arrays, step for step as on the deque (its ``maxlen`` drops silently)."""
+        """``add`` on the arrays, step for step as on the deque (its ``maxlen`` drops silently), in Python: the
+        reference of the compiled ``optical_kernel.add``, which ``add`` calls."""
         if self._hi == len(self._t):
             n = self._hi - self._lo
             for a in (self._t, self._valid, self._position, self._orientation):

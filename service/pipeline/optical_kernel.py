@@ -1,6 +1,7 @@
 """Compiled (numba) kernel of ``OpticalTrack.at``: the metacarpus kinematics at one time from the
 stored poses, in one call. ``OpticalTrack.at_reference`` (numpy and scipy's ``Rotation``) is the
-reference; ``tests/test_optical_kernel.py`` checks the two against each other.
+reference; ``tests/test_optical_kernel.py`` checks the two against each other. ``add`` stores a pose
+(``OpticalTrack._add_array``, its reference; ``tests/test_optical_add.py``).
 
 The poses are the track's arrays ``t`` (cap,), ``valid`` (cap,) 0/1, ``position`` (cap, 3) and
 ``orientation`` (cap, 4, ``[x, y, z, w]``) between ``lo`` and ``hi`` (the reference's deque), plus
@@ -357,3 +358,41 @@ def pose_keeps_in(t_new, t0, times, ts, valid, position, orientation, lo, hi, he
         return -1
     return usable_in(times, ts, valid, position, orientation, lo, hi, held_t, held_p, held_q, window_s, timeout_s, outs,
                      statuses, ws)
+
+
+@njit(cache=JIT_CACHE, _nrt=False, error_model="numpy", fastmath=KERNEL_FASTMATH)
+def add(t, valid, px, py, pz, qx, qy, qz, qw, horizon, ts, valids, position, orientation, lo, hi, max_poses, held_p,
+        held_q, held_t):
+    """``OpticalTrack._add_array`` in one call: the pose at ``t`` (its position ``px, py, pz`` and orientation
+    ``qx, qy, qz, qw`` stored where ``valid``) into the track's arrays (entries ``lo..hi-1``, moved to the start
+    when the arrays are full), the oldest dropped beyond ``max_poses``, and those whose successor is older than
+    ``horizon`` pruned, the newest pruned valid one into ``held_p`` and ``held_q`` (written in place). Returns the
+    new ``lo``, ``hi`` and held time ``held_t`` (the one given when none was pruned valid)."""
+    if hi == ts.shape[0]:
+        n = hi - lo
+        for j in range(n):           # (forward: the source is at or after the destination)
+            k = lo + j
+            ts[j] = ts[k]
+            valids[j] = valids[k]
+            for c in range(3):
+                position[j, c] = position[k, c]
+            for c in range(4):
+                orientation[j, c] = orientation[k, c]
+        lo, hi = 0, n
+    ts[hi] = t
+    valids[hi] = valid
+    if valid:
+        position[hi, 0], position[hi, 1], position[hi, 2] = px, py, pz
+        orientation[hi, 0], orientation[hi, 1], orientation[hi, 2], orientation[hi, 3] = qx, qy, qz, qw
+    hi += 1
+    if hi - lo > max_poses:
+        lo += 1
+    while hi - lo > 2 and ts[lo + 1] < horizon:
+        if valids[lo]:
+            held_t = ts[lo]
+            for c in range(3):
+                held_p[c] = position[lo, c]
+            for c in range(4):
+                held_q[c] = orientation[lo, c]
+        lo += 1
+    return lo, hi, held_t
