@@ -51,8 +51,8 @@ LEAD_S = 3.0
 COLD_LEAD_S = 30.0
 """streaming before the first switch with the kernel cache cold, s: that switch compiles for 10-20 s, and its
 window's largest delay is compared with the largest in as long just before it, as far as the lead reaches (with
-3 s, 2 s after the stream's first second: the largest delay of eight times as many frames against it read as a
-stall of 6-22 ms in runs where 30 s read 0)"""
+3 s, 2 s after the stream's first second: the largest delay of seven times as many frames against it read as a
+stall of 6.2 and 14.6 ms in two runs, where 30 s read 0.0 and 10.4 ms)"""
 MARGIN_S = 1.0
 """no switch starts later than this before the stream's planned end (plus its window), s"""
 WARMUP_S = 1.0
@@ -367,7 +367,8 @@ def summary(conditions: list[dict], goal_ms: float = 10.0) -> str:
         verdict += (f"; {unmeasured} session-switch(es) without a stall figure (no frame in the window or its "
                     f"baseline)" if unmeasured else "") + \
             (f"; {short} switch(es) against a baseline shorter than their window (its largest delay of more frames "
-             f"against the baseline's: reads high; a longer --lead for the first)" if short else "") + (f"; {failed} switch(es) not applied" if failed else "")
+             f"against the baseline's: reads high; a longer --lead for the first)" if short else "") + \
+            (f"; {failed} switch(es) not applied" if failed else "")
         probe = c.get("probe") or {}
         health = probe.get("health") or {}
         lines += ["", verdict + (f"; /health p50 / p99 during the run {health['p50_ms']:.1f} / {health['p99_ms']:.1f} ms"
@@ -399,18 +400,20 @@ def run(out_dir: str | Path, sessions: int = 4, hand_workers: int | None = None,
         raise ValueError(f"--gap must be at least 1 s (the baseline before each switch), got {gap_s:g}")
     if inject_stop_ms is not None and not 0 < inject_stop_ms < 1e3 * gap_s:
         raise ValueError(f"--inject-stop-ms must be positive and shorter than the gap, got {inject_stop_ms:g}")
-    if seconds is not None and seconds < (lead_s or LEAD_S) + SETTLE_S + MARGIN_S:
-        raise ValueError(f"--seconds must be at least the lead plus {SETTLE_S + MARGIN_S:g} s for one switch, "
-                         f"got {seconds:g}")
     caches = CACHE_STATES if cache == "both" else (cache,)
     if any(c not in CACHE_STATES for c in caches):
         raise ValueError(f"--cache must be warm, cold or both, got {cache!r}")
+    leads = {c: lead_s or (COLD_LEAD_S if c == "cold" else LEAD_S) for c in caches}
+    longest = max(leads.values())
+    if seconds is not None and seconds < longest + SETTLE_S + MARGIN_S:
+        raise ValueError(f"--seconds must be at least the lead ({longest:g} s) plus {SETTLE_S + MARGIN_S:g} s for one "
+                         f"switch, got {seconds:g}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with torn_down_on_signal():                 # SIGTERM stops the service and the generator as Ctrl-C does
         try:
             conditions = [run_condition(c, sessions, hand_workers, passes, gap_s, seconds, inject_stop_ms,
-                                        lead_s=lead_s or (COLD_LEAD_S if c == "cold" else LEAD_S)) for c in caches]
+                                        lead_s=leads[c]) for c in caches]
         except RuntimeError as err:             # the service or a load generator did not start or failed
             if type(err) is not RuntimeError:   # RecursionError, NotImplementedError: a defect, with its traceback
                 raise

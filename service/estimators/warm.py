@@ -21,8 +21,7 @@ worker with a batch, the web process with a frame) waits for the compile's time 
 scheduler tick: measured on this 2-core machine, a process at niceness 5 that sleeps 2 ms and works 0.3 ms,
 two at once, woke p99 0.6-0.9 ms late on an idle machine, 3.9-4.1 ms beside two busy processes at niceness
 10 or 19 (max 7-12 ms), 0.49 ms beside two at ``SCHED_IDLE`` (max 7.6-8.3); a frame passes such a wake three
-times (web process, worker, web process), and a first switch to ``inertial`` compiled at niceness 5-10
-stalled the other sessions up to 20.4 ms. A process at the idle priority gets almost no CPU on a machine
+times (web process, worker, web process). A process at the idle priority gets almost no CPU on a machine
 whose cores other work keeps busy (at niceness 19 a switch to an estimator not in the cache did not complete
 within 300 s), so a compile not done after ``COMPILE_IDLE_S`` is stopped and started again at niceness
 ``COMPILE_NICE`` (``Compile``): numba keeps each kernel in the on-disk cache as it is compiled, so the
@@ -88,19 +87,18 @@ def compile_command(name: str, params: dict | None = None, idle: bool = False) -
             json.dumps(params or {})]
 
 
-def lower_priority(idle: bool) -> bool:
+def lower_priority(idle: bool) -> None:
     """This process's priority for compiling beside a serving one: with ``idle`` the idle scheduling
     priority (``SCHED_IDLE``, where the system has it), else (or where it has not) niceness ``COMPILE_NICE``
-    (at least: a process already nicer stays so). Returns whether the idle priority was taken."""
+    (at least: a process already nicer stays so)."""
     if idle and hasattr(os, "SCHED_IDLE"):
         try:
             os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
-            return True
+            return
         except OSError:
             pass
     with contextlib.suppress(OSError):
         os.nice(COMPILE_NICE - os.nice(0))
-    return False
 
 
 class Compile:
